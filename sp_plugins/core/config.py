@@ -1,0 +1,80 @@
+"""One SP configuration shared by every method and task."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Type
+
+from sp_plugins.core.boundary import BoundaryKind, check_boundary_kind
+from sp_plugins.core.noise import NoiseKind, check_noise_kind
+from sp_plugins.core.schedule import SCHEDULE_KINDS, ScheduleKind
+from sp_plugins.core.stencil import STENCIL_KINDS  # noqa: F401  (re-exported for docs)
+
+
+def _preconditioner():
+    from sp_plugins.core.preconditioner import StochasticPreconditioner
+
+    return StochasticPreconditioner
+
+
+@dataclass
+class SPConfig:
+    """Stochastic preconditioning settings. Nested as ``sp`` in every model config, so
+    ``--pipeline.model.sp.alpha0 0.01`` means the same on every method."""
+
+    _target: Type = field(default_factory=_preconditioner)
+    enabled: bool = True
+    """Perturb query positions while training. False gives the plain baseline."""
+    alpha0: float = 0.01
+    """Initial alpha: the standard deviation of the offset per axis, in scene units (or a
+    fraction of the scene bounding-box diagonal with relative_to_diagonal)."""
+    relative_to_diagonal: bool = False
+    """Read alpha0 as a fraction of the scene bounding-box diagonal (the paper: 1-2%)."""
+    schedule: ScheduleKind = "exponential"
+    """constant | step (alpha0, then 0) | exponential (decays to exactly 0) | linear."""
+    end: float = 0.2
+    """When alpha reaches 0: a fraction of training in (0, 1], or an absolute step > 1."""
+    final_ratio: float = 1e-3
+    """Exponential schedule only: decades of decay before the shift to 0 (1e-3 = three)."""
+    noise: NoiseKind = "gaussian"
+    """gaussian | uniform | squared-gaussian, all with unit variance per axis."""
+    boundary: BoundaryKind = "reflect"
+    """reflect (bounded scenes) | clamp (comparison only) | none (unbounded or contracted)."""
+    num_samples: int = 1
+    """Average the field over K perturbations (the paper's multi-sample variant; K x cost)."""
+    alpha_grid: bool = False
+    """Learn a spatially varying alpha on a grid instead of one global value."""
+    alpha_grid_resolution: int = 32
+    """Cells per axis of the alpha grid (the paper: 128 on a GPU)."""
+    alpha_grid_init: Optional[float] = None
+    """Initial alpha of the grid; None uses alpha0."""
+    alpha_grid_lr: float = 1e-3
+    """Adam learning rate of the alpha grid."""
+    seed: Optional[int] = None
+    """Seed of the perturbation noise; None draws from torch's global generator."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise a ValueError naming the first bad setting."""
+        import math
+
+        check_noise_kind(self.noise)
+        check_boundary_kind(self.boundary)
+        if self.schedule not in SCHEDULE_KINDS:
+            raise ValueError(f"schedule={self.schedule!r} is not a schedule; allowed values: {', '.join(SCHEDULE_KINDS)}")
+        if not (math.isfinite(self.alpha0) and self.alpha0 >= 0):
+            raise ValueError(f"alpha0={self.alpha0!r}: must be a finite number >= 0")
+        if not (math.isfinite(self.end) and self.end > 0):
+            raise ValueError(f"end={self.end!r}: give a fraction of training in (0, 1] or an absolute end step > 1")
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples={self.num_samples}: must be >= 1")
+        if self.alpha_grid_init is not None and not (math.isfinite(self.alpha_grid_init) and self.alpha_grid_init > 0):
+            raise ValueError(f"alpha_grid_init={self.alpha_grid_init!r}: must be a finite number > 0")
+        if self.alpha_grid_resolution < 2:
+            raise ValueError(f"alpha_grid_resolution={self.alpha_grid_resolution}: must be >= 2")
+
+    def setup(self, **kwargs):
+        """Build the :class:`StochasticPreconditioner` (nerfstudio's config pattern)."""
+        return self._target(self, **kwargs)
