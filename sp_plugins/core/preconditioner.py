@@ -130,7 +130,9 @@ class StochasticPreconditioner(nn.Module):
         return self.alpha_grid(x.detach()) * decay
 
     def _kwargs(self, x: Tensor) -> dict:
-        bounds = (self.bounds_lo.to(x.dtype), self.bounds_hi.to(x.dtype)) if self._bounds else None
+        bounds = None
+        if self._bounds and self.config.boundary != "none":
+            bounds = (self.bounds_lo.to(x.dtype), self.bounds_hi.to(x.dtype))
         return dict(
             noise=self.config.noise,
             boundary=self.config.boundary,

@@ -1,0 +1,147 @@
+import math
+
+import pytest
+import torch
+from scipy import stats
+
+from sp_plugins import perturb
+from sp_plugins.core import NOISE_KINDS, perturbed_mean, reflect, sample_noise
+
+
+def gen(seed=0):
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
+
+
+@pytest.mark.parametrize("kind", NOISE_KINDS)
+def test_noise_kinds_have_zero_mean_and_unit_variance(kind):
+    eps = sample_noise((400_000,), kind, generator=gen(1), dtype=torch.float64)
+    assert abs(float(eps.mean())) < 0.01
+    assert abs(float(eps.var()) - 1.0) < 0.02
+
+
+def test_noise_kinds_differ_in_shape():
+    g = sample_noise((200_000,), "gaussian", generator=gen(2))
+    u = sample_noise((200_000,), "uniform", generator=gen(2))
+    s = sample_noise((200_000,), "squared-gaussian", generator=gen(2))
+    assert float(u.abs().max()) <= math.sqrt(3) + 1e-6
+    kurt = lambda e: float((e**4).mean() / (e**2).mean() ** 2)  # noqa: E731
+    assert kurt(u) == pytest.approx(1.8, abs=0.05)
+    assert kurt(g) == pytest.approx(3.0, abs=0.1)
+    assert kurt(s) > 10.0
+
+
+def test_reflect_keeps_uniform_uniform_but_clamp_does_not():
+    n = 200_000
+    x = torch.rand(n, 1, generator=gen(3), dtype=torch.float64)
+    alpha = 1.0  # as large as the box
+    refl = perturb(x, alpha, boundary="reflect", bounds=(0.0, 1.0), generator=gen(4))[:, 0].numpy()
+    clmp = perturb(x, alpha, boundary="clamp", bounds=(0.0, 1.0), generator=gen(4))[:, 0].numpy()
+    assert stats.kstest(refl, "uniform").pvalue > 1e-3
+    assert stats.kstest(clmp, "uniform").pvalue < 1e-12
+    # clamp piles a large share of the samples exactly on the faces
+    assert ((clmp == 0.0) | (clmp == 1.0)).mean() > 0.3
+    # chi-square on 50 bins confirms uniformity of the reflected points
+    counts, _ = torch.histogram(torch.from_numpy(refl), bins=50, range=(0.0, 1.0))
+    assert stats.chisquare(counts.numpy()).pvalue > 1e-3
+
+
+@pytest.mark.parametrize("boundary", ["reflect", "clamp"])
+def test_perturbed_points_stay_in_any_box(boundary):
+    lo = torch.tensor([-2.0, 0.5, 10.0])
+    hi = torch.tensor([3.0, 0.7, 10.25])
+    x = lo + (hi - lo) * torch.rand(50_000, 3, generator=gen(5))
+    y = perturb(x, 7.0, boundary=boundary, bounds=(lo, hi), generator=gen(6))  # many reflections
+    assert bool(((y >= lo) & (y <= hi)).all())
+    aabb = torch.stack([lo, hi])  # nerfstudio's SceneBox.aabb layout
+    y2 = perturb(x, 7.0, boundary=boundary, bounds=aabb, generator=gen(6))
+    assert torch.equal(y, y2)
+
+
+def test_reflect_is_a_mirror_near_the_faces():
+    lo, hi = torch.tensor(0.0), torch.tensor(1.0)
+    x = torch.tensor([-0.25, 1.25, 2.5, -1.5, 0.3])
+    assert torch.allclose(reflect(x, lo, hi), torch.tensor([0.25, 0.75, 0.5, 0.5, 0.3]))
+
+
+def test_mean_of_perturbed_sine_matches_gaussian_blur():
+    w, alpha = 6.0, 0.2
+    x = torch.linspace(-1, 1, 9, dtype=torch.float64)[:, None]
+    samples = perturb(x, alpha, num_samples=200_000, generator=gen(7))
+    mc = torch.sin(w * samples).mean(0)[:, 0]
+    expected = math.exp(-(w**2) * alpha**2 / 2) * torch.sin(w * x[:, 0])
+    assert torch.allclose(mc, expected, atol=0.006)
+    # and it is really blurred: the unblurred sine is far off
+    assert (mc - torch.sin(w * x[:, 0])).abs().max() > 0.2
+
+
+def test_uniform_noise_blurs_with_a_sinc_kernel():
+    w, alpha = 5.0, 0.3
+    x = torch.linspace(-1, 1, 7, dtype=torch.float64)[:, None]
+    mc = perturbed_mean(lambda p: torch.sin(w * p), x, alpha, 200_000, noise="uniform", generator=gen(8))[:, 0]
+    a = math.sqrt(3) * w * alpha
+    assert torch.allclose(mc, math.sin(a) / a * torch.sin(w * x[:, 0]), atol=0.006)
+
+
+def test_per_point_alpha_and_gradients():
+    x = torch.zeros(4, 3, requires_grad=True)
+    alpha = torch.tensor([0.0, 0.1, 0.2, 0.4], requires_grad=True)
+    y = perturb(x, alpha, generator=gen(9))
+    assert torch.equal(y[0], x[0].detach())  # alpha 0 leaves the point alone
+    y.sum().backward()
+    assert torch.allclose(x.grad, torch.ones_like(x))
+    assert alpha.grad is not None and alpha.grad.abs().sum() > 0  # reparameterisation trick
+    # reflection flips the gradient sign for points that bounced
+    z = torch.full((1, 1), 0.99, requires_grad=True)
+    g = torch.Generator().manual_seed(0)
+    while True:  # find a draw that crosses the face
+        st = g.get_state()
+        out = perturb(z, 0.5, boundary="reflect", bounds=(0.0, 1.0), generator=g)
+        if float(sample_noise((1, 1), generator=torch.Generator().set_state(st))) > 0.02:
+            break
+    out.sum().backward()
+    assert float(z.grad) == -1.0
+
+
+def test_generator_makes_noise_reproducible():
+    x = torch.rand(10, 3)
+    assert torch.equal(perturb(x, 0.1, generator=gen(1)), perturb(x, 0.1, generator=gen(1)))
+    assert not torch.equal(perturb(x, 0.1, generator=gen(1)), perturb(x, 0.1, generator=gen(2)))
+
+
+def test_multi_sample_average_reduces_variance():
+    x = torch.zeros(2000, 1, dtype=torch.float64)
+    one = perturbed_mean(torch.sin, x, 0.5, 1, generator=gen(3))
+    many = perturbed_mean(torch.sin, x, 0.5, 16, generator=gen(3))
+    assert many.shape == one.shape == x.shape
+    assert float(many.var()) < float(one.var()) / 8
+
+
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        (dict(alpha=-0.1), "alpha"),
+        (dict(alpha=float("nan")), "alpha"),
+        (dict(alpha=torch.tensor([0.1, -1.0])), "alpha"),
+        (dict(alpha=0.1, noise="cauchy"), "noise"),
+        (dict(alpha=0.1, boundary="wrap"), "boundary"),
+        (dict(alpha=0.1, boundary="reflect", bounds=(1.0, 1.0)), "empty"),
+        (dict(alpha=0.1, boundary="reflect"), "bounds"),
+        (dict(alpha=0.1, num_samples=0), "num_samples"),
+    ],
+)
+def test_bad_input_names_the_argument(kwargs, word):
+    x = torch.rand(2, 3)
+    with pytest.raises(ValueError, match=word):
+        perturb(x, **kwargs)
+
+
+def test_nan_positions_are_rejected():
+    x = torch.rand(3, 3)
+    x[1, 2] = float("nan")
+    with pytest.raises(ValueError, match="positions"):
+        perturb(x, 0.1)
+    x[1, 2] = float("inf")
+    with pytest.raises(ValueError, match="positions"):
+        perturb(x, 0.1)

@@ -1,0 +1,115 @@
+import pytest
+import torch
+
+from sp_plugins import SPConfig, StochasticPreconditioner
+
+
+def make(**kw):
+    total = kw.pop("total_steps", 1000)
+    return SPConfig(**kw).setup(total_steps=total, bounds=(-1.0, 1.0))
+
+
+def test_eval_mode_returns_the_input_tensor_itself():
+    sp = make(alpha0=0.1)
+    x = torch.rand(100, 3)
+    sp.train()
+    assert not torch.equal(sp(x), x)
+    sp.eval()
+    assert sp(x) is x
+
+
+def test_no_perturbation_once_alpha_reaches_zero_or_when_disabled():
+    sp = make(alpha0=0.1, schedule="step", end=0.5)
+    x = torch.rand(10, 3)
+    sp.set_step(499)
+    assert sp.active and not torch.equal(sp(x), x)
+    sp.set_step(500)
+    assert sp.alpha == 0.0 and sp(x) is x
+    off = make(alpha0=0.1, enabled=False)
+    assert off.alpha == 0.0 and off(x) is x
+
+
+def test_callback_alpha_follows_the_schedule():
+    sp = make(alpha0=0.02, schedule="linear", end=0.5, total_steps=200)
+    assert sp.set_step(0) == pytest.approx(0.02)
+    assert sp.set_step(50) == pytest.approx(0.01)
+    assert sp.set_step(100) == 0.0
+    # a new total (resumed with a longer run) re-resolves the fractional end
+    assert sp.set_step(100, total_steps=400) == pytest.approx(0.01)
+
+
+def test_perturbation_scale_matches_alpha_and_stays_in_bounds():
+    sp = make(alpha0=0.05, schedule="constant", seed=0)
+    x = torch.zeros(200_000, 3)
+    d = sp(x) - x
+    assert float(d.std()) == pytest.approx(0.05, rel=0.01)
+    big = make(alpha0=3.0, schedule="constant")
+    y = big(torch.rand(1000, 3) * 2 - 1)
+    assert float(y.abs().max()) <= 1.0
+
+
+def test_state_dict_round_trip_resumes_at_the_same_alpha():
+    sp = make(alpha0=0.013, schedule="exponential", end=0.2, total_steps=5000)
+    sp.set_step(321)
+    state = sp.state_dict()
+    fresh = SPConfig(alpha0=0.013, schedule="exponential", end=0.2).setup(bounds=(-1.0, 1.0))
+    assert fresh.alpha == 0.0
+    fresh.load_state_dict(state)
+    assert int(fresh.step) == 321 and int(fresh.total_steps) == 5000
+    assert fresh.alpha == pytest.approx(sp.alpha) and fresh.alpha > 0
+
+
+def test_state_dict_restores_the_alpha_grid():
+    cfg = dict(alpha0=0.03, alpha_grid=True, alpha_grid_resolution=4, schedule="constant")
+    sp = make(**cfg)
+    with torch.no_grad():
+        sp.alpha_grid.logits.add_(torch.randn_like(sp.alpha_grid.logits))
+    other = make(**cfg)
+    other.load_state_dict(sp.state_dict())
+    x = torch.rand(20, 3) * 2 - 1
+    assert torch.allclose(other.alpha_at(x), sp.alpha_at(x))
+
+
+def test_seeded_preconditioner_is_reproducible():
+    a, b = make(alpha0=0.1, seed=3), make(alpha0=0.1, seed=3)
+    x = torch.rand(50, 3)
+    assert torch.equal(a(x), b(x))
+
+
+def test_multi_sample_blur_averages_draws():
+    sp = make(alpha0=0.3, schedule="constant", num_samples=32, boundary="none")
+    x = torch.zeros(1000, 1)
+    sp1 = make(alpha0=0.3, schedule="constant", num_samples=1, boundary="none")
+    fn = lambda p: torch.sin(5 * p)  # noqa: E731
+    assert sp.blurred(fn, x).shape == x.shape
+    assert float(sp.blurred(fn, x).var()) < float(sp1.blurred(fn, x).var()) / 10
+    sp.eval()
+    assert torch.equal(sp.blurred(fn, x), fn(x))
+
+
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        (dict(alpha0=-1.0), "alpha0"),
+        (dict(noise="laplace"), "noise"),
+        (dict(boundary="periodic"), "boundary"),
+        (dict(schedule="cosine"), "schedule"),
+        (dict(num_samples=0), "num_samples"),
+        (dict(end=0.0), "end"),
+    ],
+)
+def test_bad_config_raises(kwargs, word):
+    with pytest.raises(ValueError, match=word):
+        SPConfig(**kwargs)
+
+
+def test_setup_errors_are_explicit():
+    with pytest.raises(ValueError, match="after the end of training"):
+        SPConfig(end=5000).setup(total_steps=1000, bounds=(-1, 1))
+    with pytest.raises(ValueError, match="bounds"):
+        SPConfig(boundary="reflect").setup(total_steps=10)
+    with pytest.raises(ValueError, match="scene_diagonal"):
+        SPConfig(relative_to_diagonal=True).setup(total_steps=10, bounds=(-1, 1))
+    with pytest.raises(ValueError, match="empty"):
+        SPConfig().setup(total_steps=10, bounds=(1.0, -1.0))
+    assert isinstance(SPConfig(boundary="none").setup(total_steps=10), StochasticPreconditioner)
