@@ -1,0 +1,119 @@
+"""Let nerfstudio's ``SDFField`` run without tiny-cuda-nn, on our torch :class:`HashGrid`.
+
+Targets nerfstudio 1.1.5 (see ``TESTED_NERFSTUDIO_VERSIONS``). There, ``nerfstudio/fields/sdf_field.py``
+does ``from nerfstudio.utils.external import tcnn`` at import time and ``SDFField.__init__``
+calls ``tcnn.Encoding(n_input_dims=3, encoding_config={...})`` unconditionally; without tcnn that
+name is a lazy error object, so NeuS cannot even be constructed. The patch rebinds the module
+global ``nerfstudio.fields.sdf_field.tcnn`` to a tiny namespace whose ``Encoding`` builds a
+:class:`HashGrid` (torch backend) from the same config. Nothing else in nerfstudio changes.
+
+It is explicit and opt-in: call :func:`install_torch_tcnn_fallback` (our SDF method configs and
+models do) before building the field. When tcnn imports and CUDA is available it does nothing.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import inspect
+import logging
+import types
+import warnings
+from typing import Any, Mapping, Optional
+
+import torch
+
+from sp_plugins.encodings.hashgrid import HashGrid
+
+logger = logging.getLogger(__name__)
+
+TESTED_NERFSTUDIO_VERSIONS: tuple[str, ...] = ("1.1.5",)
+PATCHED_MODULE = "nerfstudio.fields.sdf_field"
+PATCHED_ATTRIBUTE = "tcnn"
+
+_original: Optional[Any] = None
+
+
+def _encoding(n_input_dims: int, encoding_config: Mapping[str, Any], seed: int = 1337, dtype: Optional[torch.dtype] = None):
+    """Stand-in for ``tinycudann.Encoding``: a torch :class:`HashGrid` (``seed`` follows torch's RNG)."""
+    return HashGrid.from_tcnn_config(n_input_dims, encoding_config, backend="torch")
+
+
+class _TorchTcnnShim(types.SimpleNamespace):
+    """Only ``Encoding`` is provided; anything else names the patch instead of failing deep inside."""
+
+    def __getattr__(self, name: str):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise RuntimeError(
+            f"tinycudann.{name} is not available: sp_plugins' torch fallback only provides tcnn.Encoding "
+            "(grid encodings). Install tiny-cuda-nn for the rest."
+        )
+
+
+def check_nerfstudio_sdf_field() -> str:
+    """Verify the nerfstudio internals the patch relies on; return the nerfstudio version.
+
+    Raises ``RuntimeError`` when ``sdf_field`` no longer looks ``tcnn`` up as a module global
+    used as ``tcnn.Encoding(...)`` in ``SDFField.__init__``, or when the field no longer reads
+    ``self.encoding.n_output_dims`` (what our HashGrid provides)."""
+    from nerfstudio.fields import sdf_field
+
+    version = importlib.metadata.version("nerfstudio")
+    problems = []
+    if not hasattr(sdf_field, PATCHED_ATTRIBUTE):
+        problems.append(f"{PATCHED_MODULE} has no module attribute '{PATCHED_ATTRIBUTE}'")
+    init_src = inspect.getsource(sdf_field.SDFField.__init__)
+    if "tcnn.Encoding(" not in init_src:
+        problems.append("SDFField.__init__ no longer calls tcnn.Encoding(...)")
+    if "self.encoding.n_output_dims" not in inspect.getsource(sdf_field.SDFField.initialize_geo_layers):
+        problems.append("SDFField.initialize_geo_layers no longer reads self.encoding.n_output_dims")
+    if problems:
+        raise RuntimeError(
+            f"sp_plugins' SDFField tcnn fallback targets nerfstudio {', '.join(TESTED_NERFSTUDIO_VERSIONS)}; "
+            f"installed nerfstudio {version} differs: " + "; ".join(problems) + ". Update patches/nerfstudio_sdf_field.py."
+        )
+    return version
+
+
+def install_torch_tcnn_fallback(force: bool = False) -> bool:
+    """Make ``SDFField`` build a torch :class:`HashGrid` when tcnn is unusable.
+
+    Returns True when the fallback is (now) installed, False when a real tcnn with CUDA is left in
+    place. ``force`` installs it even then (for tests and CPU runs on GPU machines). Idempotent.
+    """
+    global _original
+    from nerfstudio.fields import sdf_field
+    from nerfstudio.utils import external
+
+    version = check_nerfstudio_sdf_field()
+    current = getattr(sdf_field, PATCHED_ATTRIBUTE)
+    if isinstance(current, _TorchTcnnShim):
+        return True
+    if external.TCNN_EXISTS and torch.cuda.is_available() and not force:
+        return False
+    if version not in TESTED_NERFSTUDIO_VERSIONS:
+        warnings.warn(
+            f"sp_plugins' SDFField tcnn fallback was tested with nerfstudio {TESTED_NERFSTUDIO_VERSIONS}, "
+            f"found {version}; it passed the structural checks, so it is installed anyway",
+            stacklevel=2,
+        )
+    _original = current
+    setattr(sdf_field, PATCHED_ATTRIBUTE, _TorchTcnnShim(Encoding=_encoding))
+    logger.info("nerfstudio SDFField: tiny-cuda-nn unavailable, hash grids use sp_plugins' torch HashGrid")
+    return True
+
+
+def uninstall_torch_tcnn_fallback() -> None:
+    """Restore what ``install_torch_tcnn_fallback`` replaced (no-op when it is not installed)."""
+    global _original
+    from nerfstudio.fields import sdf_field
+
+    if isinstance(getattr(sdf_field, PATCHED_ATTRIBUTE), _TorchTcnnShim):
+        setattr(sdf_field, PATCHED_ATTRIBUTE, _original)
+        _original = None
+
+
+def torch_tcnn_fallback_installed() -> bool:
+    from nerfstudio.fields import sdf_field
+
+    return isinstance(getattr(sdf_field, PATCHED_ATTRIBUTE), _TorchTcnnShim)

@@ -1,0 +1,260 @@
+"""Multiresolution hash grid (Instant-NGP): tiny-cuda-nn when it runs, pure torch otherwise.
+
+``HashGrid(...)`` takes the options of tcnn's ``HashGrid`` encoding and a ``backend``:
+``"tcnn"`` (needs ``tinycudann`` and a CUDA device), ``"torch"`` (anywhere: CPU, CUDA, MPS), or
+``"auto"`` (tcnn when it imports and CUDA is available, else torch; the choice is logged once).
+
+The torch backend reproduces tcnn's semantics so that the two are interchangeable:
+
+- inputs are expected in ``[0, 1]^dims``; level ``l`` uses ``scale_l = base_resolution *
+  per_level_scale**l - 1`` (float32 arithmetic), ``position = x * scale_l + 0.5`` and
+  ``resolution_l = ceil(scale_l) + 1`` vertices per axis;
+- levels with ``resolution_l**dims <= 2**log2_hashmap_size`` are indexed densely
+  (x fastest, then y, then z; modulo the level's padded size, so the ``+1`` corner on the far face
+  wraps around exactly as in tcnn), finer levels by tcnn's hash: XOR of ``coord_i * prime_i`` with
+  primes ``(1, 2654435761, 805459861)``, modulo the table size;
+- Linear interpolation weights ``t``, Smoothstep weights ``t*t*(3-2t)`` (continuous derivative);
+- the table is ``[entries, features_per_level]`` with levels back to back, coarsest first, each
+  level padded to a multiple of 8 rows: ``table.reshape(-1)`` is tcnn's ``params`` vector;
+- initialisation uniform in ``[-1e-4, 1e-4]`` as in tcnn.
+
+Unlike tcnn (half precision by default) the torch backend computes in the dtype of the input.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any, Dict, Literal, Mapping, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from sp_plugins.encodings.grid_levels import GRID_TYPES, GridType, grid_levels, per_level_scale_from_max_resolution
+from sp_plugins.encodings.hashgrid_torch import hashgrid_encode
+
+logger = logging.getLogger(__name__)
+
+Backend = Literal["auto", "tcnn", "torch"]
+BACKENDS: tuple[str, ...] = ("auto", "tcnn", "torch")
+Interpolation = Literal["Linear", "Smoothstep"]
+INTERPOLATIONS: tuple[str, ...] = ("Linear", "Smoothstep")
+
+_logged_choices: set = set()
+
+
+def tcnn_available() -> bool:
+    """True when ``tinycudann`` imports and a CUDA device is available."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import tinycudann  # noqa: F401
+    except (ImportError, OSError, RuntimeError):
+        return False
+    return True
+
+
+def resolve_backend(backend: str) -> str:
+    """Map ``auto`` to ``tcnn`` or ``torch``; reject an unusable explicit ``tcnn``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r} is not a backend; allowed values: {', '.join(BACKENDS)}")
+    if backend == "torch":
+        return "torch"
+    available = tcnn_available()
+    if backend == "tcnn":
+        if not available:
+            raise ValueError(
+                "backend='tcnn' needs the tinycudann package and a CUDA device; install it "
+                "(pip install 'sp-plugins[tcnn]') or use backend='auto' / 'torch'"
+            )
+        return "tcnn"
+    choice = "tcnn" if available else "torch"
+    if choice not in _logged_choices:
+        _logged_choices.add(choice)
+        reason = "tinycudann and CUDA available" if available else "tinycudann or CUDA unavailable"
+        logger.info("HashGrid backend 'auto' -> '%s' (%s)", choice, reason)
+    return choice
+
+
+class HashGrid(nn.Module):
+    """Multiresolution hash encoding ``[..., dims] in [0,1] -> [..., num_levels * features_per_level]``.
+
+    Args:
+        num_levels: number of levels L.
+        features_per_level: features F stored per table row (tcnn allows 1, 2, 4, 8).
+        log2_hashmap_size: log2 of the maximum rows per level T.
+        base_resolution: vertices per axis of the coarsest level.
+        per_level_scale: growth factor between levels; or give ``max_resolution`` instead
+            (then ``(max / base) ** (1 / (L - 1))``). Neither: 2.0, tcnn's default.
+        interpolation: ``Linear`` or ``Smoothstep``.
+        grid_type: ``Hash`` (hash the levels that do not fit) or ``Dense`` (never hash).
+        backend: ``auto`` | ``tcnn`` | ``torch``.
+        n_input_dims: 2 or 3.
+        init_scale: the table starts uniform in ``[-init_scale, init_scale]``.
+        dtype: dtype of the torch backend's table.
+    """
+
+    def __init__(
+        self,
+        num_levels: int = 16,
+        features_per_level: int = 2,
+        log2_hashmap_size: int = 19,
+        base_resolution: int = 16,
+        per_level_scale: Optional[float] = None,
+        max_resolution: Optional[int] = None,
+        interpolation: Interpolation = "Linear",
+        grid_type: GridType = "Hash",
+        backend: Backend = "auto",
+        *,
+        n_input_dims: int = 3,
+        init_scale: float = 1e-4,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        super().__init__()
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(
+                f"interpolation={interpolation!r} is not supported; allowed values: {', '.join(INTERPOLATIONS)}"
+            )
+        if grid_type not in GRID_TYPES:
+            raise ValueError(f"grid_type={grid_type!r} is not supported; allowed values: {', '.join(GRID_TYPES)}")
+        if n_input_dims not in (2, 3):
+            raise ValueError(f"n_input_dims={n_input_dims}: must be 2 or 3 (as in tcnn)")
+        if features_per_level not in (1, 2, 4, 8):
+            raise ValueError(f"features_per_level={features_per_level}: must be 1, 2, 4 or 8 (as in tcnn)")
+        if num_levels < 1 or base_resolution < 1 or not 1 <= log2_hashmap_size <= 30:
+            raise ValueError(
+                f"num_levels={num_levels}, base_resolution={base_resolution} must be >= 1 and "
+                f"log2_hashmap_size={log2_hashmap_size} in [1, 30]"
+            )
+        if per_level_scale is not None and max_resolution is not None:
+            raise ValueError("give per_level_scale or max_resolution, not both")
+        if max_resolution is not None:
+            if max_resolution < base_resolution:
+                raise ValueError(f"max_resolution={max_resolution} must be >= base_resolution={base_resolution}")
+            per_level_scale = per_level_scale_from_max_resolution(base_resolution, max_resolution, num_levels)
+        if per_level_scale is None:
+            per_level_scale = 2.0
+        if not (math.isfinite(per_level_scale) and per_level_scale >= 1.0):
+            raise ValueError(f"per_level_scale={per_level_scale}: must be a finite number >= 1")
+
+        self.n_input_dims = n_input_dims
+        self.num_levels = num_levels
+        self.features_per_level = features_per_level
+        self.log2_hashmap_size = log2_hashmap_size
+        self.base_resolution = base_resolution
+        self.per_level_scale = float(per_level_scale)
+        self.interpolation = interpolation
+        self.grid_type = grid_type
+        self.n_output_dims = num_levels * features_per_level
+        self.levels = grid_levels(num_levels, n_input_dims, log2_hashmap_size, base_resolution, per_level_scale, grid_type)
+        self.active_levels = num_levels
+        self.backend = resolve_backend(backend)
+
+        if self.backend == "tcnn":
+            import tinycudann
+
+            self.tcnn_encoding = tinycudann.Encoding(n_input_dims=n_input_dims, encoding_config=self.tcnn_config())
+            self.table = None
+        else:
+            self.tcnn_encoding = None
+            entries = self.levels[-1].offset + self.levels[-1].size
+            table = torch.empty(entries, features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
+            self.table = nn.Parameter(table)
+
+    # ----------------------------------------------------------------------------------------
+    @classmethod
+    def from_tcnn_config(
+        cls, n_input_dims: int, encoding_config: Mapping[str, Any], backend: Backend = "auto"
+    ) -> "HashGrid":
+        """Build from a tcnn ``encoding_config`` dict (``otype`` HashGrid, DenseGrid or Grid)."""
+        config = dict(encoding_config)
+        otype = config.pop("otype", "Grid")
+        if otype not in ("HashGrid", "DenseGrid", "Grid"):
+            raise ValueError(f"encoding otype={otype!r}: only HashGrid, DenseGrid and Grid are supported")
+        grid_type = config.pop("type", "Dense" if otype == "DenseGrid" else "Hash")
+        hash_kind = config.pop("hash", "CoherentPrime")
+        if hash_kind != "CoherentPrime":
+            raise ValueError(f"encoding hash={hash_kind!r}: only tcnn's default 'CoherentPrime' is supported")
+        if config.pop("stochastic_interpolation", False):
+            raise ValueError("stochastic_interpolation=True is not supported")
+        known = {"n_levels", "n_features_per_level", "log2_hashmap_size", "base_resolution", "per_level_scale", "interpolation"}
+        unknown = set(config) - known
+        if unknown:
+            raise ValueError(f"unsupported keys in the tcnn encoding config: {sorted(unknown)}")
+        return cls(
+            num_levels=int(config.get("n_levels", 16)),
+            features_per_level=int(config.get("n_features_per_level", 2)),
+            log2_hashmap_size=int(config.get("log2_hashmap_size", 19)),
+            base_resolution=int(config.get("base_resolution", 16)),
+            per_level_scale=float(config.get("per_level_scale", 2.0)),
+            interpolation=config.get("interpolation", "Linear"),
+            grid_type=grid_type,
+            backend=backend,
+            n_input_dims=n_input_dims,
+        )
+
+    def tcnn_config(self) -> Dict[str, Any]:
+        """The equivalent tcnn ``encoding_config``."""
+        return {
+            "otype": "Grid",
+            "type": self.grid_type,
+            "n_levels": self.num_levels,
+            "n_features_per_level": self.features_per_level,
+            "log2_hashmap_size": self.log2_hashmap_size,
+            "base_resolution": self.base_resolution,
+            "per_level_scale": self.per_level_scale,
+            "interpolation": self.interpolation,
+        }
+
+    def set_active_levels(self, n: Optional[int]) -> None:
+        """Coarse-to-fine: only the ``n`` coarsest levels contribute; finer ones output zeros (and
+        receive no gradient). ``None`` re-enables all. The torch backend skips the masked levels'
+        work entirely."""
+        if n is None:
+            n = self.num_levels
+        if not 0 <= int(n) <= self.num_levels:
+            raise ValueError(f"active levels n={n}: must be in [0, {self.num_levels}] or None")
+        self.active_levels = int(n)
+
+    def get_out_dim(self) -> int:
+        return self.n_output_dims
+
+    def forward(self, x: Float[Tensor, "*batch dims"]) -> Float[Tensor, "*batch out"]:
+        if x.shape[-1] != self.n_input_dims:
+            raise ValueError(f"positions have {x.shape[-1]} coordinates; this HashGrid expects {self.n_input_dims}")
+        if not x.is_floating_point():
+            raise ValueError(f"positions must be a floating-point tensor, got {x.dtype}")
+        batch = x.shape[:-1]
+        flat = x.reshape(-1, self.n_input_dims)
+        n_active = self.active_levels
+        if self.tcnn_encoding is not None:
+            out = self.tcnn_encoding(flat).to(x.dtype)
+            if n_active < self.num_levels:
+                mask = torch.zeros(self.n_output_dims, dtype=out.dtype, device=out.device)
+                mask[: n_active * self.features_per_level] = 1
+                out = out * mask
+            return out.reshape(*batch, self.n_output_dims)
+        table = self.table if self.table.dtype == x.dtype else self.table.to(x.dtype)
+        if n_active == 0:
+            out = flat.new_zeros(flat.shape[0], self.n_output_dims)
+        else:
+            out = hashgrid_encode(
+                flat,
+                table,
+                self.levels[:n_active],
+                2**self.log2_hashmap_size,
+                smoothstep=self.interpolation == "Smoothstep",
+            )
+            if n_active < self.num_levels:
+                pad = out.new_zeros(out.shape[0], (self.num_levels - n_active) * self.features_per_level)
+                out = torch.cat([out, pad], dim=-1)
+        return out.reshape(*batch, self.n_output_dims)
+
+    def extra_repr(self) -> str:
+        return (
+            f"backend={self.backend}, dims={self.n_input_dims}, levels={self.num_levels}x{self.features_per_level}, "
+            f"log2_T={self.log2_hashmap_size}, res={self.levels[0].resolution}..{self.levels[-1].resolution}, "
+            f"per_level_scale={self.per_level_scale:.4f}, {self.interpolation}, dense_levels="
+            f"{sum(not lv.hashed for lv in self.levels)}"
+        )
