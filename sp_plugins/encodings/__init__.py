@@ -1,5 +1,7 @@
-"""Input encodings for neural fields, all differentiable with respect to their inputs."""
+"""Input encodings for neural fields, all differentiable (twice) with respect to their inputs."""
 
+from sp_plugins.encodings.frequency import FrequencyEncoding
 from sp_plugins.encodings.hashgrid import HashGrid, resolve_backend, tcnn_available
+from sp_plugins.encodings.triplane import TriplaneEncoding
 
-__all__ = ["HashGrid", "resolve_backend", "tcnn_available"]
+__all__ = ["FrequencyEncoding", "HashGrid", "TriplaneEncoding", "resolve_backend", "tcnn_available"]
