@@ -49,6 +49,7 @@ def perturb(
             (``[*batch]`` or ``[*batch, 1]``, e.g. from an :class:`AlphaGrid`).
         noise: ``gaussian`` | ``uniform`` | ``squared-gaussian`` (see :mod:`sp_plugins.core.noise`).
         boundary: ``reflect`` | ``clamp`` | ``none``; ``reflect`` and ``clamp`` need ``bounds``.
+            Only coordinates that start inside the box are folded back into it.
         bounds: ``(lo, hi)`` as scalars or ``[dim]`` tensors, or a ``[2, dim]`` tensor.
         num_samples: K > 1 returns ``[K, *batch, dim]`` independent perturbations (average the
             field over them with :func:`perturbed_mean`).
@@ -71,10 +72,12 @@ def perturb(
     if isinstance(alpha, Tensor):
         if alpha.dim() == x.dim() - 1:
             alpha = alpha[..., None]
-        offset = eps * alpha
-    else:
-        offset = eps.mul_(alpha)
-    return apply_boundary(x + offset, boundary, box)
+        y = torch.addcmul(x, eps, alpha)
+    elif x.requires_grad:
+        y = torch.add(x, eps, alpha=alpha)
+    else:  # reuse the noise buffer: one pass, no allocation
+        y = torch.add(x, eps, alpha=alpha, out=eps)
+    return apply_boundary(y, boundary, box, origin=x)
 
 
 def perturbed_mean(

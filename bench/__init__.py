@@ -1,0 +1,1 @@
+"""Paired baseline-vs-SP benchmarks. Run one with ``python -m bench.NAME``."""

@@ -1,0 +1,67 @@
+"""Shared plumbing for benchmarks: machine info, paired timing, output files."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Callable, Dict, List
+
+import torch
+
+OUT_DIR = Path(os.environ.get("SP_BENCH_OUT", Path(__file__).resolve().parent / "out"))
+
+
+def machine_info() -> dict:
+    """What the numbers came from: the load matters on a shared 2-core machine."""
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "loadavg_1_5_15": [round(v, 2) for v in load],
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def paired_timing(steps: Dict[str, Callable[[], None]], repeats: int, warmup: int = 3) -> Dict[str, List[float]]:
+    """Run the given step functions in alternation (A B A B ...), so that load spikes on a
+    shared machine hit all of them alike. Returns seconds per call for each name."""
+    for _ in range(warmup):
+        for fn in steps.values():
+            fn()
+    times: Dict[str, List[float]] = {k: [] for k in steps}
+    names = list(steps)
+    for i in range(repeats):
+        order = names if i % 2 == 0 else names[::-1]
+        for name in order:
+            t0 = time.perf_counter()
+            steps[name]()
+            times[name].append(time.perf_counter() - t0)
+    return times
+
+
+def ratio_summary(times: Dict[str, List[float]], baseline: str) -> dict:
+    """Median seconds per step and the median of per-pair ratios against ``baseline``."""
+    out = {}
+    base = times[baseline]
+    for name, ts in times.items():
+        pair_ratios = [t / b for t, b in zip(ts, base)]
+        out[name] = {
+            "median_s": statistics.median(ts),
+            "ratio_vs_" + baseline: statistics.median(pair_ratios) if name != baseline else 1.0,
+            "ratio_of_medians": statistics.median(ts) / statistics.median(base),
+        }
+    return out
+
+
+def write_json(name: str, payload: dict) -> Path:
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    path = OUT_DIR / f"{name}.json"
+    path.write_text(json.dumps(payload, indent=2))
+    return path
