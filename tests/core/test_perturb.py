@@ -145,3 +145,15 @@ def test_nan_positions_are_rejected():
     x[1, 2] = float("inf")
     with pytest.raises(ValueError, match="positions"):
         perturb(x, 0.1)
+
+
+@pytest.mark.parametrize("boundary", ["reflect", "clamp"])
+def test_samples_that_start_outside_the_box_are_not_pulled_in(boundary):
+    """A host may hand over samples beyond its box (treated as empty space): folding them into
+    the box would give them the density of the interior."""
+    x = torch.tensor([[1.5, 0.0, 0.0], [-3.0, 0.2, 0.9]]).repeat(1000, 1)
+    y = perturb(x, 0.05, boundary=boundary, bounds=(-1.0, 1.0), generator=gen(0))
+    outside = x.abs() > 1
+    assert bool((y[outside].abs() > 1.2).all())  # still far outside, just perturbed
+    assert float((y[outside] - x[outside]).std()) == pytest.approx(0.05, rel=0.1)
+    assert bool((y[~outside].abs() <= 1).all())  # the inside coordinates were folded
