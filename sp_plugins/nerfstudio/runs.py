@@ -1,0 +1,88 @@
+"""Run our nerfstudio methods from Python (tests, benchmarks): the same configs ``ns-train`` uses.
+
+    config = method_config("sp-neus-hashgrid")
+    configure_run(config, data=scene / "blender", steps=200, output_dir=tmp)
+    trainer = train(config)
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Dict, Literal, Optional
+
+from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+ENTRY_POINT_GROUP = "nerfstudio.method_configs"
+OUR_PACKAGE = "sp_plugins.method_configs"
+
+
+def our_methods() -> Dict[str, MethodSpecification]:
+    """Every method sp-plugins registers, by name, loaded from its entry point."""
+    specs = {}
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.value.startswith(OUR_PACKAGE):
+            specs[ep.name] = ep.load()
+    return specs
+
+
+def method_config(name: str) -> TrainerConfig:
+    """A private copy of method ``name``'s trainer config."""
+    specs = our_methods()
+    if name not in specs:
+        raise ValueError(f"method {name!r} is not an sp-plugins method; known: {', '.join(sorted(specs))}")
+    return copy.deepcopy(specs[name].config)
+
+
+def configure_run(
+    config: TrainerConfig,
+    data: Path,
+    *,
+    steps: int,
+    output_dir: Path,
+    layout: Optional[Literal["blender", "sdfstudio"]] = None,
+    device: str = "cpu",
+    rays_per_batch: Optional[int] = None,
+    experiment_name: Optional[str] = None,
+    timestamp: str = "run",
+) -> TrainerConfig:
+    """Point ``config`` at ``data`` (layout guessed from its files), shorten it to ``steps`` on
+    ``device``, without viewer, periodic evals or checkpoints before the last step."""
+    data = Path(data)
+    if layout is None:
+        layout = "sdfstudio" if (data / "meta_data.json").is_file() else "blender"
+    dm = config.pipeline.datamanager
+    dm.dataparser = SDFStudioDataParserConfig(data=data) if layout == "sdfstudio" else BlenderDataParserConfig(data=data)
+    dm.data = data
+    if rays_per_batch is not None:
+        dm.train_num_rays_per_batch = rays_per_batch
+        dm.eval_num_rays_per_batch = rays_per_batch
+    config.data = data
+    config.max_num_iterations = steps
+    config.machine.device_type = device  # type: ignore[assignment]
+    config.vis = "tensorboard"
+    config.output_dir = Path(output_dir)
+    config.experiment_name = experiment_name or f"{config.method_name}-{data.name}"
+    config.timestamp = timestamp
+    config.steps_per_save = steps
+    config.steps_per_eval_batch = 10**9
+    config.steps_per_eval_image = 10**9
+    config.steps_per_eval_all_images = 10**9
+    config.save_only_latest_checkpoint = True
+    config.logging.local_writer.enable = False
+    config.logging.steps_per_log = 10**9
+    return config
+
+
+def train(config: TrainerConfig) -> Trainer:
+    """Set up and run the trainer in this process; returns it (pipeline, step, checkpoint dir)."""
+    config.set_timestamp() if not config.timestamp else None
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return trainer

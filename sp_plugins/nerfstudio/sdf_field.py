@@ -1,0 +1,198 @@
+"""nerfstudio's ``SDFField`` with the stochastic-preconditioning hook and numerical gradients.
+
+Where SP enters (while training and alpha > 0; otherwise the plain field):
+
+- every sample position is perturbed once, ``q = x + alpha * eps`` (reflected into the scene
+  box); SDF, geometry feature, normal and colour are all evaluated at ``q``, so the renderer sees
+  one consistent blurred field. Ray directions, interval lengths and the NeuS alpha
+  computation are unchanged.
+- analytic normals are the autograd gradient of the SDF with respect to ``q`` (the field's own
+  slope where it was queried); numerical normals (Neuralangelo) evaluate the finite-difference
+  stencil around ``q``, so all stencil points share that one offset.
+- the NeuS sampler's ``get_sdf`` (no-grad importance sampling) sees the plain field by default:
+  it only places samples, one perturbed draw would jitter the placement without blurring it in
+  expectation, and the plain field costs nothing extra. ``perturb_sampler_queries`` turns it on.
+
+The hash grid is :class:`sp_plugins.encodings.HashGrid` (tiny-cuda-nn when it runs, torch
+otherwise), so coarse-to-fine can mask levels; without ``use_grid_feature`` there is no grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Literal, Optional, Tuple, Type
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
+from torch import Tensor, nn
+
+from sp_plugins.core import StochasticPreconditioner, finite_differences
+
+LAPLACIAN = "sdf_laplacian"
+"""Key of the stencil Laplacian in the field outputs (numerical gradients, training only)."""
+
+GRID_SPAN = 4.0
+"""``SDFField`` maps contracted positions in [-2, 2] onto the grid's [0, 1]: one grid unit is 4
+scene units (inside the unit box, where the contraction is the identity)."""
+
+
+@dataclass
+class SPSDFFieldConfig(SDFFieldConfig):
+    """``SDFFieldConfig`` plus numerical gradients and the SP sampler switch."""
+
+    _target: Type = field(default_factory=lambda: SPSDFField)
+    inside_outside: bool = False
+    """Objects seen from outside (the SDF is negative inside); True for indoor rooms."""
+    numerical_gradients: bool = False
+    """Normals from a finite-difference stencil (Neuralangelo) instead of autograd."""
+    stencil: Literal["6pt", "4pt"] = "6pt"
+    """6pt: central differences (Neuralangelo); 4pt: tetrahedron, cheaper."""
+    fd_step: Optional[float] = None
+    """Finite-difference step in scene units; None: the cell size of the finest active level."""
+    perturb_sampler_queries: bool = False
+    """Let the NeuS sampler's SDF queries see the perturbed field too."""
+
+
+class _NoGrid(nn.Module):
+    """Zero-width stand-in when the field uses no grid feature (plain NeuS)."""
+
+    n_output_dims = 0
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x.new_zeros(*x.shape[:-1], 0)
+
+
+class SPSDFField(SDFField):
+    """``SDFField`` that perturbs its queries through a :class:`StochasticPreconditioner`."""
+
+    config: SPSDFFieldConfig
+
+    def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
+        from sp_plugins.patches.nerfstudio_sdf_field import install_torch_tcnn_fallback
+
+        if config.encoding_type != "hash":
+            raise ValueError(f"encoding_type={config.encoding_type!r}: SPSDFField supports 'hash' (with or without use_grid_feature)")
+        if config.numerical_gradients and not config.use_grid_feature:
+            raise ValueError("numerical_gradients=True needs use_grid_feature=True (the step follows the grid levels)")
+        in_dim = 3 + 36 + (config.num_levels * config.features_per_level if config.use_grid_feature else 0)
+        if config.num_layers >= 4 and config.hidden_dim <= in_dim:
+            raise ValueError(
+                f"hidden_dim={config.hidden_dim}: with num_layers={config.num_layers} the SDF MLP re-injects its "
+                f"{in_dim}-wide input at layer 4, so hidden_dim must exceed {in_dim} (or use num_layers <= 3)"
+            )
+        install_torch_tcnn_fallback()
+        super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
+        self._sp: Optional[StochasticPreconditioner] = None
+        n_levels = config.num_levels if config.use_grid_feature else 0
+        # Coarse-to-fine state lives in buffers so a checkpoint restores it (eval, export, resume).
+        self.register_buffer("active_levels", torch.tensor(n_levels, dtype=torch.long))
+        self.register_buffer("fd_step", torch.tensor(self.level_cell_size(n_levels - 1) if n_levels else 0.0))
+        if config.fd_step is not None:
+            self.fd_step.fill_(config.fd_step)
+
+    def initialize_geo_layers(self) -> None:
+        """Swap in our encoding before the MLP is sized on it."""
+        from sp_plugins.encodings import HashGrid
+
+        if not self.config.use_grid_feature:
+            self.encoding = _NoGrid()
+        elif not isinstance(self.encoding, HashGrid):  # a real tcnn.Encoding: wrap it so levels can be masked
+            self.encoding = HashGrid(
+                num_levels=self.config.num_levels,
+                features_per_level=self.config.features_per_level,
+                log2_hashmap_size=self.config.log2_hashmap_size,
+                base_resolution=self.config.base_res,
+                max_resolution=self.config.max_res,
+                interpolation="Smoothstep" if self.config.smoothstep else "Linear",
+                grid_type="Hash" if self.config.use_hash else "Dense",
+                backend="auto",
+            )
+        super().initialize_geo_layers()
+
+    # -- SP and coarse-to-fine controls ------------------------------------------------------
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        """Perturb queries through ``sp`` (owned and checkpointed by the model, not the field)."""
+        object.__setattr__(self, "_sp", sp)
+
+    def perturb(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
+        return x if self._sp is None else self._sp(x)
+
+    def level_cell_size(self, level: int) -> float:
+        """Cell size of grid level ``level`` in scene units (for the finite-difference step)."""
+        scale = self.encoding.levels[max(level, 0)].scale
+        return GRID_SPAN / scale
+
+    def set_active_levels(self, n: int) -> None:
+        """Coarse-to-fine: only the ``n`` coarsest grid levels contribute."""
+        self.active_levels.fill_(int(n))
+        self.encoding.set_active_levels(int(n))
+
+    def set_fd_step(self, step: float) -> None:
+        self.fd_step.fill_(float(step))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        if self.config.use_grid_feature:
+            self.encoding.set_active_levels(int(self.active_levels))
+
+    # -- queries ---------------------------------------------------------------------------------
+    def sdf_of(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n"]:
+        return self.forward_geonetwork(x)[:, 0]
+
+    def geometry(
+        self, x: Float[Tensor, "n 3"]
+    ) -> Tuple[Float[Tensor, "n 3"], Float[Tensor, "n 1"], Float[Tensor, "n geo"], Float[Tensor, "n 3"], Optional[Tensor]]:
+        """Perturb ``x`` once and return ``(q, sdf, geo_feature, gradient, laplacian)`` at ``q``."""
+        if self.config.numerical_gradients:
+            q = self.perturb(x)
+            hidden = self.forward_geonetwork(q)
+            sdf, geo = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
+            grad, lap = finite_differences(
+                self.sdf_of, q, float(self.fd_step), self.config.stencil, centre_values=sdf[:, 0] if self.training else None
+            )
+            return q, sdf, geo, grad, lap
+        with torch.enable_grad():
+            q = self.perturb(x)
+            if not q.requires_grad:
+                q = q.requires_grad_(True)
+            hidden = self.forward_geonetwork(q)
+            sdf, geo = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
+            (grad,) = torch.autograd.grad(
+                sdf, q, torch.ones_like(sdf), create_graph=self.training, retain_graph=True
+            )
+        return q, sdf, geo, grad, None
+
+    def get_sdf(self, ray_samples: RaySamples) -> Float[Tensor, "num_samples ... 1"]:
+        x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
+        if self.config.perturb_sampler_queries:
+            x = self.perturb(x)
+        hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
+        return hidden[..., :1]
+
+    def get_outputs(
+        self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None, return_alphas: bool = False
+    ) -> Dict[FieldHeadNames, Tensor]:
+        if ray_samples.camera_indices is None:
+            raise AttributeError("Camera indices are not provided.")
+        shape = ray_samples.frustums.directions.shape[:-1]
+        x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
+        directions = ray_samples.frustums.directions.reshape(-1, 3)
+        q, sdf, geo, grad, lap = self.geometry(x)
+        rgb = self.get_colors(q, directions, grad, geo, ray_samples.camera_indices.squeeze())
+        sdf = sdf.view(*shape, 1)
+        grad = grad.view(*shape, 3)
+        outputs: Dict = {
+            FieldHeadNames.RGB: rgb.view(*shape, 3),
+            FieldHeadNames.SDF: sdf,
+            FieldHeadNames.NORMALS: F.normalize(grad, p=2, dim=-1),
+            FieldHeadNames.GRADIENT: grad,
+        }
+        if lap is not None:
+            outputs[LAPLACIAN] = lap.view(*shape, 1)
+        if return_alphas:
+            outputs[FieldHeadNames.ALPHA] = self.get_alpha(ray_samples, sdf, grad)
+        return outputs

@@ -1,0 +1,98 @@
+"""Trainer configs of the SDF methods (the ``method_configs`` modules only pick one).
+
+Paper settings (Ling et al. 2025) kept as defaults, with schedule ends as fractions of training so
+that shortened runs keep their shape:
+
+- NeuS, NeuS-hashgrid: 100k steps; alpha0 0.013, exponential to 0 over the first 20% (20k).
+- Neuralangelo: 500k steps; alpha0 0.03 over the first 30% (150k); or a learnable alpha grid
+  initialised to 0.03, Adam lr 1e-3 (``--pipeline.model.sp.alpha-grid True``; 128^3 in the
+  paper, ``alpha-grid-resolution`` 32 by default here to fit a CPU).
+- Hash grid of the paper: 16 levels, resolution 16 to 2048, 2^19 entries, 2 features.
+
+Note that nerfstudio's learning-rate schedulers count absolute steps: for short runs also pass
+``--optimizers.fields.scheduler.warm-up-end`` and ``max-steps``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import CosineDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.nerfstudio.data import SurfaceDataManagerConfig
+from sp_plugins.nerfstudio.neus import NeuralangeloLiteModelConfig, SPNeuSModelConfig
+from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
+
+PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
+
+NEUS_SP = SPConfig(alpha0=0.013, end=0.2, schedule="exponential")
+NEURALANGELO_SP = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid_init=0.03, alpha_grid_lr=1e-3)
+
+
+def _optimizer(lr: float, steps: int, warm_up_end: int) -> dict:
+    return {
+        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+        "scheduler": CosineDecaySchedulerConfig(warm_up_end=warm_up_end, learning_rate_alpha=0.05, max_steps=steps),
+    }
+
+
+def sdf_trainer_config(method_name: str, model, steps: int, lr: float, warm_up_end: int) -> TrainerConfig:
+    """A NeuS-style trainer: vanilla (checked) data manager, SDFStudio data by default, and an
+    optimizer entry for the SP alpha grid (used only when ``sp.alpha_grid`` is on)."""
+    sp: SPConfig = model.sp
+    return TrainerConfig(
+        method_name=method_name,
+        steps_per_eval_image=500,
+        steps_per_eval_batch=5000,
+        steps_per_save=20000,
+        steps_per_eval_all_images=1000000,
+        max_num_iterations=steps,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=SurfaceDataManagerConfig(
+                dataparser=SDFStudioDataParserConfig(), train_num_rays_per_batch=1024, eval_num_rays_per_batch=1024
+            ),
+            model=model,
+        ),
+        optimizers={
+            "fields": _optimizer(lr, steps, warm_up_end),
+            "field_background": _optimizer(lr, steps, warm_up_end),
+            ALPHA_GRID_GROUP: {"optimizer": AdamOptimizerConfig(lr=sp.alpha_grid_lr, eps=1e-15), "scheduler": None},
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
+        vis="viewer",
+    )
+
+
+def _sp(base: SPConfig, enabled: bool) -> SPConfig:
+    return dataclasses.replace(base, enabled=enabled)
+
+
+def neus_method(name: str, *, hash_grid: bool, sp: bool, description: str) -> MethodSpecification:
+    field = SPSDFFieldConfig(use_grid_feature=hash_grid, **(PAPER_HASH_GRID if hash_grid else {}))
+    if hash_grid:  # a small MLP on the grid, as in nerfstudio's neus-facto
+        field = dataclasses.replace(field, num_layers=2, num_layers_color=2, hidden_dim=256)
+    model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, sp=_sp(NEUS_SP, sp))
+    return MethodSpecification(config=sdf_trainer_config(name, model, 100_000, 5e-4, 5000), description=description)
+
+
+def neuralangelo_method(name: str, *, sp: bool, description: str, alpha_grid: Optional[bool] = None) -> MethodSpecification:
+    field = SPSDFFieldConfig(
+        use_grid_feature=True, numerical_gradients=True, num_layers=2, num_layers_color=2, hidden_dim=256, **PAPER_HASH_GRID
+    )
+    sp_config = _sp(NEURALANGELO_SP, sp)
+    if alpha_grid is not None:
+        sp_config = dataclasses.replace(sp_config, alpha_grid=alpha_grid)
+    model = NeuralangeloLiteModelConfig(
+        eval_num_rays_per_chunk=1024, sdf_field=field, sp=sp_config, coarse_to_fine=not sp
+    )
+    return MethodSpecification(config=sdf_trainer_config(name, model, 500_000, 1e-3, 5000), description=description)
