@@ -1,0 +1,130 @@
+"""Write rendered views as a Blender (``transforms_*.json``) or an SDFStudio (``meta_data.json``) dataset.
+
+Both take cameras as OpenGL camera-to-world matrices in dataset coordinates (see
+`sp_plugins.data.cameras`) and straight-alpha RGBA images in [0, 1].
+
+Blender layout (read by nerfstudio's ``blender-data``)::
+
+    transforms_{train,val,test}.json   {"camera_angle_x", "frames": [{"file_path": "./train/r_0",
+                                        "rotation", "transform_matrix" (4x4 OpenGL c2w)}]}
+    {train,val,test}/r_<i>.png          RGBA; the background is transparent (alpha 0)
+
+SDFStudio layout (read by nerfstudio's ``sdfstudio-data``), the keys of sdfstudio's format::
+
+    meta_data.json            training frames only: nerfstudio's parser has no split, it serves
+                              every frame of this file to train, val and test alike
+    meta_data_{val,test}.json the held-out frames in the same format, for evaluation tools
+    rgb/<split>_<i>.png       RGB composited on white
+    mask/<split>_<i>.png      foreground mask (alpha >= 0.5) as 0 / 255
+
+    top level: camera_model "OPENCV", height, width, has_mono_prior false, has_foreground_mask
+    true, pairs null, worldtogt (4x4: dataset -> original mesh coordinates), scene_box {aabb,
+    near, far, radius, collider_type "box"}
+    per frame: rgb_path, camtoworld (4x4 OpenCV c2w), intrinsics (4x4), foreground_mask
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Dict, List, Sequence, Tuple
+
+import imageio.v2 as imageio
+import numpy as np
+from jaxtyping import Float
+
+from sp_plugins.data.cameras import opengl_to_opencv
+
+SPLITS = ("train", "val", "test")
+
+SplitViews = Dict[str, Tuple[Float[np.ndarray, "n 4 4"], Float[np.ndarray, "n h w 4"]]]
+"""split name -> (OpenGL c2w, RGBA images)."""
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
+
+
+def composite_white(rgba: Float[np.ndarray, "h w 4"]) -> Float[np.ndarray, "h w 3"]:
+    """Straight-alpha RGBA over a white background, as nerfstudio's ``alpha_color="white"`` does."""
+    return rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2))
+
+
+def write_blender(root: Path, views: SplitViews, fov_x: float) -> List[Path]:
+    """Write the Blender layout under `root`; returns the ``transforms_*.json`` paths."""
+    root.mkdir(parents=True, exist_ok=True)
+    written = []
+    for split, (c2w, images) in views.items():
+        (root / split).mkdir(exist_ok=True)
+        frames = []
+        for index, (pose, image) in enumerate(zip(c2w, images)):
+            imageio.imwrite(root / split / f"r_{index}.png", to_uint8(image))
+            frames.append({"file_path": f"./{split}/r_{index}", "rotation": 0.0, "transform_matrix": pose.tolist()})
+        path = root / f"transforms_{split}.json"
+        _write_json(path, {"camera_angle_x": float(fov_x), "frames": frames})
+        written.append(path)
+    return written
+
+
+def sdfstudio_frames(root: Path, split: str, c2w: np.ndarray, images: np.ndarray, K: np.ndarray) -> List[dict]:
+    """Write one split's images and masks under `root`; return its ``meta_data.json`` frames."""
+    (root / "rgb").mkdir(parents=True, exist_ok=True)
+    (root / "mask").mkdir(parents=True, exist_ok=True)
+    intrinsics = np.eye(4)
+    intrinsics[:3, :3] = K
+    frames = []
+    for index, (pose, image) in enumerate(zip(c2w, images)):
+        rgb_path, mask_path = f"rgb/{split}_{index:03d}.png", f"mask/{split}_{index:03d}.png"
+        imageio.imwrite(root / rgb_path, to_uint8(composite_white(image)))
+        imageio.imwrite(root / mask_path, np.where(image[..., 3] >= 0.5, 255, 0).astype(np.uint8))
+        frames.append(
+            {
+                "rgb_path": rgb_path,
+                "camtoworld": opengl_to_opencv(pose).tolist(),
+                "intrinsics": intrinsics.tolist(),
+                "foreground_mask": mask_path,
+            }
+        )
+    return frames
+
+
+def write_sdfstudio(
+    root: Path,
+    views: SplitViews,
+    K: Float[np.ndarray, "3 3"],
+    width: int,
+    height: int,
+    aabb: Sequence[Sequence[float]],
+    near: float,
+    far: float,
+    world_to_gt: Float[np.ndarray, "4 4"],
+) -> List[Path]:
+    """Write the SDFStudio layout under `root`; returns the meta-data paths (train first)."""
+    root.mkdir(parents=True, exist_ok=True)
+    written = []
+    for split, (c2w, images) in views.items():
+        meta = {
+            "camera_model": "OPENCV",
+            "height": int(height),
+            "width": int(width),
+            "has_mono_prior": False,
+            "has_foreground_mask": True,
+            "pairs": None,
+            "worldtogt": np.asarray(world_to_gt).tolist(),
+            "scene_box": {
+                "aabb": [list(map(float, corner)) for corner in aabb],
+                "near": float(near),
+                "far": float(far),
+                "radius": 1.0,
+                "collider_type": "box",
+            },
+            "frames": sdfstudio_frames(root, split, c2w, images, K),
+        }
+        path = root / ("meta_data.json" if split == "train" else f"meta_data_{split}.json")
+        _write_json(path, meta)
+        written.append(path)
+    return written

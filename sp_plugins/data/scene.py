@@ -1,0 +1,227 @@
+"""Render a mesh into a small multi-view dataset: Blender and SDFStudio layouts plus the true mesh.
+
+``make_scene(mesh, out_dir)`` writes::
+
+    out_dir/scene.json     normalisation (centre, scale, up axis), scene box, cameras, splits
+    out_dir/gt_mesh.ply    the normalised mesh, in dataset coordinates (for Chamfer)
+    out_dir/blender/       transforms_{train,val,test}.json + RGBA PNGs   (nerfstudio: blender-data)
+    out_dir/sdfstudio/     meta_data.json (+ _val, _test) + RGB + masks    (nerfstudio: sdfstudio-data)
+
+Dataset coordinates are shared by both layouts: the mesh fits a sphere of radius ``radius``
+(0.85) at the origin, inside the scene box [-1, 1]^3; cameras sit at ``camera_distance`` (4.0,
+inside the near/far range 2..6 that nerfstudio's Blender models use) looking at the origin.
+See `sp_plugins.data.coords` for how these map into nerfstudio's coordinates.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from sp_plugins.data.cameras import (
+    balanced_directions,
+    default_fov,
+    intrinsics,
+    look_at_origin,
+    random_directions,
+)
+from sp_plugins.data.layouts import write_blender, write_sdfstudio
+from sp_plugins.data.mesh import MeshSource, load_mesh, normalize_mesh, up_rotation
+from sp_plugins.data.render import ray_intersector, render_views
+
+LAYOUTS = ("blender", "sdfstudio")
+SCENE_BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+SCENE_FILE = "scene.json"
+GT_MESH_FILE = "gt_mesh.ply"
+PRODUCTS = (SCENE_FILE, GT_MESH_FILE, *LAYOUTS)
+"""Every name `make_scene` writes inside ``out_dir``; nothing else there is touched."""
+
+
+class SceneExistsError(FileExistsError, ValueError):
+    """``out_dir`` already holds a scene and ``overwrite`` was not given."""
+
+
+@dataclass(frozen=True)
+class ScenePaths:
+    """Where `make_scene` put things; a layout that was not requested is None."""
+
+    root: Path
+    scene_json: Path
+    gt_mesh: Path
+    blender: Optional[Path]
+    sdfstudio: Optional[Path]
+
+
+def _resolution(resolution: Union[int, Tuple[int, int]]) -> Tuple[int, int]:
+    width, height = (resolution, resolution) if isinstance(resolution, (int, np.integer)) else tuple(resolution)
+    if int(width) < 4 or int(height) < 4:
+        raise ValueError(f"resolution must be at least 4x4 pixels, got {width}x{height}.")
+    return int(width), int(height)
+
+
+def _check_counts(n_train: int, n_val: int, n_test: int) -> None:
+    for name, count in (("n_train", n_train), ("n_val", n_val), ("n_test", n_test)):
+        if int(count) < 1:
+            raise ValueError(f"{name} must be >= 1 (nerfstudio's parsers read every split), got {count}.")
+
+
+def _prepare(out_dir: Path, overwrite: bool) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"output {out_dir} exists and is not a directory.")
+    existing = [name for name in PRODUCTS if (out_dir / name).exists()]
+    if existing and not overwrite:
+        raise SceneExistsError(
+            f"{out_dir} already holds a scene ({', '.join(existing)}): pass overwrite=True (sp-scene --overwrite) "
+            "to replace it, or choose another output directory."
+        )
+    for name in existing:
+        target = out_dir / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        else:
+            target.unlink()
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def make_scene(
+    mesh: MeshSource,
+    out_dir: Union[str, Path],
+    *,
+    n_train: int = 24,
+    n_val: int = 4,
+    n_test: int = 4,
+    resolution: Union[int, Tuple[int, int]] = 64,
+    layouts: Sequence[str] = LAYOUTS,
+    seed: int = 0,
+    hemisphere: bool = False,
+    up_axis: str = "z",
+    radius: float = 0.85,
+    camera_distance: float = 4.0,
+    fov_x: Optional[float] = None,
+    supersample: int = 2,
+    backend: str = "auto",
+    overwrite: bool = False,
+    progress: bool = False,
+) -> ScenePaths:
+    """Render `mesh` from cameras on a sphere into `out_dir` in the requested `layouts`.
+
+    Args:
+        mesh: a `trimesh.Trimesh`, a mesh file, ``"spot"`` (bundled) or a primitive name
+            (``"sphere"``, ``"box"``, ``"torus"``, ``"capsule"``).
+        n_train, n_val, n_test: views per split. Training cameras come in opposite-azimuth pairs
+            (see `balanced_directions`); held-out cameras are drawn independently.
+        resolution: image width = height, or ``(width, height)``.
+        seed: all cameras are a deterministic function of it.
+        hemisphere: keep cameras above the horizon (z >= 0) instead of the whole sphere.
+        up_axis: the mesh axis that becomes +Z ('y' for most Y-up models).
+        radius: the normalised mesh fits a sphere of this radius at the origin.
+        camera_distance: distance of every camera from the origin.
+        fov_x: horizontal field of view in radians; by default it frames the radius-`radius`
+            sphere with a 15% margin.
+        supersample: s*s rays per pixel (anti-aliased colours and fractional alpha).
+        backend: ray caster, 'auto' | 'embree' | 'triangle' (see `render.ray_intersector`).
+        overwrite: replace a scene already in `out_dir` (only the files this function writes).
+        progress: show a tqdm bar while rendering.
+    """
+    layouts = tuple(layouts)
+    unknown = sorted(set(layouts) - set(LAYOUTS))
+    if unknown or not layouts:
+        raise ValueError(f"layouts must be a non-empty subset of {LAYOUTS}, got {layouts}.")
+    _check_counts(n_train, n_val, n_test)
+    width, height = _resolution(resolution)
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}.")
+    fov = default_fov(radius, camera_distance) if fov_x is None else float(fov_x)
+    if not 0.0 < fov < math.pi:
+        raise ValueError(f"fov_x must be in (0, pi) radians, got {fov}.")
+    source = load_mesh(mesh)
+    normalised, center, scale = normalize_mesh(source, radius=radius, up_axis=up_axis)
+    out_dir = Path(out_dir).expanduser()
+    _prepare(out_dir, overwrite)
+
+    rng = np.random.default_rng(seed)
+    directions = {
+        "train": balanced_directions(n_train, rng, hemisphere),
+        "val": random_directions(n_val, rng, hemisphere),
+        "test": random_directions(n_test, rng, hemisphere),
+    }
+    K = intrinsics(width, height, fov)
+    caster = ray_intersector(normalised, backend)
+    views = {}
+    for split, dirs in directions.items():
+        c2w = look_at_origin(camera_distance * dirs)
+        images = render_views(
+            normalised, c2w, K, width, height, supersample, progress=progress, intersector=caster, desc=f"rendering {split}"
+        )
+        views[split] = (c2w, images)
+
+    # x_dataset = (R_up x_mesh - center) * scale  <=>  x_mesh = R_up^T (x_dataset / scale + center)
+    dataset_to_mesh = np.eye(4)
+    dataset_to_mesh[:3, :3] = np.eye(3) / scale
+    dataset_to_mesh[:3, 3] = center
+    dataset_to_mesh = up_rotation(up_axis).T @ dataset_to_mesh
+
+    gt_mesh = out_dir / GT_MESH_FILE
+    normalised.export(gt_mesh)
+    near, far = max(camera_distance - math.sqrt(3.0), 0.05), camera_distance + math.sqrt(3.0)
+    paths = {"blender": None, "sdfstudio": None}
+    if "blender" in layouts:
+        paths["blender"] = out_dir / "blender"
+        write_blender(paths["blender"], views, fov)
+    if "sdfstudio" in layouts:
+        paths["sdfstudio"] = out_dir / "sdfstudio"
+        write_sdfstudio(paths["sdfstudio"], views, K, width, height, SCENE_BOX, near, far, dataset_to_mesh)
+
+    scene = {
+        "format": "sp-plugins synthetic scene",
+        "version": 1,
+        "source": str(mesh) if not hasattr(mesh, "faces") else "trimesh.Trimesh",
+        "gt_mesh": GT_MESH_FILE,
+        "normalization": {
+            "formula": "x_dataset = (R_up @ x_mesh - center) * scale",
+            "up_axis": up_axis,
+            "R_up": up_rotation(up_axis)[:3, :3].tolist(),
+            "center": center.tolist(),
+            "scale": scale,
+            "radius": radius,
+        },
+        "dataset_to_mesh": dataset_to_mesh.tolist(),
+        "scene_box": {"aabb": [list(corner) for corner in SCENE_BOX]},
+        "cameras": {
+            "convention": "c2w OpenGL (camera looks down -Z, +Y up) in transforms_*.json; "
+            "OpenCV (+Z forward, +Y down) in sdfstudio camtoworld; world +Z up; pixel centres at +0.5",
+            "distance": camera_distance,
+            "fov_x": fov,
+            "width": width,
+            "height": height,
+            "near": near,
+            "far": far,
+            "seed": seed,
+            "hemisphere": hemisphere,
+            "supersample": supersample,
+        },
+        "splits": {split: len(dirs) for split, dirs in directions.items()},
+        "layouts": {name: name for name in layouts},
+        "nerfstudio": {
+            "blender": "blender-data: x_nerfstudio = scale_factor * x_dataset (scale_factor defaults to 1.0); "
+            "its scene box is fixed at [-1.5, 1.5]^3 (times nothing: it ignores scale_factor)",
+            "sdfstudio": "sdfstudio-data: auto_orient rotates the mean camera up vector onto +Z; the training "
+            "cameras here make that rotation the identity, so x_nerfstudio = x_dataset; scene box from meta_data.json",
+        },
+    }
+    scene_json = out_dir / SCENE_FILE
+    scene_json.write_text(json.dumps(scene, indent=2))
+    return ScenePaths(out_dir, scene_json, gt_mesh, paths["blender"], paths["sdfstudio"])
+
+
+def make_tiny_scene(out_dir: Union[str, Path], mesh: MeshSource = "torus", **overrides) -> ScenePaths:
+    """A scene for tests: 8 training views (+2 val, +2 test) of 32x32, one ray per pixel; well under a second."""
+    settings = dict(n_train=8, n_val=2, n_test=2, resolution=32, supersample=1, seed=0)
+    settings.update(overrides)
+    return make_scene(mesh, out_dir, **settings)
