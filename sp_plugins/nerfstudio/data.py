@@ -24,6 +24,8 @@ from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParser
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.datasets.sdf_dataset import SDFDataset
 
+from sp_plugins.nerfstudio.views import ViewSelection, select_views
+
 
 class SurfaceDataset(SDFDataset):
     """``SDFDataset`` that treats depth / normal metadata as optional."""
@@ -164,6 +166,12 @@ class CheckedDataManagerConfig(VanillaDataManagerConfig):
     _target: Type = field(default_factory=lambda: CheckedDataManager)
     check_data: bool = True
     """Check the data folder, image sizes and scene box before training."""
+    train_views: int = -1
+    """Train on only this many of the training views (sparse-view setting); -1 uses all."""
+    train_view_selection: ViewSelection = "spread"
+    """Which views: spread (farthest camera centres from view 0), first, or random (seeded)."""
+    train_view_seed: int = 0
+    """Seed of the random view selection."""
 
 
 class CheckedDataManager(VanillaDataManager):
@@ -194,6 +202,8 @@ class CheckedDataManager(VanillaDataManager):
         return dataset
 
     def create_train_dataset(self):
+        c = self.config
+        self.train_dataparser_outputs = select_views(self.train_dataparser_outputs, c.train_views, c.train_view_selection, c.train_view_seed)
         return self._checked(super().create_train_dataset())
 
     def create_eval_dataset(self):

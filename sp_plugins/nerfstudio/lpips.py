@@ -110,7 +110,9 @@ def detach_lpips(model: torch.nn.Module, name: str = "lpips") -> None:
 
 
 def drop_missing_lpips(model: torch.nn.Module, metrics: Dict[str, Any], name: str = "lpips") -> Dict[str, Any]:
-    """Remove the ``lpips`` entry from image metrics when the metric is unavailable."""
+    """Remove the LPIPS entries (``lpips``, MipNeRF's ``fine_lpips``...) from image metrics when
+    the metric is unavailable."""
     if not getattr(getattr(model, name, None), "available", True):
-        metrics.pop("lpips", None)
+        for key in [k for k in metrics if k.endswith("lpips")]:
+            metrics.pop(key)
     return metrics

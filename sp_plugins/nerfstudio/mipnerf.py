@@ -1,0 +1,66 @@
+"""MipNeRF's field with the SP offset added to the mean of each conical frustum's Gaussian.
+
+MipNeRF encodes a Gaussian (mean, covariance) per sample with the integrated positional encoding.
+SP moves the mean, ``mu + alpha * eps``, and keeps the covariance, so the integrated encoding
+still low-passes the frequencies the frustum's footprint cannot resolve. ``Frustums.offsets``
+cannot carry this: nerfstudio's ``get_gaussian_blob`` raises ``NotImplementedError`` when offsets
+are set, hence a field subclass.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.fields.vanilla_nerf_field import NeRFField
+from nerfstudio.utils.math import Gaussians
+from torch import Tensor
+
+from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.nerfstudio.frustum_sp import set_perturbed_offsets
+
+
+class SPNeRFField(NeRFField):
+    """``NeRFField`` whose sample positions (or Gaussian means) are perturbed while SP is active.
+
+    Built by :func:`as_sp_nerf_field` from a field the host model constructed, so every
+    architecture setting is the host's own."""
+
+    _sp: Optional[StochasticPreconditioner] = None
+
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        object.__setattr__(self, "_sp", sp)
+
+    def perturbed_gaussians(self, ray_samples: RaySamples, sp: StochasticPreconditioner) -> Gaussians:
+        """The frustums' Gaussians with SP-perturbed means (the covariance is unchanged)."""
+        blobs = ray_samples.frustums.get_gaussian_blob()
+        mean = sp(blobs.mean.reshape(-1, 3)).view(blobs.mean.shape)
+        return Gaussians(mean=mean, cov=blobs.cov)
+
+    def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
+        sp = self._sp
+        if sp is None or not sp.active:
+            return super().get_density(ray_samples)
+        if not self.use_integrated_encoding:  # plain positions: the frustum-offset route
+            previous = set_perturbed_offsets(ray_samples, sp)
+            try:
+                return super().get_density(ray_samples)
+            finally:
+                ray_samples.frustums.offsets = previous
+        blobs = self.perturbed_gaussians(ray_samples, sp)
+        if self.spatial_distortion is not None:
+            blobs = self.spatial_distortion(blobs)
+        hidden = self.mlp_base(self.position_encoding(blobs.mean, covs=blobs.cov))
+        return self.field_output_density(hidden), hidden
+
+
+def as_sp_nerf_field(field: NeRFField, sp: StochasticPreconditioner) -> SPNeRFField:
+    """Turn the host's ``NeRFField`` into an :class:`SPNeRFField` in place (same modules and
+    weights: the subclass only overrides ``get_density``) and hand it ``sp``."""
+    if not isinstance(field, NeRFField):
+        raise ValueError(f"expected nerfstudio's NeRFField, got {type(field).__name__}")
+    if type(field) not in (NeRFField, SPNeRFField):
+        raise ValueError(f"{type(field).__name__} is a NeRFField subclass of its own; SP cannot take it over safely")
+    field.__class__ = SPNeRFField
+    field.use_preconditioner(sp)
+    return field  # type: ignore[return-value]

@@ -1,0 +1,179 @@
+"""Trainer configs of the radiance methods (the ``method_configs`` modules only pick one).
+
+- ReLU fields (paper: 256^3 grid, Adam lr 0.03, alpha0 0.003 over the first 8000 steps; 28k steps
+  of 16k rays x 512 samples): ``relu-field`` (4-stage coarse-to-fine), ``relu-field-flat`` and
+  ``sp-relu-field``. The grid here has 257 vertices per axis so every upsampling is exact.
+- ``sp-mipnerf``: nerfstudio's mipnerf settings (RAdam 5e-4, 1024 rays, 128 + 128 samples) with
+  SP on the Gaussian means (alpha0 0.04, exponential to 0 by step 2500).
+- ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host plus
+  SP through frustum offsets.
+
+All use the checked vanilla data manager (no worker processes), which also takes
+``--pipeline.datamanager.train-views N`` for the sparse-view setting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.data import CheckedDataManagerConfig
+from sp_plugins.nerfstudio.radiance_models import (
+    SPMipNerfModelConfig,
+    SPNerfactoModelConfig,
+    SPNeRFModelConfig,
+    SPTensoRFModelConfig,
+)
+from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
+
+
+@dataclass
+class FusedAdamOptimizerConfig(AdamOptimizerConfig):
+    """Adam with the fused kernel (torch >= 2.4, CPU and CUDA): on a dense grid the optimizer step
+    is several times faster than the default foreach kernel on a CPU."""
+
+    fused: Optional[bool] = True
+    """torch.optim.Adam's fused implementation; None lets torch choose."""
+
+
+RELU_FIELD_SP = SPConfig(alpha0=0.003, end=8000, schedule="exponential", boundary="reflect")
+RELU_FIELD_STEPS = 28_000
+
+
+def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> MethodSpecification:
+    model = ReLUFieldModelConfig(
+        resolution=257,
+        hierarchy_stages=stages,
+        num_samples=512,
+        eval_num_rays_per_chunk=4096,
+        sp=dataclasses.replace(RELU_FIELD_SP, enabled=sp),
+    )
+    config = TrainerConfig(
+        method_name=name,
+        steps_per_eval_batch=500,
+        steps_per_eval_image=500,
+        steps_per_save=2000,
+        max_num_iterations=RELU_FIELD_STEPS,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=CheckedDataManagerConfig(
+                dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=16384, eval_num_rays_per_batch=4096
+            ),
+            model=model,
+        ),
+        optimizers={"fields": {"optimizer": FusedAdamOptimizerConfig(lr=0.03, eps=1e-15), "scheduler": None}},
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
+        vis="viewer",
+    )
+    return MethodSpecification(config=config, description=description)
+
+
+def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecification:
+    model = SPMipNerfModelConfig(
+        loss_coefficients={"rgb_loss_coarse": 0.1, "rgb_loss_fine": 1.0},
+        num_coarse_samples=128,
+        num_importance_samples=128,
+        eval_num_rays_per_chunk=1024,
+    )
+    model.sp = dataclasses.replace(model.sp, enabled=sp)
+    config = TrainerConfig(
+        method_name=name,
+        pipeline=VanillaPipelineConfig(
+            datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=1024),
+            model=model,
+        ),
+        optimizers={"fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None}},
+    )
+    return MethodSpecification(config=config, description=description)
+
+
+def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
+    config = TrainerConfig(
+        method_name=name,
+        pipeline=VanillaPipelineConfig(
+            datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig()),
+            model=SPNeRFModelConfig(),
+        ),
+        optimizers={
+            "fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
+            "temporal_distortion": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
+        },
+    )
+    return MethodSpecification(config=config, description=description)
+
+
+def nerfacto_method(name: str, description: str) -> MethodSpecification:
+    decay = ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000)
+    config = TrainerConfig(
+        method_name=name,
+        steps_per_eval_batch=500,
+        steps_per_save=2000,
+        max_num_iterations=30000,
+        mixed_precision=True,
+        pipeline=VanillaPipelineConfig(
+            datamanager=CheckedDataManagerConfig(
+                dataparser=NerfstudioDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
+            ),
+            model=SPNerfactoModelConfig(
+                eval_num_rays_per_chunk=1 << 15,
+                average_init_density=0.01,
+                camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
+            ),
+        ),
+        optimizers={
+            "proposal_networks": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
+            "fields": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
+            "camera_opt": {
+                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+    return MethodSpecification(config=config, description=description)
+
+
+def tensorf_method(name: str, description: str) -> MethodSpecification:
+    config = TrainerConfig(
+        method_name=name,
+        steps_per_eval_batch=500,
+        steps_per_save=2000,
+        max_num_iterations=30000,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=CheckedDataManagerConfig(
+                dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
+            ),
+            model=SPTensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
+        ),
+        optimizers={
+            "fields": {
+                "optimizer": AdamOptimizerConfig(lr=0.001),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=30000),
+            },
+            "encodings": {
+                "optimizer": AdamOptimizerConfig(lr=0.02),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=30000),
+            },
+            "camera_opt": {
+                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+    return MethodSpecification(config=config, description=description)

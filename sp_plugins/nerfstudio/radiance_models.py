@@ -1,0 +1,125 @@
+"""nerfstudio's radiance models with the shared SP settings.
+
+- :class:`SPMipNerfModel`: SP on the mean of each conical frustum's Gaussian
+  (:mod:`sp_plugins.nerfstudio.mipnerf`); the paper's sparse-view setting.
+- :class:`SPNeRFModel` (vanilla NeRF), :class:`SPNerfactoModel`, :class:`SPTensoRFModel`: SP
+  through ``Frustums.offsets`` on the field that renders (:mod:`sp_plugins.nerfstudio.frustum_sp`).
+  Proposal networks and coarse density queries that only place samples see the plain field.
+
+Each is the host model with :class:`~sp_plugins.nerfstudio.model.SPModel` in front; with
+``sp.enabled=False`` it trains exactly like the host.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.models.mipnerf import MipNerfModel
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from nerfstudio.models.tensorf import TensoRFModel, TensoRFModelConfig
+from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
+
+from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.frustum_sp import attach_frustum_sp
+from sp_plugins.nerfstudio.mipnerf import as_sp_nerf_field
+from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
+
+log = logging.getLogger(__name__)
+
+MIPNERF_SP = SPConfig(alpha0=0.04, end=2500, schedule="exponential", boundary="none")
+"""The paper's sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500. NeRF MLPs are
+defined everywhere, so there is no box to reflect into."""
+
+POSITION_FIELD_SP = SPConfig(alpha0=0.02, end=0.2, schedule="exponential", boundary="none")
+"""Not from the paper (it does not run these hosts): about 0.5-1% of a Blender scene's box diagonal,
+exponential to 0 over the first 20% of training."""
+
+
+@dataclass
+class SPMipNerfModelConfig(SPModelConfig, VanillaModelConfig):
+    """MipNeRF with SP on the Gaussian means."""
+
+    _target: Type = field(default_factory=lambda: SPMipNerfModel)
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(MIPNERF_SP))
+
+
+class SPMipNerfModel(SPModel, MipNerfModel):
+    config: SPMipNerfModelConfig
+
+    def attach_sp(self) -> None:
+        as_sp_nerf_field(self.field, self.sp)  # type: ignore[arg-type]
+
+
+@dataclass
+class SPNeRFModelConfig(SPModelConfig, VanillaModelConfig):
+    """Vanilla NeRF (coarse and fine fields) with SP through frustum offsets."""
+
+    _target: Type = field(default_factory=lambda: SPNeRFModel)
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP))
+
+
+class SPNeRFModel(SPModel, NeRFModel):
+    config: SPNeRFModelConfig
+
+    def attach_sp(self) -> None:
+        attach_frustum_sp(self.field_coarse, self.sp)  # type: ignore[arg-type]
+        attach_frustum_sp(self.field_fine, self.sp)  # type: ignore[arg-type]
+
+
+def _check_box_boundary(sp: SPConfig, bounded: bool, method: str) -> None:
+    """A bounded field zeroes density outside its box: SP should reflect there, and must not
+    reflect in a contracted (unbounded) scene."""
+    if not sp.enabled:
+        return
+    if bounded and sp.boundary == "none":
+        log.warning(
+            "%s: the field is bounded by the scene box but --pipeline.model.sp.boundary is 'none': perturbed samples "
+            "near the box fall into the zeroed outside; pass --pipeline.model.sp.boundary reflect",
+            method,
+        )
+    if not bounded and sp.boundary != "none":
+        raise ValueError(
+            f"{method}: --pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but scene contraction is on; "
+            "pass --pipeline.model.sp.boundary none (or --pipeline.model.disable-scene-contraction True)"
+        )
+
+
+@dataclass
+class SPNerfactoModelConfig(SPModelConfig, NerfactoModelConfig):
+    """Nerfacto with SP on the main field's sample positions (world space, before contraction)."""
+
+    _target: Type = field(default_factory=lambda: SPNerfactoModel)
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP))
+
+
+class SPNerfactoModel(SPModel, NerfactoModel):
+    config: SPNerfactoModelConfig
+
+    def populate_modules(self) -> None:
+        _check_box_boundary(self.config.sp, self.config.disable_scene_contraction, "sp-nerfacto")
+        super().populate_modules()
+
+    def attach_sp(self) -> None:
+        attach_frustum_sp(self.field, self.sp)
+
+
+@dataclass
+class SPTensoRFModelConfig(SPModelConfig, TensoRFModelConfig):
+    """TensoRF with SP on the fine field's sample positions, reflected inside the scene box."""
+
+    _target: Type = field(default_factory=lambda: SPTensoRFModel)
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP, boundary="reflect"))
+
+
+class SPTensoRFModel(SPModel, TensoRFModel):
+    config: SPTensoRFModelConfig
+
+    def populate_modules(self) -> None:
+        _check_box_boundary(self.config.sp, True, "sp-tensorf")
+        super().populate_modules()
+
+    def attach_sp(self) -> None:
+        attach_frustum_sp(self.field, self.sp)

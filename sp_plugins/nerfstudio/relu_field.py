@@ -1,0 +1,143 @@
+"""ReLU field (Karnewar et al. 2022): a dense voxel grid, trilinear interpolation, then a ReLU.
+
+The ReLU comes *after* interpolation, so a grid of raw values can carve sharp surfaces inside a
+voxel. Channel 0 is density; the others are colour, either view-dependent spherical-harmonic
+coefficients (3 per basis function) or plain RGB. The grid spans the scene box; positions
+outside it have zero density.
+
+Stochastic preconditioning perturbs every sample position once (reflected into the box) before
+the single grid lookup that gives both density and colour.
+
+The grid is one ``nn.Parameter``; upsampling replaces it with a new one, which the model hands to
+the optimizer (see :meth:`ReLUField.upsample_to`). Loading a checkpoint of another stage resizes
+the grid in place before any gradient has been taken.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Literal, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.field_components.encodings import SHEncoding
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.fields.base_field import Field
+from torch import Tensor, nn
+
+from sp_plugins.core import StochasticPreconditioner
+
+ColorMode = Literal["sh", "rgb"]
+
+
+def color_channels(color_mode: ColorMode, sh_degree: int) -> int:
+    """Grid channels that hold colour: 3 for RGB, 3 * (degree + 1)^2 for spherical harmonics."""
+    if color_mode == "rgb":
+        return 3
+    if color_mode == "sh":
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree={sh_degree}: nerfstudio's SH basis supports degrees 0 to 3")
+        return 3 * (sh_degree + 1) ** 2
+    raise ValueError(f"color_mode={color_mode!r}: allowed values are 'sh' and 'rgb'")
+
+
+def upsample_grid(grid: Float[Tensor, "1 c d h w"], resolution: int) -> Float[Tensor, "1 c r r r"]:
+    """Trilinear resampling of a vertex grid (``align_corners``). Going from ``n`` to ``2n - 1``
+    vertices per axis reproduces the coarse field exactly (every new vertex lies on a coarse edge,
+    face or cell centre, where trilinear interpolation is what the coarse grid already renders)."""
+    return F.interpolate(grid, size=(resolution,) * 3, mode="trilinear", align_corners=True)
+
+
+class ReLUField(Field):
+    """Dense grid field: ``density = relu(trilinear(grid)[0]) * density_scale``.
+
+    Args:
+        aabb: ``[2, 3]`` box the grid spans (vertex-aligned: the first and last vertices lie on it).
+        resolution: vertices per axis at construction (the first hierarchy stage, or the full grid).
+        color_mode: ``sh`` (view-dependent) or ``rgb``.
+        sh_degree: spherical-harmonic degree for ``sh``.
+        density_scale: multiplies the rectified density (scene units^-1).
+        density_init: uniform range of the initial raw density values.
+        color_init: uniform range of the initial raw colour values (before the sigmoid).
+    """
+
+    def __init__(
+        self,
+        aabb: Float[Tensor, "2 3"],
+        resolution: int,
+        color_mode: ColorMode = "sh",
+        sh_degree: int = 1,
+        density_scale: float = 1.0,
+        density_init: Sequence[float] = (-1.0, 1.0),
+        color_init: Sequence[float] = (-1.0, 1.0),
+    ) -> None:
+        super().__init__()
+        if resolution < 2:
+            raise ValueError(f"resolution={resolution}: a grid needs at least 2 vertices per axis")
+        if not density_scale > 0:
+            raise ValueError(f"density_scale={density_scale}: must be > 0")
+        for name, (lo, hi) in (("density_init", density_init), ("color_init", color_init)):
+            if not lo <= hi:
+                raise ValueError(f"{name}={(lo, hi)}: give (low, high) with low <= high")
+        self.color_mode = color_mode
+        self.num_color = color_channels(color_mode, sh_degree)
+        self.sh = SHEncoding(levels=sh_degree + 1, implementation="torch") if color_mode == "sh" else None
+        self.density_scale = float(density_scale)
+        self.register_buffer("aabb", aabb.detach().float().clone())
+        grid = torch.empty(1, 1 + self.num_color, resolution, resolution, resolution)
+        grid[:, :1].uniform_(*density_init)
+        grid[:, 1:].uniform_(*color_init)
+        self.grid = nn.Parameter(grid)
+        self._sp: Optional[StochasticPreconditioner] = None
+
+    # -- state ---------------------------------------------------------------------------------
+    @property
+    def resolution(self) -> int:
+        return int(self.grid.shape[-1])
+
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        """Perturb queries through ``sp`` (owned and checkpointed by the model)."""
+        object.__setattr__(self, "_sp", sp)
+
+    @torch.no_grad()
+    def upsample_to(self, resolution: int) -> nn.Parameter:
+        """Resample the grid to ``resolution`` vertices per axis and return the *new* Parameter.
+
+        A new Parameter is needed because autograd remembers a leaf's shape; the caller moves
+        the optimizer over to it (:meth:`ReLUFieldBaseModel.set_stage`)."""
+        if resolution != self.resolution:
+            self.grid = nn.Parameter(upsample_grid(self.grid.detach(), resolution).contiguous())
+        return self.grid
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        saved = state_dict.get(prefix + "grid")
+        if saved is not None and saved.shape != self.grid.shape:  # a checkpoint from another stage
+            self.grid.data = torch.empty_like(saved, device=self.grid.device)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # -- queries ---------------------------------------------------------------------------------
+    def lookup(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n channels"]:
+        """Trilinear interpolation of every channel at ``x`` (zero outside the box)."""
+        lo, hi = self.aabb[0], self.aabb[1]
+        u = ((x - lo) / (hi - lo)) * 2.0 - 1.0
+        out = F.grid_sample(self.grid, u.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
+        return out.view(self.grid.shape[1], -1).t()
+
+    def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
+        shape = ray_samples.frustums.shape
+        x = ray_samples.frustums.get_positions().reshape(-1, 3)
+        if self._sp is not None:
+            x = self._sp(x)
+        values = self.lookup(x)
+        density = F.relu(values[:, :1]) * self.density_scale
+        return density.view(*shape, 1), values[:, 1:].view(*shape, self.num_color)
+
+    def get_outputs(self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None) -> Dict[FieldHeadNames, Tensor]:
+        assert density_embedding is not None
+        if self.sh is None:
+            return {FieldHeadNames.RGB: torch.sigmoid(density_embedding)}
+        basis = self.sh(ray_samples.frustums.directions)  # [..., K]
+        coeffs = density_embedding.view(*basis.shape[:-1], 3, basis.shape[-1])
+        rgb = torch.sigmoid((coeffs * basis[..., None, :]).sum(-1))
+        return {FieldHeadNames.RGB: rgb}

@@ -1,0 +1,232 @@
+"""ReLU-field models: the original coarse-to-fine hierarchy, flat training, and flat + SP.
+
+One model class covers the three methods:
+
+- ``hierarchy_stages=4`` (``relu-field``): training is split into equal stages; the grid starts at
+  ``(resolution - 1) / 8 + 1`` vertices per axis and is upsampled (exact trilinear resampling)
+  at the start of each stage, with the optimizer state of the grid reset;
+- ``hierarchy_stages=1`` (``relu-field-flat``): full resolution from step 0;
+- flat with ``sp.enabled`` (``sp-relu-field``): full resolution, positions perturbed while training.
+
+Rendering: stratified uniform samples between the ray's entry into and exit from the scene box,
+alpha compositing onto a white background, MSE on colour.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.model_components.losses import MSELoss
+from nerfstudio.model_components.ray_samplers import UniformSampler
+from nerfstudio.model_components.renderers import AccumulationRenderer, DepthRenderer, RGBRenderer
+from nerfstudio.model_components.scene_colliders import AABBBoxCollider
+from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.utils import colormaps
+from torch.nn import Parameter
+
+from sp_plugins.nerfstudio.callbacks import trainer_total_steps
+from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
+from sp_plugins.nerfstudio.relu_field import ColorMode, ReLUField, color_channels, upsample_grid
+
+log = logging.getLogger(__name__)
+
+GRID_GROUP = "fields"
+"""Optimizer group holding the grid."""
+
+
+def stage_resolutions(resolution: int, stages: int) -> List[int]:
+    """Vertices per axis of each stage, coarsest first, halving the cell count per stage:
+    129 over 4 stages gives 17, 33, 65, 129."""
+    if stages < 1:
+        raise ValueError(f"hierarchy_stages={stages}: must be >= 1 (1 = flat training)")
+    cells = resolution - 1
+    out = [max(1, round(cells / 2 ** (stages - 1 - k))) + 1 for k in range(stages)]
+    if min(out) < 2 or len(set(out)) != stages:
+        raise ValueError(
+            f"resolution={resolution} is too coarse for {stages} stages: each stage halves the cells per axis; "
+            f"use resolution >= {2 ** (stages - 1) + 1} or fewer stages"
+        )
+    return out
+
+
+def stage_at(step: int, total_steps: int, stages: int) -> int:
+    """Stage of ``step`` when ``total_steps`` are split into ``stages`` equal parts."""
+    if total_steps <= 0:
+        return stages - 1
+    return min(stages - 1, max(0, step) * stages // total_steps)
+
+
+def swap_parameter(optimizers: Optimizers, group: str, old: Parameter, new: Parameter, reset: bool) -> None:
+    """Make ``optimizers[group]`` optimize ``new`` instead of ``old``: its Adam moments are dropped
+    (``reset``) or resampled onto ``new``'s grid."""
+    optimizer = optimizers.optimizers[group]
+    for param_group in optimizer.param_groups:
+        param_group["params"] = [new if p is old else p for p in param_group["params"]]
+    optimizers.parameters[group] = [new if p is old else p for p in optimizers.parameters[group]]
+    state = optimizer.state.pop(old, None)
+    if state and not reset:
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                state[key] = upsample_grid(state[key], new.shape[-1]).contiguous()
+        optimizer.state[new] = state
+
+
+@dataclass
+class ReLUFieldModelConfig(SPModelConfig, ModelConfig):
+    """A dense ReLU field rendered by stratified sampling inside the scene box."""
+
+    _target: Type = field(default_factory=lambda: ReLUFieldModel)
+    enable_collider: bool = False
+    """Unused: rays are always clipped to the scene box (an AABB collider)."""
+    resolution: int = 129
+    """Vertices per axis of the full-resolution grid (2^k + 1 makes every upsampling exact)."""
+    hierarchy_stages: int = 1
+    """Coarse-to-fine stages of equal length; 1 trains at full resolution from step 0."""
+    reset_optimizer_per_stage: bool = True
+    """Clear the grid's Adam moments when a stage upsamples it (the original scheme)."""
+    color_mode: ColorMode = "sh"
+    """sh: view-dependent colour from spherical harmonics; rgb: one colour per point."""
+    sh_degree: int = 1
+    """Degree of the spherical harmonics (0-3) for color_mode sh."""
+    density_scale: float = 1.0
+    """Density = relu(raw) * density_scale / voxel, the voxel of the full-resolution grid: a raw
+    value of 1 is an optical depth of density_scale across one voxel at every resolution."""
+    density_init: Tuple[float, float] = (-1.0, 1.0)
+    """Uniform range of the initial raw density values."""
+    color_init: Tuple[float, float] = (-1.0, 1.0)
+    """Uniform range of the initial raw colour values (before the sigmoid)."""
+    num_samples: int = 96
+    """Stratified samples per ray inside the box."""
+    background_color: Literal["white", "black", "random"] = "white"
+    """Colour behind the field."""
+
+    def __post_init__(self) -> None:
+        color_channels(self.color_mode, self.sh_degree)
+        stage_resolutions(self.resolution, self.hierarchy_stages)
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples={self.num_samples}: must be >= 1")
+
+
+class ReLUFieldBaseModel(Model):
+    """The ReLU-field renderer and its coarse-to-fine hierarchy (no SP of its own)."""
+
+    config: ReLUFieldModelConfig
+    field: ReLUField
+
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        c = self.config
+        self.resolutions = stage_resolutions(c.resolution, c.hierarchy_stages)
+        aabb = self.scene_box.aabb.float()
+        voxel = float((aabb[1] - aabb[0]).max()) / (c.resolution - 1)
+        self.field = ReLUField(
+            aabb,
+            self.resolutions[0],
+            color_mode=c.color_mode,
+            sh_degree=c.sh_degree,
+            density_scale=c.density_scale / voxel,
+            density_init=c.density_init,
+            color_init=c.color_init,
+        )
+        self.collider = AABBBoxCollider(self.scene_box)
+        self.sampler = UniformSampler(num_samples=c.num_samples, train_stratified=True)
+        self.renderer_rgb = RGBRenderer(background_color=c.background_color)
+        self.renderer_accumulation = AccumulationRenderer()
+        self.renderer_depth = DepthRenderer(method="expected")
+        self.rgb_loss = MSELoss()
+
+        from torchmetrics.functional import structural_similarity_index_measure
+        from torchmetrics.image import PeakSignalNoiseRatio
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = structural_similarity_index_measure
+        self.lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
+
+    # -- hierarchy ---------------------------------------------------------------------------
+    def stage_for_step(self, step: int, total_steps: int) -> int:
+        return stage_at(step, total_steps, self.config.hierarchy_stages)
+
+    def set_stage(self, stage: int, optimizers: Optional[Optimizers] = None) -> bool:
+        """Upsample the grid to ``stage``'s resolution (never down); reset its optimizer state.
+        Returns whether the resolution changed."""
+        target = self.resolutions[stage]
+        if target <= self.field.resolution:
+            return False
+        log.info("relu-field: grid %d^3 -> %d^3 (stage %d)", self.field.resolution, target, stage)
+        old = self.field.grid
+        new = self.field.upsample_to(target)
+        if optimizers is not None and GRID_GROUP in optimizers.optimizers:
+            swap_parameter(optimizers, GRID_GROUP, old, new, reset=self.config.reset_optimizer_per_stage)
+        return True
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        callbacks = list(super().get_training_callbacks(training_callback_attributes))
+        total = trainer_total_steps(training_callback_attributes)
+        if self.config.hierarchy_stages > 1 and total is not None:
+            optimizers = training_callback_attributes.optimizers
+
+            def to_stage(step: int) -> None:
+                self.set_stage(self.stage_for_step(step, total), optimizers)
+
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=to_stage, update_every_num_iters=1
+                )
+            )
+        return callbacks
+
+    # -- rendering ---------------------------------------------------------------------------
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return {GRID_GROUP: [self.field.grid]}
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+        ray_samples = self.sampler(ray_bundle)
+        field_outputs = self.field(ray_samples)
+        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        return {
+            "rgb": self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights),
+            "accumulation": self.renderer_accumulation(weights),
+            "depth": self.renderer_depth(weights, ray_samples),
+        }
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        image = batch["image"].to(self.device)
+        pred, gt = self.renderer_rgb.blend_background_for_loss_computation(
+            pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=image
+        )
+        return {"rgb_loss": self.rgb_loss(gt, pred)}
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        gt = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        return {"psnr": self.psnr(outputs["rgb"], gt), "grid_resolution": self.field.resolution}
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        gt = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        rgb = outputs["rgb"]
+        acc = colormaps.apply_colormap(outputs["accumulation"])
+        depth = colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"])
+        gt_, rgb_ = (torch.moveaxis(t, -1, 0)[None] for t in (gt, rgb.clamp(0, 1)))
+        metrics = {
+            "psnr": float(self.psnr(gt_, rgb_).item()),
+            "ssim": float(self.ssim(gt_, rgb_)),  # type: ignore[arg-type]
+            "lpips": float(self.lpips(gt_, rgb_)),
+        }
+        images = {"img": torch.cat([gt, rgb], dim=1), "accumulation": acc, "depth": depth}
+        return metrics, images
+
+
+class ReLUFieldModel(SPModel, ReLUFieldBaseModel):
+    """ReLU field with the shared SP settings (``sp.enabled=False`` for the baselines)."""
+
+    config: ReLUFieldModelConfig
+
+    def attach_sp(self) -> None:
+        self.field.use_preconditioner(self.sp)
