@@ -38,9 +38,10 @@ def test_small_grid_has_dense_and_hashed_levels():
     assert grid.table.shape == (sum(lv.size for lv in grid.levels), 2)
 
 
-@pytest.mark.parametrize("interpolation", ["Linear", "Smoothstep"])
-def test_gradcheck_inputs_and_table(interpolation):
-    grid = small_grid(interpolation)
+@pytest.mark.parametrize("interpolation, features", [("Linear", 2), ("Smoothstep", 2), ("Linear", 1), ("Smoothstep", 4)])
+def test_gradcheck_inputs_and_table(interpolation, features):
+    """First and second derivatives; 1, 2 and 4 features take the three table-access code paths."""
+    grid = small_grid(interpolation, features_per_level=features)
     x = torch.rand(6, 3, dtype=torch.float64, requires_grad=True)
     table = grid.table.detach().clone().requires_grad_(True)
 
@@ -98,7 +99,7 @@ def test_hashed_level_uses_tcnn_primes_in_uint32():
             h = 0
             for d in range(3):
                 h ^= (c[d] * HASH_PRIMES[d]) & 0xFFFFFFFF
-            assert int(rows[1, k, n]) == levels[1].offset + h % 2**10
+            assert int(rows[1, k, n]) == h % 2**10  # rows within the level
 
 
 @pytest.mark.parametrize("level", [0, 2])
