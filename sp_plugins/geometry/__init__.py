@@ -12,7 +12,7 @@
 
 from sp_plugins.geometry.cleanup import largest_component
 from sp_plugins.geometry.io import Frame, OrientedPoints, estimate_normals, load_mesh, load_oriented_points, save_mesh
-from sp_plugins.geometry.marching_cubes import evaluate_grid, extract_mesh, refine_vertices
+from sp_plugins.geometry.marching_cubes import evaluate_grid, extract_mesh, mesh_from_grid, refine_vertices
 from sp_plugins.geometry.metrics import directed_distances, mesh_metrics, sample_surface
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "largest_component",
     "load_mesh",
     "load_oriented_points",
+    "mesh_from_grid",
     "mesh_metrics",
     "refine_vertices",
     "sample_surface",

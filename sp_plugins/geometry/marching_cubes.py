@@ -10,7 +10,7 @@ evaluates the field itself along the edge, so the vertex lands on the true zero 
 
 from __future__ import annotations
 
-from typing import Callable, Sequence, Tuple, Union
+from typing import Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -167,9 +167,29 @@ def extract_mesh(
     Raises:
         ValueError: the field returned NaN or inf.
     """
+    volume = evaluate_grid(sdf_fn, bounds, resolution, chunk=chunk, device=device, dtype=dtype)
+    return mesh_from_grid(volume, bounds, sdf_fn, level=level, refine=refine, chunk=chunk, device=device, dtype=dtype)
+
+
+def mesh_from_grid(
+    volume: Float[np.ndarray, "rx ry rz"],
+    bounds: BoundsLike,
+    sdf_fn: Optional[SDFFunction] = None,
+    *,
+    level: float = 0.0,
+    refine: int = 0,
+    chunk: int = 65536,
+    device: Union[str, torch.device] = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> trimesh.Trimesh:
+    """The second half of :func:`extract_mesh`, for callers that also inspect the grid from
+    :func:`evaluate_grid` (e.g. which fraction of the volume is negative). ``sdf_fn`` is only
+    needed when ``refine > 0``."""
     from skimage.measure import marching_cubes
 
-    volume = evaluate_grid(sdf_fn, bounds, resolution, chunk=chunk, device=device, dtype=dtype) - level
+    if refine > 0 and sdf_fn is None:
+        raise ValueError("refine > 0 needs sdf_fn to evaluate the field along the edges")
+    volume = volume - level
     bad = ~np.isfinite(volume)
     if bad.any():
         raise ValueError(
@@ -181,6 +201,9 @@ def extract_mesh(
     # scikit-image winds faces by its "descent" convention; for a field that grows outward
     # (an SDF) that gives outward normals (positive volume), which the tests check.
     verts, faces, _, _ = marching_cubes(volume, level=0.0, gradient_direction="descent")
-    shifted = (lambda p: sdf_fn(p).reshape(-1) - level) if level != 0.0 else sdf_fn
-    world = refine_vertices(shifted, verts, volume, bounds, refine, chunk=chunk, device=device, dtype=dtype)
+    if refine > 0:
+        shifted = (lambda p: sdf_fn(p).reshape(-1) - level) if level != 0.0 else sdf_fn
+        world = refine_vertices(shifted, verts, volume, bounds, refine, chunk=chunk, device=device, dtype=dtype)
+    else:
+        world = refine_vertices(None, verts, volume, bounds, 0)
     return trimesh.Trimesh(vertices=world, faces=faces, process=False)

@@ -1,0 +1,261 @@
+"""sp-fit: fit a neural field outside nerfstudio, with stochastic preconditioning on.
+
+    sp-fit pointcloud bunny.ply --steps 2000 --out runs/bunny        # oriented points -> SDF
+    sp-fit pointcloud bunny.ply --no-sp --out runs/bunny-baseline     # the baseline
+    sp-fit image photo.png --adaptive-alpha --out runs/photo          # image + alpha map
+    sp-fit sdf bunny.ply --out runs/bunny-sdf                         # direct SDF supervision
+
+Every option of the fit is a flag (``--steps``, ``--lr``, ``--encoding.kind``, ...), and the SP
+options are those of :class:`sp_plugins.SPConfig` under ``--sp.*`` (``--sp.alpha0``,
+``--sp.schedule``, ``--sp.end``, ``--sp.noise``, ``--sp.boundary``, ``--sp.num-samples``,
+``--sp.alpha-grid``...), the same names as in the nerfstudio methods.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import tyro
+
+from sp_plugins.tasks.image import ImageFitConfig
+from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
+from sp_plugins.tasks.sdf import SDFFitConfig
+
+
+@dataclass(kw_only=True)
+class _Output:
+    out: Path = Path("outputs/sp-fit")
+    """Folder for the results."""
+    overwrite: bool = False
+    """Replace results already in --out."""
+    no_sp: tyro.conf.FlagCreatePairsOff[bool] = False
+    """Train the baseline: no stochastic preconditioning (same as --sp.no-enabled)."""
+    quiet: tyro.conf.FlagCreatePairsOff[bool] = False
+    """No progress bar."""
+
+
+@dataclass(kw_only=True)
+class PointCloudCommand(PointCloudSDFConfig, _Output):
+    """Fit a signed distance field to an oriented point cloud (SIREN loss), then mesh it and
+    measure it. Writes mesh.ply, metrics.json and loss.png to --out."""
+
+    input: tyro.conf.Positional[Path]
+    """A mesh (sampled into oriented points) or a PLY point cloud with normals (nx, ny, nz)."""
+    gt: Optional[Path] = None
+    """Ground-truth mesh for the metrics (default: the input, when it is a mesh)."""
+    estimate_normals: tyro.conf.FlagCreatePairsOff[bool] = False
+    """Estimate missing normals of a point cloud (PCA, oriented away from the centroid)."""
+
+
+@dataclass(kw_only=True)
+class ImageCommand(ImageFitConfig, _Output):
+    """Fit an image with a 2D hash grid. Writes fitted.png, metrics.json (PSNR), loss.png and,
+    with --adaptive-alpha, alpha_map.png."""
+
+    input: tyro.conf.Positional[Path]
+    """An image file (PNG, JPEG, ...)."""
+
+
+@dataclass(kw_only=True)
+class SDFCommand(SDFFitConfig, _Output):
+    """Fit a field to a mesh's signed distance (MAPE loss). Writes mesh.ply, metrics.json and
+    loss.png."""
+
+    input: tyro.conf.Positional[Path]
+    """A triangle mesh."""
+
+
+_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "gt", "estimate_normals"}
+
+
+def _task_config(cmd, cls):
+    """The task config inside a command (drops the command's own flags)."""
+    kwargs = {f.name: getattr(cmd, f.name) for f in dataclasses.fields(cls) if f.init}
+    config = cls(**kwargs)
+    if cmd.no_sp:
+        config.sp = dataclasses.replace(config.sp, enabled=False)
+    return config
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj) if not f.name.startswith("_")}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _sp_summary(sp) -> dict:
+    return {"enabled": sp.enabled, "alpha0": sp.alpha0, "schedule": sp.schedule, "end": sp.end,
+            "alpha_grid": sp.alpha_grid}
+
+
+def _finite_or_none(obj: Any) -> Any:
+    """Strict JSON has no inf / NaN: write them as null (e.g. the Chamfer of an empty mesh)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_none(v) for v in obj]
+    return obj
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(_finite_or_none(data), indent=2, allow_nan=False) + "\n")
+
+
+def _loss_plot(trainer, path: Path, terms: tuple[str, ...]) -> None:
+    from sp_plugins.tasks.common import plot_curves, smooth
+
+    n = len(trainer.history["loss"])
+    window = max(1, n // 100)
+    curves = {k: smooth(trainer.history[k], window) for k in terms if k in trainer.history}
+    alpha = trainer.history["alpha"]
+    end = next((i for i, a in enumerate(alpha) if a == 0.0), None)
+    marks = [(end, "SP off")] if end not in (None, 0) else []
+    plot_curves(curves, path, title=f"training loss (running mean over {window} steps)", marks=marks)
+
+
+def run_pointcloud(cmd: PointCloudCommand) -> dict:
+    from sp_plugins.geometry import load_mesh, load_oriented_points, save_mesh
+
+    outputs = ("mesh.ply", "metrics.json", "loss.png")
+    config = _task_config(cmd, PointCloudSDFConfig)
+    config.validate()
+    from sp_plugins.tasks.common import prepare_output_dir
+
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
+    data = load_oriented_points(cmd.input, config.n_points, config.seed, cmd.estimate_normals)
+    gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
+    trainer = config.setup(data)
+    start = time.perf_counter()
+    trainer.fit(progress=not cmd.quiet)
+    seconds = time.perf_counter() - start
+    if gt is not None:
+        mesh, metrics = trainer.evaluate(gt)
+    else:
+        mesh, info = trainer.mesh()
+        metrics = dict(info, chamfer=None, normal_consistency=None, fscore=None,
+                       note="no ground-truth mesh: pass --gt MESH for chamfer, normal consistency and F-score")
+    if len(mesh.faces) == 0:
+        print("sp-fit: warning: the field has no zero crossing in the domain: the mesh is empty (train longer "
+              "or check the input)", file=sys.stderr)
+    save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
+    metrics.update(
+        steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
+        sp=_sp_summary(config.sp), normals=data.source, input=str(cmd.input),
+        gt=str(cmd.gt) if cmd.gt is not None else (str(cmd.input) if gt is not None else None),
+        final_loss=trainer.history["loss"][-1], config=_jsonable(config),
+    )
+    _write_json(out / "metrics.json", metrics)
+    _loss_plot(trainer, out / "loss.png", ("loss", "surface", "normal", "eikonal", "offsurface"))
+    if metrics.get("chamfer") is not None:
+        print(f"chamfer {metrics['chamfer']:.5f} (clean {metrics['clean_chamfer']:.5f})  normal consistency "
+              f"{metrics['normal_consistency']:.4f}  F-score {metrics['fscore']:.4f}  ({seconds:.0f} s) -> {out}")
+    else:
+        print(f"mesh written ({seconds:.0f} s) -> {out}; {metrics['note']}")
+    return metrics
+
+
+def run_image(cmd: ImageCommand) -> dict:
+    from sp_plugins.tasks.common import prepare_output_dir
+    from sp_plugins.tasks.image import load_image, save_image
+
+    outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
+    config = _task_config(cmd, ImageFitConfig)
+    config.validate()
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
+    image = load_image(cmd.input)
+    trainer = config.setup(image)
+    start = time.perf_counter()
+    trainer.fit(progress=not cmd.quiet)
+    seconds = time.perf_counter() - start
+    fitted = trainer.render()
+    save_image(fitted, out / "fitted.png")
+    from sp_plugins.tasks.image import psnr
+
+    metrics = dict(
+        psnr=psnr(fitted, image), steps=trainer.step_index, seconds=seconds,
+        seconds_per_step=trainer.timer.total / max(trainer.step_index, 1), sp=_sp_summary(config.sp),
+        adaptive_alpha=config.adaptive_alpha, width=trainer.width, height=trainer.height,
+        input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
+    )
+    if trainer.sp.alpha_grid is not None:
+        path = trainer.sp.alpha_grid.export(out / "alpha_map.png")
+        values = trainer.sp.alpha_grid.values()
+        metrics.update(alpha_map=path.name, alpha_map_min=float(values.min()), alpha_map_max=float(values.max()),
+                       alpha_map_resolution=list(values.shape[::-1]))
+    _write_json(out / "metrics.json", metrics)
+    _loss_plot(trainer, out / "loss.png", ("loss",))
+    print(f"PSNR {metrics['psnr']:.2f} dB ({seconds:.0f} s) -> {out}")
+    return metrics
+
+
+def run_sdf(cmd: SDFCommand) -> dict:
+    from sp_plugins.geometry import load_mesh, save_mesh
+    from sp_plugins.tasks.common import prepare_output_dir
+
+    outputs = ("mesh.ply", "metrics.json", "loss.png")
+    config = _task_config(cmd, SDFFitConfig)
+    config.validate()
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
+    gt = load_mesh(cmd.input)
+    trainer = config.setup(gt)
+    start = time.perf_counter()
+    trainer.fit(progress=not cmd.quiet)
+    seconds = time.perf_counter() - start
+    mesh, metrics = trainer.evaluate()
+    save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
+    metrics.update(
+        steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
+        sp=_sp_summary(config.sp), input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
+    )
+    _write_json(out / "metrics.json", metrics)
+    _loss_plot(trainer, out / "loss.png", ("loss",))
+    print(f"chamfer {metrics['chamfer']:.5f} (clean {metrics['clean_chamfer']:.5f})  F-score {metrics['fscore']:.4f} "
+          f"({seconds:.0f} s) -> {out}")
+    return metrics
+
+
+COMMANDS = {
+    "pointcloud": (PointCloudCommand, run_pointcloud),
+    "image": (ImageCommand, run_image),
+    "sdf": (SDFCommand, run_sdf),
+}
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    import logging
+
+    logging.basicConfig(level=logging.WARNING, format="sp-fit: %(message)s")
+    cmd = tyro.extras.subcommand_cli_from_dict(
+        {name: tyro.conf.SuppressFixed[cls] for name, (cls, _) in COMMANDS.items()},
+        prog="sp-fit",
+        description=__doc__.split("\n\n")[0],
+        args=argv,
+    )
+    run = next(fn for cls, fn in COMMANDS.values() if isinstance(cmd, cls))
+    try:
+        run(cmd)
+    except (ValueError, FloatingPointError) as exc:
+        print(f"sp-fit: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def entrypoint() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()

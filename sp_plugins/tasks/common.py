@@ -1,0 +1,95 @@
+"""Pieces shared by the fitting tasks: output folders, loss curves, step timing."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Iterable, Mapping, Optional, Sequence, Union
+
+import torch
+
+
+def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite: bool) -> Path:
+    """Create ``out`` or check that it holds none of ``outputs`` (unless ``overwrite``)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder; choose another --out")
+    existing = [name for name in outputs if (out / name).exists()]
+    if existing and not overwrite:
+        raise ValueError(
+            f"--out {out}: already holds results ({', '.join(existing)}); pass --overwrite to replace "
+            "them or choose another --out"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def plot_curves(
+    curves: Mapping[str, Sequence[float]],
+    path: Union[str, Path],
+    *,
+    xs: Optional[Sequence[float]] = None,
+    xlabel: str = "step",
+    ylabel: str = "loss",
+    title: str = "",
+    log: bool = True,
+    marks: Sequence[tuple[float, str]] = (),
+) -> Path:
+    """One line per curve (x = index unless ``xs``), vertical lines at ``marks``; a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, ys in curves.items():
+        ax.plot(xs if xs is not None else range(len(ys)), ys, label=name, lw=1)
+    for x, label in marks:
+        ax.axvline(x, color="gray", ls="--", lw=0.8)
+        ax.text(x, 1.0, f" {label}", transform=ax.get_xaxis_transform(), va="top", fontsize=8, color="gray")
+    if log:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    path = Path(path)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def smooth(values: Sequence[float], window: int) -> list[float]:
+    """Running mean over ``window`` steps (for readable loss curves)."""
+    if window <= 1 or len(values) == 0:
+        return list(values)
+    t = torch.tensor(values, dtype=torch.float64)
+    c = torch.cat([torch.zeros(1, dtype=torch.float64), t.cumsum(0)])
+    out = []
+    for i in range(len(values)):
+        lo = max(0, i - window + 1)
+        out.append(float((c[i + 1] - c[lo]) / (i + 1 - lo)))
+    return out
+
+
+class StepTimer:
+    """Wall time of each step (``perf_counter``), for per-step cost ratios."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self._start: Optional[float] = None
+
+    def __enter__(self) -> "StepTimer":
+        self._start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        assert self._start is not None
+        self.times.append(time.perf_counter() - self._start)
+
+    @property
+    def total(self) -> float:
+        return float(sum(self.times))

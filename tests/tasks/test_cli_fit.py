@@ -1,0 +1,122 @@
+import json
+import numpy as np
+import pytest
+import trimesh
+from trimesh.exchange.ply import export_ply
+
+from sp_plugins.cli.fit import main
+from sp_plugins.tasks.image import save_image
+
+TINY = ["--encoding.levels", "4", "--encoding.log2-table-size", "12", "--encoding.base-resolution", "8",
+        "--encoding.max-resolution", "64", "--hidden", "16", "--quiet"]
+TINY_SDF = TINY + ["--mesh-resolution", "32", "--refine", "2", "--metric-points", "3000"]
+
+
+@pytest.fixture(scope="module")
+def mesh_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("in") / "sphere.ply"
+    path.write_bytes(export_ply(trimesh.creation.icosphere(2, radius=3.0)))
+    return path
+
+
+def read_json(path):
+    return json.loads(path.read_text())  # strict: no NaN / Infinity
+
+
+def test_pointcloud_writes_mesh_metrics_and_curve(tmp_path, mesh_path):
+    out = tmp_path / "run"
+    args = ["pointcloud", str(mesh_path), "--out", str(out), "--steps", "12", "--seed", "3", "--n-points", "4000",
+            "--surface-batch", "256", "--space-batch", "256", "--sp.alpha0", "0.03", "--sp.end", "0.5", "--geometric-init"] + TINY_SDF
+    assert main(args) == 0
+    metrics = read_json(out / "metrics.json")
+    for key in ("chamfer", "normal_consistency", "fscore", "steps", "seconds", "sp"):
+        assert key in metrics
+    assert metrics["steps"] == 12 and metrics["sp"]["enabled"] is True and metrics["sp"]["alpha0"] == 0.03
+    assert metrics["config"]["seed"] == 3 and metrics["normals"] == "mesh"
+    assert (out / "loss.png").stat().st_size > 0
+    mesh = trimesh.load(out / "mesh.ply")  # geometric init: a sphere from the start
+    assert len(mesh.faces) > 0
+    assert np.abs(mesh.vertices).max() > 1.2  # written back in the input's coordinates (radius 3), not the frame
+
+
+def test_no_sp_and_overwrite(tmp_path, mesh_path, capsys):
+    out = tmp_path / "run"
+    base = ["pointcloud", str(mesh_path), "--out", str(out), "--steps", "3", "--n-points", "2000",
+            "--surface-batch", "64", "--space-batch", "64"] + TINY_SDF
+    assert main(base + ["--no-sp"]) == 0
+    assert read_json(out / "metrics.json")["sp"]["enabled"] is False
+    before = (out / "metrics.json").read_text()
+    assert main(base) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (out / "metrics.json").read_text() == before  # untouched
+    assert main(base + ["--overwrite"]) == 0
+    assert read_json(out / "metrics.json")["sp"]["enabled"] is True
+
+
+def test_bad_inputs_give_clean_errors(tmp_path, capsys):
+    empty = tmp_path / "cloud.ply"
+    pts = np.random.default_rng(0).normal(size=(100, 3))
+    empty.write_bytes(export_ply(trimesh.Trimesh(pts, np.zeros((0, 3), dtype=np.int64), process=False)))
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"garbage")
+    nan_mesh = trimesh.creation.box()
+    nan_mesh.vertices[0] = np.nan
+    nan_path = tmp_path / "nan.ply"
+    nan_path.write_bytes(export_ply(nan_mesh))
+    cases = [
+        (["pointcloud", str(empty)], "no normals"),
+        (["pointcloud", str(junk)], "cannot be read"),
+        (["pointcloud", str(nan_path)], "NaN"),
+        (["pointcloud", str(tmp_path / "missing.ply")], "no such file"),
+        (["sdf", str(empty)], "no faces"),
+        (["image", str(junk)], "cannot be read"),
+    ]
+    for args, message in cases:
+        assert main(args + ["--out", str(tmp_path / "o"), "--quiet"]) == 2, args
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+
+
+def test_point_cloud_without_normals_can_be_estimated(tmp_path):
+    pts = np.random.default_rng(0).normal(size=(3000, 3))
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    cloud = tmp_path / "cloud.ply"
+    cloud.write_bytes(export_ply(trimesh.Trimesh(pts, np.zeros((0, 3), dtype=np.int64), process=False)))
+    gt = tmp_path / "gt.ply"
+    gt.write_bytes(export_ply(trimesh.creation.icosphere(3)))
+    out = tmp_path / "run"
+    args = ["pointcloud", str(cloud), "--estimate-normals", "--gt", str(gt), "--out", str(out), "--steps", "3",
+            "--surface-batch", "64", "--space-batch", "64"] + TINY_SDF
+    assert main(args) == 0
+    metrics = read_json(out / "metrics.json")
+    assert metrics["normals"] == "estimated" and metrics["gt"] == str(gt)
+
+
+def test_image_with_alpha_map(tmp_path):
+    img = np.random.default_rng(0).uniform(size=(48, 64, 3)).astype(np.float32)
+    path = save_image(img, tmp_path / "in.png")
+    out = tmp_path / "run"
+    assert main(["image", str(path), "--out", str(out), "--steps", "5", "--adaptive-alpha"] + TINY) == 0
+    metrics = read_json(out / "metrics.json")
+    assert metrics["psnr"] > 0 and metrics["adaptive_alpha"] is True
+    assert metrics["alpha_map_resolution"] == [4, 3]  # 64 x 48 pixels / 16
+    for name in ("fitted.png", "alpha_map.png", "loss.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_sdf_command(tmp_path, mesh_path):
+    out = tmp_path / "run"
+    args = ["sdf", str(mesh_path), "--out", str(out), "--steps", "5", "--pool", "2000", "--batch", "256"] + TINY_SDF
+    assert main(args) == 0
+    metrics = read_json(out / "metrics.json")
+    assert metrics["steps"] == 5 and "near_mae" in metrics and (out / "mesh.ply").exists()
+
+
+def test_console_script_is_registered(capsys):
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "sp-fit"]
+    assert script.value == "sp_plugins.cli.fit:entrypoint"
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0 and "pointcloud" in capsys.readouterr().out
