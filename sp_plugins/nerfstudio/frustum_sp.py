@@ -59,7 +59,7 @@ def attach_frustum_sp(field: nn.Module, sp: StochasticPreconditioner) -> None:
 
     def forward(*args: Any, **kwargs: Any):
         samples = _ray_samples(args, kwargs)
-        if samples is None or not sp.active:
+        if samples is None or not (field.training and sp.active):
             return plain(*args, **kwargs)
         previous = set_perturbed_offsets(samples, sp)
         try:

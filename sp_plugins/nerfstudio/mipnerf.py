@@ -39,7 +39,7 @@ class SPNeRFField(NeRFField):
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         sp = self._sp
-        if sp is None or not sp.active:
+        if sp is None or not (self.training and sp.active):
             return super().get_density(ray_samples)
         if not self.use_integrated_encoding:  # plain positions: the frustum-offset route
             previous = set_perturbed_offsets(ray_samples, sp)

@@ -127,7 +127,7 @@ class ReLUField(Field):
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         shape = ray_samples.frustums.shape
         x = ray_samples.frustums.get_positions().reshape(-1, 3)
-        if self._sp is not None:
+        if self._sp is not None and self.training:
             x = self._sp(x)
         values = self.lookup(x)
         density = F.relu(values[:, :1]) * self.density_scale
