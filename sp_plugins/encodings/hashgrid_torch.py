@@ -9,20 +9,26 @@ Per level (see :mod:`sp_plugins.encodings.grid_levels` for the level geometry):
 - hashed levels as ``(c_0 * 1 ^ c_1 * 2654435761 ^ c_2 * 805459861) mod 2^log2_hashmap_size``.
   The table size is a power of two, so masking int64 products gives tcnn's uint32 result.
 
-Why it is fast on a CPU. The corner weights are ordinary autograd ops on ``[levels, 2^D, N]``
-tensors (so derivatives w.r.t. ``x`` of any order come from autograd), but the table access is
-three small autograd Functions that are each other's derivatives:
+How derivatives work. The corner weights are ordinary autograd ops on ``[levels, 2^D, N]``
+tensors, so derivatives w.r.t. ``x`` of any order come from autograd. The table access is three
+small autograd Functions that are each other's derivatives, so any order works there too (the
+eikonal loss needs the second):
 
 - ``interp(table, w)[n, l] = sum_c w[l, c, n] * table[row(l, c, n)]``   (the encoding),
 - ``splat(w, g)[r] = sum_{l,c,n: row = r} w[l, c, n] * g[n, l]``        (d interp / d table),
-- ``dot(table, g)[l, c, n] = <table[row(l, c, n)], g[n, l]>``           (d interp / d w),
+- ``dot(table, g)[l, c, n] = <table[row(l, c, n)], g[n, l]>``           (d interp / d w).
 
-so double backward (the eikonal loss) stays inside them. Each runs level by level, so one level's
-slice of the table stays in cache, and with 2 features per level a table row is viewed as one
-complex number: the gather, the weighted sum and the scatter-add (``index_add_``) then move one
-8-byte element per corner instead of strided pairs. The table gradient is dense, built with one
-zero fill and one ``index_add_`` per level (no sort, no ``index_put_``), and nothing is
-computed for ``x`` unless ``x`` requires a gradient.
+Why it is fast on a CPU (measured in ``bench/hashgrid_speed.py``):
+
+- level by level, so one level's slice of the table and all temporaries stay small and cached;
+- with 2 features per level a table row is viewed as one complex number: gather, weighted sum
+  and scatter-add (``index_add_`` with int32 rows) move one 8-byte element per corner;
+- corner rows in int32, each axis' hash product masked once (XOR commutes with the mask);
+- the table gradient is one zero fill plus one ``index_add_`` per level (no sort, no
+  ``index_put_``); nothing is computed for ``x`` unless it requires a gradient, and a pass that
+  only wants the input gradient (``autograd.grad(y, x)``) skips the table's scatter;
+- when ``x`` requires a gradient the gathered corner values are kept (one ``[L, 2^D, N]`` tensor)
+  and reused by the backward passes instead of gathered again.
 """
 
 from __future__ import annotations
@@ -55,24 +61,6 @@ class TableLayout:
 
 # ------------------------------------------------------------------------------------------------
 # corner rows and weights
-
-
-def _combine_corners(per_dim: Tensor, op: str) -> Tensor:
-    """``[L, D, 2, N]`` per-axis values -> ``[L, 2**D, N]``, combining one value per axis with
-    ``op`` ('mul', 'add' or 'xor'). Corner ``k`` takes the ``+1`` side on axis ``d`` when bit
-    ``D - 1 - d`` of ``k`` is set."""
-    acc = per_dim[:, 0]
-    for d in range(1, per_dim.shape[1]):
-        right = per_dim[:, d, None]  # [L, 1, 2, N]
-        left = acc[:, :, None]  # [L, K, 1, N]
-        if op == "mul":
-            acc = left * right
-        elif op == "add":
-            acc = left + right
-        else:
-            acc = torch.bitwise_xor(left, right)
-        acc = acc.reshape(acc.shape[0], -1, acc.shape[-1])
-    return acc
 
 
 def _corner_combos(per_dim: Sequence[Tensor], op, out: Tensor) -> Tensor:
@@ -138,80 +126,130 @@ def _scalar_view(table: Tensor) -> Optional[Tensor]:
     return None
 
 
-def _per_level_complex(g: Tensor) -> Tensor:
-    """``[N, L, 2]`` real -> ``[L, N]`` complex, contiguous (so per-level products vectorise)."""
-    return torch.view_as_complex(g.contiguous()).t().contiguous()
+def _per_level(g: Tensor, scalars: Optional[Tensor]) -> Tensor:
+    """``[N, L, F]`` real -> ``[L, N]`` (complex for 2 features, real for 1) or ``[L, N, F]``, contiguous."""
+    if scalars is None:
+        return g.transpose(0, 1).contiguous()
+    if scalars.is_complex():
+        return torch.view_as_complex(g.contiguous()).t().contiguous()
+    return g[..., 0].t().contiguous()
 
 
-def _interp_kernel(table: Tensor, w: Tensor, rows: Tensor, layout: TableLayout) -> Tensor:
-    n_levels, n_corners, n = w.shape
-    n_features = table.shape[1]
-    out = table.new_empty(n_levels, n, n_features)
-    scalars = _scalar_view(table)
-    for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
-        if scalars is not None:
-            gathered = scalars[off : off + size].index_select(0, rows[lvl].view(-1)).view(n_corners, n)
-            target = torch.view_as_complex(out[lvl]) if gathered.is_complex() else out[lvl, :, 0]
-            torch.sum(gathered * w[lvl], 0, out=target)
+class _Gather:
+    """Corner values ``table[rows]`` level by level; optionally all of them kept for reuse (the
+    eikonal's backward passes read the same values three times)."""
+
+    def __init__(self, table: Tensor, rows: Tensor, layout: TableLayout, cache: Optional[Tensor] = None):
+        self.table, self.rows, self.layout = table, rows, layout
+        self.scalars = _scalar_view(table)
+        self.cache = cache
+
+    def fill_cache(self) -> Tensor:
+        n_levels, n_corners, n = self.rows.shape
+        shape = (n_levels, n_corners, n) if self.scalars is not None else (n_levels, n_corners, n, self.table.shape[1])
+        dtype = self.scalars.dtype if self.scalars is not None else self.table.dtype
+        cache = torch.empty(shape, dtype=dtype, device=self.table.device)
+        for lvl in range(n_levels):
+            self.level(lvl, out=cache[lvl])
+        self.cache = cache
+        return cache
+
+    def level(self, lvl: int, out: Optional[Tensor] = None) -> Tensor:
+        if self.cache is not None:
+            return self.cache[lvl]
+        off, size = self.layout.offsets[lvl], self.layout.sizes[lvl]
+        n_corners, n = self.rows.shape[1:]
+        if self.scalars is not None:
+            flat = None if out is None else out.view(-1)
+            return torch.index_select(self.scalars[off : off + size], 0, self.rows[lvl].view(-1), out=flat).view(n_corners, n)
+        flat = None if out is None else out.view(-1, self.table.shape[1])
+        idx = self.rows[lvl].view(-1).long()  # 2-D index_add_/index_select are much faster with int64
+        return torch.index_select(self.table[off : off + size], 0, idx, out=flat).view(n_corners, n, -1)
+
+
+def _interp_kernel(gather: _Gather, w: Tensor) -> Tensor:
+    n_levels, _, n = w.shape
+    out = gather.table.new_empty(n_levels, n, gather.table.shape[1])
+    for lvl in range(n_levels):
+        values = gather.level(lvl)
+        if gather.scalars is None:
+            torch.sum(values * w[lvl][..., None], 0, out=out[lvl])
         else:
-            gathered = table[off : off + size].index_select(0, rows[lvl].view(-1).long()).view(n_corners, n, n_features)
-            torch.sum(gathered * w[lvl][..., None], 0, out=out[lvl])
+            target = torch.view_as_complex(out[lvl]) if values.is_complex() else out[lvl, :, 0]
+            torch.sum(values * w[lvl], 0, out=target)
     return out.transpose(0, 1)  # [N, L, F]
+
+
+def _dot_kernel(gather: _Gather, g: Tensor) -> Tensor:
+    n_levels, n_corners, n = gather.rows.shape
+    out = gather.table.new_empty(n_levels, n_corners, n)
+    g_lvl = _per_level(g, gather.scalars)
+    if gather.scalars is not None and gather.scalars.is_complex():
+        g_lvl = g_lvl.conj()  # Re(a * conj(b)) = a.re * b.re + a.im * b.im
+    for lvl in range(n_levels):
+        prod = gather.level(lvl) * g_lvl[lvl]
+        if gather.scalars is None:
+            torch.sum(prod, -1, out=out[lvl])
+        else:
+            out[lvl] = prod.real if prod.is_complex() else prod
+    return out
 
 
 def _splat_kernel(w: Tensor, g: Tensor, rows: Tensor, layout: TableLayout) -> Tensor:
     n_features = g.shape[-1]
     grad = g.new_zeros(layout.n_rows, n_features)
     scalars = _scalar_view(grad)
-    if scalars is not None:
-        g_lvl = _per_level_complex(g) if scalars.is_complex() else g[..., 0].t().contiguous()
-        for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
+    g_lvl = _per_level(g, scalars)
+    for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
+        if scalars is not None:
             scalars[off : off + size].index_add_(0, rows[lvl].view(-1), (w[lvl] * g_lvl[lvl]).view(-1))
-    else:
-        for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
-            src = (w[lvl][..., None] * g[None, :, lvl]).view(-1, n_features)
+        else:
+            src = (w[lvl][..., None] * g_lvl[lvl][None]).view(-1, n_features)
             grad[off : off + size].index_add_(0, rows[lvl].view(-1).long(), src)
     return grad
-
-
-def _dot_kernel(table: Tensor, g: Tensor, rows: Tensor, layout: TableLayout) -> Tensor:
-    n_levels, n_corners, n = rows.shape
-    n_features = table.shape[1]
-    out = table.new_empty(n_levels, n_corners, n)
-    scalars = _scalar_view(table)
-    if scalars is not None:  # complex: Re(a * conj(b)) = a.re * b.re + a.im * b.im
-        g_lvl = _per_level_complex(g).conj() if scalars.is_complex() else g[..., 0].t().contiguous()
-        for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
-            gathered = scalars[off : off + size].index_select(0, rows[lvl].view(-1)).view(n_corners, n)
-            prod = gathered * g_lvl[lvl]
-            out[lvl] = prod.real if prod.is_complex() else prod
-    else:
-        for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
-            gathered = table[off : off + size].index_select(0, rows[lvl].view(-1).long()).view(n_corners, n, n_features)
-            torch.sum(gathered * g[None, :, lvl], -1, out=out[lvl])
-    return out
 
 
 # ------------------------------------------------------------------------------------------------
 # autograd: interp, splat and dot are bilinear and each other's derivatives (any order)
 
 
+def _wanted(ctx, i: int) -> bool:
+    """Whether this backward pass needs the gradient of input ``i``. ``needs_input_grad`` only says
+    the input requires grad; ``autograd.grad(y, x)`` (the eikonal's first pass) does not want the
+    table's gradient, and asking the engine saves a whole scatter-add over the table."""
+    if not ctx.needs_input_grad[i]:
+        return False
+    try:
+        node = ctx.next_functions[i][0]
+        return node is None or bool(torch._C._will_engine_execute_node(node))
+    except (AttributeError, RuntimeError):  # private API: if it moves, compute everything
+        return True
+
+
 class _Interp(Function):
+    """``out[n, l] = sum_c w[l, c, n] * table[row(l, c, n)]``. ``cache`` (optional) holds
+    ``table[rows]`` already gathered; it is kept when ``w`` needs a gradient."""
+
     @staticmethod
-    def forward(ctx, table, w, rows, layout):
-        ctx.save_for_backward(table, w, rows)
+    def forward(ctx, table, w, rows, layout, cache):
+        gather = _Gather(table, rows, layout, cache)
+        if cache is None and ctx.needs_input_grad[1]:
+            cache = gather.fill_cache()
+        ctx.save_for_backward(table, w, rows, cache)
         ctx.layout = layout
-        return _interp_kernel(table, w, rows, layout)
+        return _interp_kernel(gather, w)
 
     @staticmethod
     def backward(ctx, g):
-        table, w, rows = ctx.saved_tensors
-        grad_table = _Splat.apply(w, g, rows, ctx.layout) if ctx.needs_input_grad[0] else None
-        grad_w = _Dot.apply(table, g, rows, ctx.layout) if ctx.needs_input_grad[1] else None
-        return grad_table, grad_w, None, None
+        table, w, rows, cache = ctx.saved_tensors
+        grad_table = _Splat.apply(w, g, rows, ctx.layout) if _wanted(ctx, 0) else None
+        grad_w = _Dot.apply(table, g, rows, ctx.layout, cache) if _wanted(ctx, 1) else None
+        return grad_table, grad_w, None, None, None
 
 
 class _Splat(Function):
+    """``grad[r] = sum_{l,c,n: row(l,c,n) = r} w[l, c, n] * g[n, l]`` (d interp / d table)."""
+
     @staticmethod
     def forward(ctx, w, g, rows, layout):
         ctx.save_for_backward(w, g, rows)
@@ -221,24 +259,26 @@ class _Splat(Function):
     @staticmethod
     def backward(ctx, grad_table):
         w, g, rows = ctx.saved_tensors
-        grad_w = _Dot.apply(grad_table, g, rows, ctx.layout) if ctx.needs_input_grad[0] else None
-        grad_g = _Interp.apply(grad_table, w, rows, ctx.layout) if ctx.needs_input_grad[1] else None
+        grad_w = _Dot.apply(grad_table, g, rows, ctx.layout, None) if _wanted(ctx, 0) else None
+        grad_g = _Interp.apply(grad_table, w, rows, ctx.layout, None) if _wanted(ctx, 1) else None
         return grad_w, grad_g, None, None
 
 
 class _Dot(Function):
+    """``out[l, c, n] = <table[row(l, c, n)], g[n, l]>`` (d interp / d w)."""
+
     @staticmethod
-    def forward(ctx, table, g, rows, layout):
-        ctx.save_for_backward(table, g, rows)
+    def forward(ctx, table, g, rows, layout, cache):
+        ctx.save_for_backward(table, g, rows, cache)
         ctx.layout = layout
-        return _dot_kernel(table, g, rows, layout)
+        return _dot_kernel(_Gather(table, rows, layout, cache), g)
 
     @staticmethod
     def backward(ctx, grad_w):
-        table, g, rows = ctx.saved_tensors
-        grad_table = _Splat.apply(grad_w, g, rows, ctx.layout) if ctx.needs_input_grad[0] else None
-        grad_g = _Interp.apply(table, grad_w, rows, ctx.layout) if ctx.needs_input_grad[1] else None
-        return grad_table, grad_g, None, None
+        table, g, rows, cache = ctx.saved_tensors
+        grad_table = _Splat.apply(grad_w, g, rows, ctx.layout) if _wanted(ctx, 0) else None
+        grad_g = _Interp.apply(table, grad_w, rows, ctx.layout, cache) if _wanted(ctx, 1) else None
+        return grad_table, grad_g, None, None, None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -259,5 +299,5 @@ def hashgrid_encode(
         cells = [torch.floor(p) for p in pos]
         rows = corner_indices(torch.stack(cells, dim=1).to(torch.int64), levels, hashmap_size)
     weights = corner_weights([p - c for p, c in zip(pos, cells)], smoothstep)  # [L, 2^D, N]
-    out = _Interp.apply(table, weights, rows, TableLayout.of(levels, table.shape[0]))  # [N, L, F]
+    out = _Interp.apply(table, weights, rows, TableLayout.of(levels, table.shape[0]), None)  # [N, L, F]
     return out.reshape(n, -1)

@@ -40,8 +40,10 @@ def test_small_grid_has_dense_and_hashed_levels():
 
 @pytest.mark.parametrize("interpolation, features", [("Linear", 2), ("Smoothstep", 2), ("Linear", 1), ("Smoothstep", 4)])
 def test_gradcheck_inputs_and_table(interpolation, features):
-    """First and second derivatives; 1, 2 and 4 features take the three table-access code paths."""
-    grid = small_grid(interpolation, features_per_level=features)
+    """First and second derivatives; 1, 2 and 4 features take the three table-access code paths.
+    Levels of res 2 and 3 (dense) and 5 (hashed into 32 rows): 72 rows keep gradgradcheck quick."""
+    grid = small_grid(interpolation, features_per_level=features, log2_hashmap_size=5, base_resolution=2, per_level_scale=1.5)
+    assert [lv.hashed for lv in grid.levels] == [False, False, True]
     x = torch.rand(6, 3, dtype=torch.float64, requires_grad=True)
     table = grid.table.detach().clone().requires_grad_(True)
 
@@ -61,6 +63,21 @@ def test_eikonal_double_backward_reaches_table_and_inputs():
     loss = (g.norm(dim=-1) - 1).square().mean()
     table_grad, x_grad = torch.autograd.grad(loss, [grid.table, x])
     assert table_grad.abs().sum() > 0 and x_grad.abs().sum() > 0
+
+
+def test_input_gradient_alone_does_not_scatter_into_the_table(monkeypatch):
+    """autograd.grad(y, x) must not pay for the table's gradient (the eikonal's first pass)."""
+    from sp_plugins.encodings import hashgrid_torch
+
+    calls = []
+    real_splat = hashgrid_torch._splat_kernel
+    monkeypatch.setattr(hashgrid_torch, "_splat_kernel", lambda *a: calls.append(1) or real_splat(*a))
+    grid = small_grid()
+    x = torch.rand(16, 3, dtype=torch.float64, requires_grad=True)
+    (g,) = torch.autograd.grad(grid(x).sum(), x, create_graph=True)
+    assert calls == []
+    g.square().sum().backward()  # now the table does need its gradient (through the input gradient)
+    assert calls and grid.table.grad.abs().sum() > 0
 
 
 def test_dense_level_matches_direct_trilinear_lookup():
