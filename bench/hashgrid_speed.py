@@ -1,8 +1,9 @@
 """Our torch HashGrid against nerfstudio's torch HashEncoding: a whole training step, side by side.
 
 Setting (the paper's hash grid): 16 levels, 2^19 rows per level, resolution 16 to 2048,
-2 features per level, 2^16 points per step, a 32-64-64-1 ReLU MLP, Adam (lr 1e-2, torch's
-default implementation) over encoding + MLP for both. Two workloads:
+2 features per level, 2^16 points per step, a 32-64-64-1 MLP, Adam (lr 1e-2) over encoding + MLP,
+the same optimizer for both: torch's default Adam (``foreach``) and, as a second setting, the
+fused CPU Adam (``fused=True``). Two workloads:
 
 - ``fit``: regress a target from fixed points (no input gradient): forward, backward, Adam step;
 - ``eikonal``: the same plus an eikonal term, which differentiates the input gradient again
@@ -34,6 +35,7 @@ from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, wr
 SETTING = dict(num_levels=16, log2_hashmap_size=19, base_resolution=16, max_resolution=2048, features_per_level=2)
 VARIANTS = ("nerfstudio", "ours")
 WORKLOADS = ("fit", "eikonal")
+OPTIMIZERS = {"adam": {}, "adam-fused": {"fused": True}}
 
 
 def build_encoding(variant: str) -> nn.Module:
@@ -47,12 +49,12 @@ def build_encoding(variant: str) -> nn.Module:
     return HashGrid(**SETTING, backend="torch")
 
 
-def make_step(variant: str, workload: str, points: int, seed: int = 0) -> Tuple[Callable[[], float], nn.Module]:
+def make_step(variant: str, workload: str, points: int, optimizer: str = "adam", seed: int = 0) -> Tuple[Callable[[], float], nn.Module]:
     torch.manual_seed(seed)
     enc = build_encoding(variant)
     width = SETTING["num_levels"] * SETTING["features_per_level"]
     mlp = nn.Sequential(nn.Linear(width, 64), nn.ReLU(), nn.Linear(64, 64), nn.Softplus(beta=100), nn.Linear(64, 1))
-    opt = torch.optim.Adam(list(enc.parameters()) + list(mlp.parameters()), lr=1e-2)
+    opt = torch.optim.Adam(list(enc.parameters()) + list(mlp.parameters()), lr=1e-2, **OPTIMIZERS[optimizer])
     gen = torch.Generator().manual_seed(seed)
     x = torch.rand(points, 3, generator=gen)
     target = (x - 0.5).norm(dim=-1, keepdim=True) - 0.3
@@ -83,19 +85,19 @@ def _status_kb(field: str) -> int:
     raise RuntimeError(f"{field} not found in /proc/self/status (peak memory needs Linux)")
 
 
-def measure_memory(variant: str, workload: str, points: int, steps: int) -> dict:
+def measure_memory(variant: str, workload: str, optimizer: str, points: int, steps: int) -> dict:
     """Run in a fresh process: peak RSS of building + ``steps`` steps over the RSS before."""
     before = _status_kb("VmRSS")
-    step, _ = make_step(variant, workload, points)
+    step, _ = make_step(variant, workload, points, optimizer)
     for _ in range(steps):
         step()
     peak = _status_kb("VmHWM")
     return {"peak_rss_mb": peak / 1024, "peak_over_start_mb": (peak - before) / 1024}
 
 
-def memory_in_subprocess(variant: str, workload: str, points: int, steps: int, threads: int) -> dict:
+def memory_in_subprocess(variant: str, workload: str, optimizer: str, points: int, steps: int, threads: int) -> dict:
     cmd = [sys.executable, "-m", "bench.hashgrid_speed", "--memory-probe", variant, "--workload", workload,
-           "--points", str(points), "--memory-steps", str(steps), "--threads", str(threads)]
+           "--optimizer", optimizer, "--points", str(points), "--memory-steps", str(steps), "--threads", str(threads)]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=root, check=True)
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -122,6 +124,7 @@ def main(argv=None) -> None:
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--workload", choices=WORKLOADS + ("both",), default="both")
+    parser.add_argument("--optimizer", choices=tuple(OPTIMIZERS) + ("both",), default="both")
     parser.add_argument("--memory-steps", type=int, default=3)
     parser.add_argument("--skip-memory", action="store_true")
     parser.add_argument("--memory-probe", choices=VARIANTS, help=argparse.SUPPRESS)
@@ -129,24 +132,28 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
 
     if args.memory_probe:
-        print(json.dumps(measure_memory(args.memory_probe, args.workload, args.points, args.memory_steps)))
+        print(json.dumps(measure_memory(args.memory_probe, args.workload, args.optimizer, args.points, args.memory_steps)))
         return
 
     workloads = WORKLOADS if args.workload == "both" else (args.workload,)
-    result: Dict[str, object] = {"setting": dict(SETTING, points=args.points, optimizer="torch.optim.Adam(lr=1e-2)"),
-                                 "machine_before": machine_info(), "workloads": {}}
+    optimizers = tuple(OPTIMIZERS) if args.optimizer == "both" else (args.optimizer,)
+    result: Dict[str, object] = {"setting": dict(SETTING, points=args.points, optimizer="torch.optim.Adam(lr=1e-2)", mlp="32-64-64-1"),
+                                 "command": " ".join(["python -m bench.hashgrid_speed"] + (argv if argv is not None else sys.argv[1:])),
+                                 "machine_before": machine_info(), "runs": {}}
     for workload in workloads:
-        steps = {v: make_step(v, workload, args.points)[0] for v in VARIANTS}
-        times = paired_timing(steps, repeats=args.repeats, warmup=args.warmup)
-        summary = ratio_summary(times, baseline="nerfstudio")
-        entry = {"seconds": times, "summary": summary,
-                 "speedup_ours_vs_nerfstudio": summary["nerfstudio"]["median_s"] / summary["ours"]["median_s"]}
-        del steps
-        if not args.skip_memory:
-            entry["memory"] = {v: memory_in_subprocess(v, workload, args.points, args.memory_steps, args.threads) for v in VARIANTS}
-        result["workloads"][workload] = entry
-        print(f"[{workload}] nerfstudio {summary['nerfstudio']['median_s']:.3f} s/step, ours {summary['ours']['median_s']:.3f} s/step, "
-              f"speed-up {entry['speedup_ours_vs_nerfstudio']:.2f}x", flush=True)
+        for optimizer in optimizers:
+            key = f"{workload}/{optimizer}"
+            steps = {v: make_step(v, workload, args.points, optimizer)[0] for v in VARIANTS}
+            times = paired_timing(steps, repeats=args.repeats, warmup=args.warmup)
+            summary = ratio_summary(times, baseline="nerfstudio")
+            entry = {"workload": workload, "optimizer": optimizer, "seconds": times, "summary": summary,
+                     "speedup_ours_vs_nerfstudio": summary["nerfstudio"]["median_s"] / summary["ours"]["median_s"]}
+            del steps
+            if not args.skip_memory:
+                entry["memory"] = {v: memory_in_subprocess(v, workload, optimizer, args.points, args.memory_steps, args.threads) for v in VARIANTS}
+            result["runs"][key] = entry
+            print(f"[{key}] nerfstudio {summary['nerfstudio']['median_s']:.3f} s/step, ours {summary['ours']['median_s']:.3f} s/step, "
+                  f"speed-up {entry['speedup_ours_vs_nerfstudio']:.2f}x", flush=True)
     result["touched_rows_per_step"] = touched_fraction(args.points)
     result["machine_after"] = machine_info()
     path = write_json("hashgrid_speed", result)
@@ -157,13 +164,14 @@ def main(argv=None) -> None:
 
 
 def to_markdown(result: dict) -> str:
-    lines = ["| workload | nerfstudio s/step | ours s/step | speed-up | nerfstudio peak MB | ours peak MB |", "|---|---|---|---|---|---|"]
-    for workload, e in result["workloads"].items():
+    lines = ["| workload | optimizer | nerfstudio s/step | ours s/step | speed-up | nerfstudio peak MB | ours peak MB |",
+             "|---|---|---|---|---|---|---|"]
+    for e in result["runs"].values():
         s = e["summary"]
         mem = e.get("memory", {})
         mn = f"{mem['nerfstudio']['peak_over_start_mb']:.0f}" if mem else "-"
         mo = f"{mem['ours']['peak_over_start_mb']:.0f}" if mem else "-"
-        lines.append(f"| {workload} | {s['nerfstudio']['median_s']:.3f} | {s['ours']['median_s']:.3f} | "
+        lines.append(f"| {e['workload']} | {e['optimizer']} | {s['nerfstudio']['median_s']:.3f} | {s['ours']['median_s']:.3f} | "
                      f"{e['speedup_ours_vs_nerfstudio']:.2f}x | {mn} | {mo} |")
     t = result["touched_rows_per_step"]
     lines.append("")

@@ -18,7 +18,9 @@ The torch backend reproduces tcnn's semantics so that the two are interchangeabl
   level padded to a multiple of 8 rows: ``table.reshape(-1)`` is tcnn's ``params`` vector;
 - initialisation uniform in ``[-1e-4, 1e-4]`` as in tcnn.
 
-Unlike tcnn (half precision by default) the torch backend computes in the dtype of the input.
+Precision: the torch backend computes in the input's dtype (float32 or float64, so gradcheck
+works) and in float32 for half-precision inputs, returning the input's dtype; tcnn's output is
+cast to the input's dtype too.
 """
 
 from __future__ import annotations
@@ -235,7 +237,10 @@ class HashGrid(nn.Module):
                 mask[: n_active * self.features_per_level] = 1
                 out = out * mask
             return out.reshape(*batch, self.n_output_dims)
-        table = self.table if self.table.dtype == x.dtype else self.table.to(x.dtype)
+        # positions need float32 at least: x * 2047 in half precision would snap to a coarse grid
+        compute_dtype = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
+        flat = flat.to(compute_dtype)
+        table = self.table if self.table.dtype == compute_dtype else self.table.to(compute_dtype)
         if n_active == 0:
             out = flat.new_zeros(flat.shape[0], self.n_output_dims)
         else:
@@ -249,7 +254,7 @@ class HashGrid(nn.Module):
             if n_active < self.num_levels:
                 pad = out.new_zeros(out.shape[0], (self.num_levels - n_active) * self.features_per_level)
                 out = torch.cat([out, pad], dim=-1)
-        return out.reshape(*batch, self.n_output_dims)
+        return out.to(x.dtype).reshape(*batch, self.n_output_dims)
 
     def extra_repr(self) -> str:
         return (

@@ -105,6 +105,26 @@ def test_dense_far_face_wraps_like_tcnn():
     assert rows.tolist() == expected
 
 
+def test_out_of_range_cells_index_like_tcnn_uint32():
+    """Perturbed points can leave [0, 1]: negative cells wrap through uint32 exactly as in tcnn."""
+    levels = grid_levels(2, 3, 10, 8, 4.0)  # res 8 (dense, 512 rows) and res 32 (hashed)
+    cell = torch.randint(-40, 40, (2, 3, 30))
+    rows = corner_indices(cell, levels, 2**10)
+    for n in range(30):
+        for k in range(8):
+            c = [int(cell[0, d, n]) + ((k >> (2 - d)) & 1) for d in range(3)]
+            dense = sum(((c[d] % 2**32) * 8**d) for d in range(3)) % 2**32 % levels[0].size
+            assert int(rows[0, k, n]) == dense
+            c = [int(cell[1, d, n]) + ((k >> (2 - d)) & 1) for d in range(3)]
+            h = 0
+            for d in range(3):
+                h ^= ((c[d] % 2**32) * HASH_PRIMES[d]) % 2**32
+            assert int(rows[1, k, n]) == h % 2**10
+    grid = small_grid()
+    out = grid(torch.rand(100, 3, dtype=torch.float64) * 3 - 1)
+    assert torch.isfinite(out).all()
+
+
 def test_hashed_level_uses_tcnn_primes_in_uint32():
     levels = grid_levels(2, 3, 10, 16, 2.0)
     assert levels[1].hashed
@@ -185,6 +205,9 @@ def test_dtype_follows_input_and_batch_shape_kept():
     out = grid(x)
     assert out.dtype == torch.float64 and out.shape == (4, 5, grid.n_output_dims)
     torch.testing.assert_close(out.float(), grid(x.float()), rtol=1e-5, atol=1e-5)
+    half = grid(x.half())  # positions are computed in float32, the result returned in half
+    assert half.dtype == torch.float16
+    torch.testing.assert_close(half.float(), grid(x.half().float()), rtol=1e-3, atol=1e-3)
 
 
 def test_auto_falls_back_to_torch_here(caplog, monkeypatch):
