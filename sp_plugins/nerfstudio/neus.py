@@ -45,6 +45,12 @@ class SPNeuSModel(SPModel, NeuSModel):
     config: SPNeuSModelConfig
     field: SPSDFField
 
+    def populate_modules(self) -> None:
+        from sp_plugins.patches.nerfstudio_marching_cubes import install_cpu_marching_cubes
+
+        super().populate_modules()
+        install_cpu_marching_cubes()  # ns-export marching-cubes builds this model, then meshes it
+
     def attach_sp(self) -> None:
         self.field.use_preconditioner(self.sp)
 

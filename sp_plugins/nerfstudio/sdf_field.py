@@ -79,10 +79,10 @@ class SPSDFField(SDFField):
         if config.numerical_gradients and not config.use_grid_feature:
             raise ValueError("numerical_gradients=True needs use_grid_feature=True (the step follows the grid levels)")
         in_dim = 3 + 36 + (config.num_levels * config.features_per_level if config.use_grid_feature else 0)
-        if config.num_layers >= 4 and config.hidden_dim <= in_dim:
+        if config.num_layers == 3 or (config.num_layers >= 4 and config.hidden_dim <= in_dim):
             raise ValueError(
-                f"hidden_dim={config.hidden_dim}: with num_layers={config.num_layers} the SDF MLP re-injects its "
-                f"{in_dim}-wide input at layer 4, so hidden_dim must exceed {in_dim} (or use num_layers <= 3)"
+                f"num_layers={config.num_layers}, hidden_dim={config.hidden_dim}: the SDF MLP re-injects its "
+                f"{in_dim}-wide input after layer 4, so use num_layers <= 2, or num_layers >= 4 with hidden_dim > {in_dim}"
             )
         install_torch_tcnn_fallback()
         super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)

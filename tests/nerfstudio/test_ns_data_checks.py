@@ -1,0 +1,90 @@
+"""Bad input to the SDF methods fails early with the file and the expectation in the message."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from PIL import Image
+
+from sp_plugins.nerfstudio.data import SurfaceDataset, ray_hits_box
+
+
+def _setup(config):
+    return config.pipeline.datamanager.setup(device="cpu", test_mode="val")
+
+
+@pytest.fixture
+def scene_copy(tiny_scene, tmp_path):
+    target = tmp_path / "scene"
+    shutil.copytree(tiny_scene, target)
+    return target
+
+
+def test_missing_folder(tiny_scene, tiny_config, tmp_path):
+    config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="sdfstudio")
+    config.pipeline.datamanager.data = tmp_path / "nowhere"
+    with pytest.raises(ValueError, match=r"nowhere: data folder not found.*SDFStudio layout"):
+        _setup(config)
+
+
+def test_wrong_layout_names_the_missing_file(tiny_scene, tiny_config, tmp_path):
+    config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="sdfstudio")
+    config.pipeline.datamanager.data = tiny_scene / "blender"  # a Blender scene given to sdfstudio-data
+    with pytest.raises(ValueError, match=r"blender/meta_data.json: file not found; expected an SDFStudio scene"):
+        _setup(config)
+    config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="blender")
+    config.pipeline.datamanager.data = tiny_scene / "sdfstudio"
+    with pytest.raises(ValueError, match=r"transforms_train.json: file not found; expected a Blender scene"):
+        _setup(config)
+
+
+def test_missing_image_is_named(scene_copy, tiny_config, tmp_path):
+    meta = json.loads((scene_copy / "sdfstudio" / "meta_data.json").read_text())
+    victim = scene_copy / "sdfstudio" / meta["frames"][3]["rgb_path"]
+    victim.unlink()
+    config = tiny_config("sp-neus", scene_copy, tmp_path, layout="sdfstudio")
+    with pytest.raises(ValueError, match=rf"{victim.name}: image not found \(frame 3 of meta_data.json\)"):
+        _setup(config)
+
+
+@pytest.mark.parametrize("layout", ["sdfstudio", "blender"])
+def test_mixed_image_sizes_are_named(layout, scene_copy, tiny_config, tmp_path):
+    if layout == "sdfstudio":
+        meta = json.loads((scene_copy / "sdfstudio" / "meta_data.json").read_text())
+        victim = scene_copy / "sdfstudio" / meta["frames"][2]["rgb_path"]
+    else:
+        meta = json.loads((scene_copy / "blender" / "transforms_train.json").read_text())
+        victim = scene_copy / "blender" / (meta["frames"][2]["file_path"].replace("./", "") + ".png")
+    with Image.open(victim) as im:
+        im.resize((24, 20)).save(victim)
+    config = tiny_config("sp-neus-hashgrid", scene_copy, tmp_path, layout=layout)
+    with pytest.raises(ValueError, match=rf"{victim.name}: image is 24x20 pixels, expected 32x32"):
+        _setup(config)
+
+
+def test_scene_box_that_misses_the_cameras_look_at_points(scene_copy, tiny_config, tmp_path):
+    path = scene_copy / "sdfstudio" / "meta_data.json"
+    meta = json.loads(path.read_text())
+    meta["scene_box"]["aabb"] = [[5.0, 5.0, 5.0], [7.0, 7.0, 7.0]]  # wrong units / frame
+    path.write_text(json.dumps(meta))
+    config = tiny_config("sp-neus", scene_copy, tmp_path, layout="sdfstudio")
+    with pytest.raises(ValueError, match=r"rgb/.*: its camera .* looks past the scene box .* cameras do"):
+        _setup(config)
+
+
+def test_good_scene_passes_and_surface_dataset_needs_no_depth(tiny_scene, tiny_config, tmp_path):
+    for layout in ("sdfstudio", "blender"):
+        dm = _setup(tiny_config("sp-neus", tiny_scene, tmp_path / layout, layout=layout))
+        assert isinstance(dm.train_dataset, SurfaceDataset)
+        item = dm.train_dataset[0]
+        assert item["image"].shape == (32, 32, 3) and "depth" not in item
+
+
+def test_ray_box_slab_test():
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    origins = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 4.0], [0.0, 3.0, 4.0], [0.0, 0.0, 0.0]])
+    dirs = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    assert ray_hits_box(origins, dirs, box).tolist() == [True, False, False, True]

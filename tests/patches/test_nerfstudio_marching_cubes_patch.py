@@ -1,0 +1,77 @@
+"""The CPU mesher for ``ns-export marching-cubes``: guards on nerfstudio, then exactness of the narrow band."""
+
+import importlib.metadata
+import inspect
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("nerfstudio")
+
+from nerfstudio.exporter import marching_cubes as ns_mc  # noqa: E402
+
+from sp_plugins.patches import nerfstudio_marching_cubes as patch  # noqa: E402
+
+
+def test_nerfstudio_still_needs_the_patch_and_matches_its_signature():
+    version = importlib.metadata.version("nerfstudio")
+    assert version in patch.TESTED_NERFSTUDIO_VERSIONS, (
+        f"nerfstudio {version} was not verified against the CPU marching-cubes patch: re-check "
+        "nerfstudio/exporter/marching_cubes.py and update patches/nerfstudio_marching_cubes.py"
+    )
+    assert patch.check_nerfstudio_marching_cubes() == version
+    original = patch._originals.get(patch.MODULES[0], getattr(ns_mc, patch.FUNCTION))
+    assert ".cuda()" in inspect.getsource(original), "nerfstudio's mesher no longer hard-codes CUDA: drop the patch?"
+
+
+def test_install_rebinds_both_names_and_uninstall_restores():
+    was = dict(patch._originals)
+    original = was.get(patch.MODULES[0], getattr(ns_mc, patch.FUNCTION))
+    try:
+        patch.uninstall_cpu_marching_cubes()
+        assert getattr(ns_mc, patch.FUNCTION) is original
+        assert patch.install_cpu_marching_cubes(force=True)
+        assert getattr(ns_mc, patch.FUNCTION) is patch.cpu_marching_cubes
+        exporter = sys.modules.get("nerfstudio.scripts.exporter")
+        if exporter is not None:
+            assert exporter.generate_mesh_with_multires_marching_cubes is patch.cpu_marching_cubes
+        patch.uninstall_cpu_marching_cubes()
+        assert getattr(ns_mc, patch.FUNCTION) is original
+    finally:
+        if was:
+            patch.install_cpu_marching_cubes(force=True)
+
+
+def _sphere(points):
+    return points.norm(dim=-1) - 0.5
+
+
+def test_narrow_band_equals_dense_grid_where_it_matters():
+    from sp_plugins.geometry import evaluate_grid
+
+    lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+    calls = []
+
+    def counted(points):
+        calls.append(len(points))
+        return _sphere(points)
+
+    band = patch.narrow_band_volume(counted, 256, lo, hi)
+    dense = evaluate_grid(_sphere, (-1.0, 1.0), 257, chunk=1 << 20).astype(np.float32)
+    assert sum(calls) < 0.6 * dense.size  # most of the box is skipped
+    near = np.abs(dense) < 0.02
+    assert np.allclose(band[near], dense[near], atol=1e-6)  # exact around the surface
+    assert np.all(np.sign(band[~near]) == np.sign(dense[~near]))  # sign kept elsewhere
+
+
+def test_cpu_marching_cubes_meshes_a_sphere_outward():
+    mesh = patch.cpu_marching_cubes(_sphere, resolution=64)
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    assert abs(radii.mean() - 0.5) < 2e-3 and radii.max() - radii.min() < 2 / 64
+    assert mesh.is_watertight and mesh.volume > 0
+    with pytest.raises(ValueError, match="multiple of 8"):
+        patch.cpu_marching_cubes(_sphere, resolution=60)
+    with pytest.raises(ValueError, match="does not cross"):
+        patch.cpu_marching_cubes(lambda p: p.norm(dim=-1) + 1.0, resolution=16)
