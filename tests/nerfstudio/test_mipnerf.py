@@ -119,3 +119,21 @@ def test_checkpoint_round_trip_restores_sp_state(tiny_scene, tmp_path):
     assert isinstance(fresh.model.field, SPNeRFField)
     for key, value in first.pipeline.model.field.state_dict().items():
         assert torch.equal(fresh.model.field.state_dict()[key], value), key
+
+
+def test_ns_eval_runs_on_a_sparse_view_checkpoint(tiny_scene, tmp_path):
+    import json
+
+    from nerfstudio.scripts.eval import ComputePSNR
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    config = tiny_radiance_config("sp-mipnerf", tiny_scene, tmp_path, steps=2)
+    config.pipeline.datamanager.train_views = 3
+    run_recording(config)
+    out = tmp_path / "eval.json"
+    ComputePSNR(load_config=config.get_base_dir() / "config.yml", output_path=out).main()
+    results = json.loads(out.read_text())["results"]
+    assert math.isfinite(results["psnr"]) and "fine_lpips" not in results
+    # inference mode (ns-render, viewer) rebuilds the same 3-view model from the saved config
+    _, pipeline, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="inference")
+    assert pipeline.model.num_train_data == 3 and isinstance(pipeline.model.field, SPNeRFField)

@@ -181,3 +181,18 @@ def test_upsample_grid_doubles_cells():
     g = torch.arange(8.0).view(1, 1, 2, 2, 2)
     up = upsample_grid(g, 3)
     assert up.shape == (1, 1, 3, 3, 3) and up[0, 0, 1, 1, 1] == pytest.approx(g.mean())
+
+
+def test_ns_eval_loads_the_final_grid_of_a_hierarchical_run(tiny_scene, tmp_path):
+    import json
+
+    from nerfstudio.scripts.eval import ComputePSNR
+
+    config = tiny_relu_config("relu-field", tiny_scene, tmp_path, steps=8)
+    trainer, _ = run(config)
+    assert trainer.pipeline.model.field.resolution == 17
+    out = tmp_path / "eval.json"
+    ComputePSNR(load_config=config.get_base_dir() / "config.yml", output_path=out).main()
+    results = json.loads(out.read_text())["results"]
+    assert math.isfinite(results["psnr"]) and "ssim" in results
+    assert not any(k.endswith("lpips") and not math.isfinite(v) for k, v in results.items())

@@ -1,0 +1,614 @@
+"""Radiance methods in nerfstudio: ReLU fields (hierarchy / flat / flat + SP) and sparse-view MipNeRF.
+
+Three studies, each trained through nerfstudio's own trainers, driven step by step in ONE process
+with the runs alternating (A B C, C B A, ...) and the RNG re-seeded per step, so every run sees the
+same rays and jitter and the per-step times are measured under the same machine load:
+
+- ``relu``: ``relu-field`` (4-stage coarse-to-fine), ``relu-field-flat`` and one or more
+  ``sp-relu-field`` variants (alpha0 in *voxels* of the full grid, end as a fraction of training),
+  at equal steps on synthetic scenes (24 views of 64x64, Blender layout scaled by 1.5 so the
+  object fills the [-1.5, 1.5]^3 box like a [-1, 1]^3 box with the usual 0.85 radius).
+- ``mipnerf``: ``sp-mipnerf`` with SP off (plain MipNeRF) and on, trained on 6 of the 24 views,
+  a CPU-sized MipNeRF (narrower MLP, fewer rays and samples: stated in the results).
+- ``cost``: the SP per-step cost of the ReLU field split into SP's own arithmetic (noise,
+  reflection) and the slower grid lookups at perturbed positions, plus the average over a schedule.
+
+Metrics per run, on the held-out test views: PSNR, SSIM, and *background opacity*: the mean
+rendered opacity over pixels whose true alpha is 0 (floaters and fog that should not be there).
+LPIPS needs AlexNet weights that are not downloaded here: it is reported only when cached.
+
+Usage::
+
+    python -m bench.radiance_methods relu                  # the final ReLU table (resumable)
+    python -m bench.radiance_methods relu --scenes spot --steps 300 --tag probe   # a quick probe
+    python -m bench.radiance_methods mipnerf
+    python -m bench.radiance_methods cost
+
+Finished runs (one JSON per study / scene / setting) are skipped; ``--overwrite`` recomputes.
+Outputs go to ``bench/out/radiance_methods/``: JSON per run, ``<study>.md`` summary, PNGs of
+loss curves and test renders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import statistics
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import torch
+
+from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary
+
+OUT = OUT_DIR / "radiance_methods"
+SCENES = {"spot": "spot", "cow": "/work/shared/data/meshes/cow.ply", "bunny": "/work/shared/data/meshes/bunny.ply"}
+SCALE = 1.5
+"""Blender-data scale factor: the [-1.5, 1.5]^3 box nerfstudio fixes for Blender scenes then holds the
+object (radius 0.85 * 1.5) as [-1, 1]^3 holds it unscaled."""
+BOX_EXTENT = 3.0
+
+
+# -- settings -----------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class ReLUBudget:
+    """The CPU-sized ReLU-field setting shared by every run of a table."""
+
+    steps: int = 1200
+    rays: int = 1024
+    num_samples: int = 96
+    resolution: int = 129
+    color_mode: str = "rgb"
+    sh_degree: int = 1
+    lr: float = 0.03
+    lr_final: float = 0.003
+    density_init: Tuple[float, float] = (-1.0, 1.0)
+    density_scale: float = 1.0
+    views: int = 24
+    test_views: int = 8
+    image: int = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class SPVariant:
+    """An sp-relu-field setting: alpha0 in voxels of the full grid, ``end`` a fraction of training."""
+
+    voxels: float
+    end: float
+    schedule: str = "exponential"
+    final_ratio: float = 1e-3
+
+    @property
+    def name(self) -> str:
+        tail = "" if self.schedule == "exponential" and self.final_ratio == 1e-3 else f"-{self.schedule}{self.final_ratio:g}"
+        return f"sp-relu-field[{self.voxels:g}vox,end{self.end:g}{tail}]"
+
+    @staticmethod
+    def parse(text: str) -> "SPVariant":
+        """``VOXELS@END[:SCHEDULE[:FINAL_RATIO]]``, e.g. ``8@0.3`` or ``16@0.6:exponential:0.05``."""
+        try:
+            head, *rest = text.split(":")
+            voxels, end = head.split("@")
+            return SPVariant(float(voxels), float(end), *(rest[:1] or ["exponential"]), *(float(r) for r in rest[1:2]))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected VOXELS@END[:SCHEDULE[:FINAL_RATIO]], e.g. 8@0.3") from None
+
+
+@dataclasses.dataclass
+class MipBudget:
+    """CPU-sized MipNeRF: nerfstudio's 8x256 MLP with 128+128 samples x 1024 rays takes >1 s per
+    step here even at a quarter of that, so the MLP is narrower and the batch smaller."""
+
+    steps: int = 3000
+    rays: int = 256
+    coarse: int = 32
+    fine: int = 32
+    mlp_num_layers: int = 4
+    mlp_layer_width: int = 128
+    head_width: int = 64
+    lr: float = 5e-4
+    views: int = 6
+    alpha0: float = 0.04
+    end: int = 1000
+    image: int = 64
+    test_views: int = 8
+
+
+def budget_key(*parts) -> str:
+    text = json.dumps([dataclasses.asdict(p) if dataclasses.is_dataclass(p) else p for p in parts], sort_keys=True, default=str)
+    return hashlib.sha1(text.encode()).hexdigest()[:10]
+
+
+# -- scenes and runs --------------------------------------------------------------------------
+
+
+def scene_dir(scene: str, views: int, image: int, test_views: int) -> Path:
+    from sp_plugins.data import make_scene
+
+    path = OUT / "scenes" / f"{scene}-{views}v-{image}px"
+    if not (path / "scene.json").is_file():
+        make_scene(SCENES[scene], path, n_train=views, n_val=2, n_test=test_views, resolution=image,
+                   layouts=("blender",), seed=0, overwrite=True)
+    return path / "blender"
+
+
+class Run:
+    """One nerfstudio trainer driven step by step (``Trainer.train`` without viewer and writers)."""
+
+    def __init__(self, name: str, config, seed: int) -> None:
+        from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+        self.name = name
+        self.where = TrainingCallbackLocation
+        torch.manual_seed(seed)
+        self.trainer = config.setup(local_rank=0, world_size=1)
+        self.trainer.setup(test_mode="test")
+        self.losses: List[float] = []
+        self.times: List[float] = []
+        self.alphas: List[float] = []
+
+    @property
+    def model(self):
+        return self.trainer.pipeline.model
+
+    def step(self, step: int, seed: int) -> None:
+        trainer = self.trainer
+        trainer.pipeline.train()
+        for cb in trainer.callbacks:
+            cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
+        torch.manual_seed(seed * 1_000_003 + step)  # the same rays and jitter for every run
+        t0 = time.perf_counter()
+        loss, _, _ = trainer.train_iteration(step)
+        self.times.append(time.perf_counter() - t0)
+        for cb in trainer.callbacks:
+            cb.run_callback_at_location(step, self.where.AFTER_TRAIN_ITERATION)
+        self.losses.append(float(loss))
+        self.alphas.append(float(self.model.sp.alpha))
+
+    @torch.no_grad()
+    def evaluate(self, rgb_key: str = "rgb", acc_key: str = "accumulation") -> dict:
+        """Test-view PSNR, SSIM, (LPIPS when cached) and background opacity; keeps the renders."""
+        import numpy as np
+        from PIL import Image
+        from torchmetrics.functional import structural_similarity_index_measure as ssim
+
+        from sp_plugins.nerfstudio.lpips import lpips_available
+
+        model = self.model
+        model.eval()
+        dataset = self.trainer.pipeline.datamanager.eval_dataset
+        lpips = None
+        if lpips_available():
+            from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+            lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
+        psnrs, ssims, lps, bg, fg = [], [], [], [], []
+        renders = []
+        for i in range(len(dataset)):
+            rgba = np.asarray(Image.open(dataset.image_filenames[i]).convert("RGBA"), dtype=np.float32) / 255.0
+            alpha = torch.from_numpy(rgba[..., 3:])
+            gt = torch.from_numpy(rgba[..., :3]) * alpha + (1.0 - alpha)  # straight alpha over white
+            out = model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))
+            rgb = out[rgb_key].clamp(0, 1)
+            acc = out[acc_key][..., 0]
+            mse = float(((rgb - gt) ** 2).mean())
+            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+            a, b = gt.permute(2, 0, 1)[None], rgb.permute(2, 0, 1)[None]
+            ssims.append(float(ssim(b, a, data_range=1.0)))
+            if lpips is not None:
+                lps.append(float(lpips(b, a)))
+            empty = alpha[..., 0] == 0
+            bg.append(float(acc[empty].mean()) if empty.any() else float("nan"))
+            fg.append(float(acc[alpha[..., 0] >= 0.999].mean()))
+            if i < 4:
+                renders.append((gt, rgb, acc))
+        model.train()
+        result = {
+            "psnr": statistics.mean(psnrs),
+            "ssim": statistics.mean(ssims),
+            "background_opacity": statistics.mean(bg),
+            "foreground_opacity": statistics.mean(fg),
+            "psnr_per_view": psnrs,
+        }
+        if lps:
+            result["lpips"] = statistics.mean(lps)
+        self.renders = renders
+        return result
+
+
+def train_together(runs: Dict[str, Run], steps: int, seed: int, label: str, log_every: int = 100) -> float:
+    t0 = time.time()
+    names = list(runs)
+    for step in range(steps):
+        for name in names if step % 2 == 0 else names[::-1]:
+            runs[name].step(step, seed)
+        if step % log_every == 0 or step == steps - 1:
+            logging.info("%s step %d: %s", label, step, ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()))
+    return time.time() - t0
+
+
+def run_summary(run: Run, metrics: dict) -> dict:
+    skip = min(10, len(run.times) // 10)
+    return {
+        **metrics,
+        "median_step_s": statistics.median(run.times[skip:]),
+        "total_train_s": sum(run.times),
+        "final_loss": statistics.mean(run.losses[-20:]),
+        "losses": run.losses,
+        "alphas": run.alphas[:: max(1, len(run.alphas) // 200)],
+    }
+
+
+def save_renders(runs: Dict[str, Run], path: Path) -> None:
+    """Rows: test views; columns: ground truth, then each run's colour and opacity."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        names = list(runs)
+        n_views = len(next(iter(runs.values())).renders)
+        cols = 1 + 2 * len(names)
+        fig, axes = plt.subplots(n_views, cols, figsize=(1.6 * cols, 1.7 * n_views), squeeze=False)
+        for v in range(n_views):
+            axes[v, 0].imshow(runs[names[0]].renders[v][0].numpy())
+            for k, name in enumerate(names):
+                _, rgb, acc = runs[name].renders[v]
+                axes[v, 1 + 2 * k].imshow(rgb.numpy())
+                axes[v, 2 + 2 * k].imshow(acc.numpy(), cmap="magma", vmin=0, vmax=1)
+                if v == 0:
+                    axes[0, 1 + 2 * k].set_title(name, fontsize=6)
+                    axes[0, 2 + 2 * k].set_title("opacity", fontsize=6)
+        axes[0, 0].set_title("ground truth", fontsize=6)
+        for ax in axes.flat:
+            ax.set_axis_off()
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    except Exception as err:  # a picture is a convenience, never a reason to lose results
+        logging.warning("render figure skipped: %s", err)
+
+
+def save_losses(result: dict, names: Sequence[str], path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 3.2))
+        for name in names:
+            losses = torch.tensor(result[name]["losses"])
+            k = 25
+            smooth = torch.nn.functional.avg_pool1d(losses[None, None], k, 1)[0, 0] if len(losses) > k else losses
+            ax.plot(smooth.numpy(), label=name, lw=1)
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.set_ylabel("training MSE")
+        ax.legend(fontsize=6)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    except Exception as err:
+        logging.warning("loss figure skipped: %s", err)
+
+
+# -- ReLU fields ----------------------------------------------------------------------------------
+
+
+def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPVariant], seed: int, out: Path,
+                label: Optional[str] = None):
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
+
+    config = method_config(name)
+    m = config.pipeline.model
+    m.resolution = budget.resolution
+    m.num_samples = budget.num_samples
+    m.color_mode = budget.color_mode  # type: ignore[assignment]
+    m.sh_degree = budget.sh_degree
+    m.density_init = tuple(budget.density_init)  # type: ignore[assignment]
+    m.density_scale = budget.density_scale
+    m.eval_num_rays_per_chunk = 4096
+    if variant is not None:
+        voxel = BOX_EXTENT / (budget.resolution - 1)
+        m.sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
+                                   schedule=variant.schedule, final_ratio=variant.final_ratio, seed=seed)
+    opt = config.optimizers["fields"]
+    opt["optimizer"].lr = budget.lr
+    if budget.lr_final != budget.lr:
+        opt["scheduler"] = ExponentialDecaySchedulerConfig(lr_final=budget.lr_final, max_steps=budget.steps)
+    configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
+                  experiment_name=(label or name).replace("[", "_").replace("]", "").replace(",", "_"))
+    config.pipeline.datamanager.dataparser.scale_factor = SCALE
+    config.pipeline.datamanager.eval_num_rays_per_batch = 4096
+    return config
+
+
+def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], methods: Sequence[str], seed: int,
+               tag: str, overwrite: bool) -> dict:
+    key = budget_key(scene, budget, list(variants), list(methods), seed)
+    path = OUT / "relu" / f"{tag}_{scene}_{key}.json"
+    if path.is_file() and not overwrite:
+        logging.info("done already: %s", path.name)
+        return json.loads(path.read_text())
+    data = scene_dir(scene, budget.views, budget.image, budget.test_views)
+    work = OUT / "runs" / f"relu-{scene}-{key}"
+    runs: Dict[str, Run] = {}
+    for name in methods:
+        runs[name] = Run(name, relu_config(name, data, budget, None, seed, work), seed)
+    for variant in variants:
+        runs[variant.name] = Run(variant.name, relu_config("sp-relu-field", data, budget, variant, seed, work, variant.name), seed)
+    wall = train_together(runs, budget.steps, seed, f"relu/{scene}")
+    result = {"study": "relu", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
+              "variants": [dataclasses.asdict(v) for v in variants], "train_wall_s": wall, "runs": list(runs)}
+    for name, run in runs.items():
+        result[name] = run_summary(run, run.evaluate())
+        logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
+                     result[name]["background_opacity"])
+    if "relu-field-flat" in runs:
+        flat = runs["relu-field-flat"].times
+        for variant in variants:
+            sp_times = runs[variant.name].times
+            active = [s / b for s, b, a in zip(sp_times, flat, runs[variant.name].alphas) if a > 0][10:]
+            result[variant.name]["time_ratio_while_active"] = statistics.median(active) if active else None
+            result[variant.name]["time_ratio_whole_run"] = sum(sp_times) / sum(flat)
+    result["machine"] = machine_info()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    save_renders(runs, path.with_suffix(".png"))
+    save_losses(result, list(runs), path.with_name(path.stem + "_loss.png"))
+    return result
+
+
+# -- MipNeRF -----------------------------------------------------------------------------------
+
+
+def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path):
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
+
+    config = method_config("sp-mipnerf")
+    m = config.pipeline.model
+    m.num_coarse_samples, m.num_importance_samples = budget.coarse, budget.fine
+    m.mlp_num_layers, m.mlp_layer_width, m.head_mlp_layer_width = budget.mlp_num_layers, budget.mlp_layer_width, budget.head_width
+    m.eval_num_rays_per_chunk = 4096
+    m.sp = dataclasses.replace(m.sp, enabled=sp, alpha0=budget.alpha0, end=budget.end, seed=seed)
+    config.optimizers["fields"]["optimizer"].lr = budget.lr
+    name = "sp-mipnerf" if sp else "mipnerf"
+    configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
+                  experiment_name=name)
+    config.pipeline.datamanager.train_views = budget.views
+    return config
+
+
+def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: bool) -> dict:
+    key = budget_key(scene, budget, seed)
+    path = OUT / "mipnerf" / f"{tag}_{scene}_{key}.json"
+    if path.is_file() and not overwrite:
+        logging.info("done already: %s", path.name)
+        return json.loads(path.read_text())
+    data = scene_dir(scene, 24, budget.image, budget.test_views)
+    work = OUT / "runs" / f"mip-{scene}-{key}"
+    runs = {"mipnerf": Run("mipnerf", mip_config(False, data, budget, seed, work), seed),
+            "sp-mipnerf": Run("sp-mipnerf", mip_config(True, data, budget, seed, work), seed)}
+    wall = train_together(runs, budget.steps, seed, f"mipnerf/{scene}")
+    result = {"study": "mipnerf", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
+              "train_wall_s": wall, "runs": list(runs)}
+    for name, run in runs.items():
+        result[name] = run_summary(run, run.evaluate("rgb_fine", "accumulation_fine"))
+        logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
+                     result[name]["background_opacity"])
+    sp_times, base = runs["sp-mipnerf"].times, runs["mipnerf"].times
+    active = [s / b for s, b, a in zip(sp_times, base, runs["sp-mipnerf"].alphas) if a > 0][10:]
+    result["sp-mipnerf"]["time_ratio_while_active"] = statistics.median(active) if active else None
+    result["sp-mipnerf"]["time_ratio_whole_run"] = sum(sp_times) / sum(base)
+    result["machine"] = machine_info()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    save_renders(runs, path.with_suffix(".png"))
+    save_losses(result, list(runs), path.with_name(path.stem + "_loss.png"))
+    return result
+
+
+# -- SP cost on the ReLU field -----------------------------------------------------------------
+
+
+def cost_study(resolution: int, rays: int, samples: int, color_mode: str, repeats: int, voxels: float, end: float) -> dict:
+    """Per-step time of a flat ReLU-field training step, alternating four variants in one process:
+
+    - ``plain``: no SP;
+    - ``sp_arithmetic``: SP's noise and reflection are computed, but the grid is read at the
+      *unperturbed* positions (what SP would cost if the lookups did not slow down);
+    - ``sp``: SP as trained (lookups at the perturbed positions);
+    - ``sp_inactive``: SP configured but alpha = 0 (after the schedule's end): it must cost nothing.
+    """
+    from nerfstudio.cameras.rays import RayBundle
+    from nerfstudio.data.scene_box import SceneBox
+
+    from sp_plugins.core import SPConfig
+    from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
+
+    box = SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3]))
+    voxel = BOX_EXTENT / (resolution - 1)
+
+    def make(sp_on: bool):
+        cfg = ReLUFieldModelConfig(resolution=resolution, num_samples=samples, color_mode=color_mode,  # type: ignore[arg-type]
+                                   sp=SPConfig(enabled=sp_on, alpha0=voxels * voxel, end=end, boundary="reflect"))
+        torch.manual_seed(0)
+        model = cfg.setup(scene_box=box, num_train_data=24)
+        model.sp.set_step(0, 1000)
+        model.train()
+        return model, torch.optim.Adam([model.field.grid], lr=0.03, fused=True)
+
+    g = torch.Generator().manual_seed(0)
+    origins = 4.0 * torch.nn.functional.normalize(torch.randn(rays, 3, generator=g), dim=-1)
+    targets = 0.6 * torch.randn(rays, 3, generator=g)
+    bundle = RayBundle(origins=origins, directions=torch.nn.functional.normalize(targets - origins, dim=-1),
+                       pixel_area=torch.full((rays, 1), 1e-4), camera_indices=torch.zeros(rays, 1, dtype=torch.long))
+    gt = torch.rand(rays, 3, generator=g)
+    models = {"plain": make(False), "sp_arithmetic": make(True), "sp": make(True), "sp_inactive": make(True)}
+    models["sp_inactive"][0].sp.set_step(999, 1000)
+    assert models["sp_inactive"][0].sp.alpha == 0.0
+    arithmetic_field = models["sp_arithmetic"][0].field
+    arithmetic_sp = models["sp_arithmetic"][0].sp
+    arithmetic_field.use_preconditioner(None)
+    plain_lookup = arithmetic_field.lookup
+
+    def lookup_with_discarded_sp(x):
+        arithmetic_sp(x)  # pay for the noise and the reflection, then read the grid where SP would not
+        return plain_lookup(x)
+
+    arithmetic_field.lookup = lookup_with_discarded_sp  # type: ignore[method-assign]
+
+    def step_fn(model, opt):
+        def run():
+            out = model(bundle)
+            loss = ((out["rgb"] - gt) ** 2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+
+        return run
+
+    times = paired_timing({k: step_fn(*v) for k, v in models.items()}, repeats=repeats)
+    summary = ratio_summary(times, "plain")
+    active = summary["sp"]["ratio_vs_plain"]
+    return {
+        "study": "cost",
+        "resolution": resolution, "rays": rays, "samples": samples, "color_mode": color_mode,
+        "alpha_voxels": voxels, "end": end, "repeats": repeats,
+        "summary": summary,
+        "sp_total_ratio": active,
+        "sp_arithmetic_share": summary["sp_arithmetic"]["ratio_vs_plain"] - 1.0,
+        "lookup_slowdown_share": active - summary["sp_arithmetic"]["ratio_vs_plain"],
+        "schedule_average_ratio": end * active + (1.0 - end) * summary["sp_inactive"]["ratio_vs_plain"],
+        "machine": machine_info(),
+    }
+
+
+# -- summaries ------------------------------------------------------------------------------
+
+
+def fmt(value, spec=".2f") -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, spec)
+
+
+def relu_table(results: List[dict]) -> str:
+    lines = ["| tag | scene | grid | steps | run | test PSNR | SSIM | bg opacity | fg opacity | final train MSE | s/step | SP time ratio (active / whole run) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        b = r["budget"]
+        for name in r["runs"]:
+            m = r[name]
+            ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
+            lines.append(f"| {r['tag']} | {r['scene']} | {b['resolution']}^3 {b['color_mode']} | {b['steps']} | {name} | {m['psnr']:.2f} | "
+                         f"{m['ssim']:.3f} | {m['background_opacity']:.4f} | {m['foreground_opacity']:.3f} | {m['final_loss']:.5f} | "
+                         f"{m['median_step_s']:.3f} | {ratio} |")
+    return "\n".join(lines)
+
+
+def mip_table(results: List[dict]) -> str:
+    lines = ["| tag | scene | views | steps | run | test PSNR | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        b = r["budget"]
+        for name in r["runs"]:
+            m = r[name]
+            ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
+            lines.append(f"| {r['tag']} | {r['scene']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
+                         f"{m['background_opacity']:.4f} | {m['median_step_s']:.3f} | {ratio} |")
+    return "\n".join(lines)
+
+
+def collect(study: str, tag: Optional[str]) -> List[dict]:
+    results = []
+    for path in sorted((OUT / study).glob("*.json")):
+        r = json.loads(path.read_text())
+        if tag is None or r.get("tag") == tag:
+            results.append(r)
+    return results
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="study", required=True)
+    relu = sub.add_parser("relu", help="relu-field vs relu-field-flat vs sp-relu-field")
+    relu.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
+    relu.add_argument("--methods", nargs="*", default=["relu-field", "relu-field-flat"],
+                      choices=["relu-field", "relu-field-flat"])
+    relu.add_argument("--sp", nargs="*", type=SPVariant.parse, default=[SPVariant(8.0, 0.3)],
+                      help="sp-relu-field variants VOXELS@END[:SCHEDULE[:FINAL_RATIO]]")
+    for f in dataclasses.fields(ReLUBudget):
+        kind = type(f.default)
+        if kind is tuple:
+            relu.add_argument("--" + f.name.replace("_", "-"), nargs=2, type=float, default=f.default)
+        else:
+            relu.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
+    mip = sub.add_parser("mipnerf", help="mipnerf vs sp-mipnerf on few views")
+    mip.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
+    for f in dataclasses.fields(MipBudget):
+        mip.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
+    cost = sub.add_parser("cost", help="SP per-step cost on the ReLU field")
+    cost.add_argument("--resolutions", nargs="+", type=int, default=[65, 129])
+    cost.add_argument("--rays", type=int, default=1024)
+    cost.add_argument("--samples", type=int, default=96)
+    cost.add_argument("--color-mode", default="rgb", choices=["rgb", "sh"])
+    cost.add_argument("--repeats", type=int, default=30)
+    cost.add_argument("--voxels", type=float, default=8.0)
+    cost.add_argument("--end", type=float, default=0.3)
+    for p in (relu, mip, cost):
+        p.add_argument("--threads", type=int, default=1, help="torch threads (1 on a shared machine)")
+        p.add_argument("--overwrite", action="store_true", help="recompute runs that already have results")
+        p.add_argument("--tag", default="final", help="label of this table (probes use their own)")
+    for p in (relu, mip):
+        p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    args = parser.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    for noisy in ("nerfstudio", "PIL", "sp_plugins"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    OUT.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    if args.study == "relu":
+        budget = ReLUBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(ReLUBudget)})
+        budget.density_init = tuple(budget.density_init)  # type: ignore[assignment]
+        for scene in args.scenes:
+            for seed in args.seeds:
+                relu_study(scene, budget, args.sp, args.methods, seed, args.tag, args.overwrite)
+        table = relu_table(collect("relu", args.tag))
+    elif args.study == "mipnerf":
+        budget = MipBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(MipBudget)})
+        for scene in args.scenes:
+            for seed in args.seeds:
+                mip_study(scene, budget, seed, args.tag, args.overwrite)
+        table = mip_table(collect("mipnerf", args.tag))
+    else:
+        results = [cost_study(r, args.rays, args.samples, args.color_mode, args.repeats, args.voxels, args.end)
+                   for r in args.resolutions]
+        (OUT / f"cost_{args.tag}.json").write_text(json.dumps(results, indent=1))
+        lines = ["| grid | s/step plain | SP total | SP arithmetic | slower lookups | alpha = 0 | averaged over the schedule |",
+                 "|---|---|---|---|---|---|---|"]
+        for r in results:
+            s = r["summary"]
+            lines.append(f"| {r['resolution']}^3 {r['color_mode']} | {s['plain']['median_s']:.3f} | {r['sp_total_ratio']:.3f} | "
+                         f"+{100 * r['sp_arithmetic_share']:.1f}% | +{100 * r['lookup_slowdown_share']:.1f}% | "
+                         f"{s['sp_inactive']['ratio_vs_plain']:.3f} | {r['schedule_average_ratio']:.3f} (end {r['end']}) |")
+        table = "\n".join(lines)
+    (OUT / f"{args.study}_{args.tag}.md").write_text(table + "\n")
+    print(table)
+    print(f"\nwall time {time.time() - t0:.0f} s; machine: {machine_info()}")
+
+
+if __name__ == "__main__":
+    main()
