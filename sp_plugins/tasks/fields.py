@@ -3,8 +3,8 @@
 Encodings (``EncodingConfig.kind``):
 
 - ``hashgrid``: :class:`sp_plugins.encodings.HashGrid` (tcnn options; torch backend on CPU).
-- ``fourier``: sines and cosines of the coordinates at octave frequencies.
-- ``triplane``: three axis-aligned feature planes, summed.
+- ``fourier``: :class:`sp_plugins.encodings.FrequencyEncoding`, octaves of pi on [-1, 1].
+- ``triplane``: :class:`sp_plugins.encodings.TriplaneEncoding`, three planes summed.
 - ``finer``: no encoding; the MLP itself is FINER (``sin(omega * (|z| + 1) * z)`` activations,
   a SIREN whose frequency grows with the pre-activation, Liu et al. 2024).
 
@@ -43,7 +43,7 @@ class EncodingConfig:
     max_resolution: int = 1024
     """hashgrid: finest level's resolution (the paper: 2048)."""
     frequencies: int = 8
-    """fourier: octaves 2^0 .. 2^(n-1) (times pi)."""
+    """fourier: octaves 2^0 .. 2^(n-1) (times pi, on [-1, 1] coordinates)."""
     plane_resolution: int = 128
     """triplane: cells per side of each plane."""
     plane_features: int = 16
@@ -63,52 +63,6 @@ class EncodingConfig:
             )
         if self.frequencies < 1 or self.plane_resolution < 2 or self.plane_features < 1:
             raise ValueError("fourier frequencies, triplane resolution and features must be positive")
-
-
-class FourierFeatures(nn.Module):
-    """``[x, sin(2^k pi x), cos(2^k pi x)]`` for k < n: smooth, differentiable to any order."""
-
-    def __init__(self, dim: int, frequencies: int) -> None:
-        super().__init__()
-        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(frequencies, dtype=torch.float32), persistent=False)
-        self.out_dim = dim * (1 + 2 * frequencies)
-
-    def forward(self, x: Float[Tensor, "n dim"]) -> Float[Tensor, "n out"]:
-        """``x`` in [-1, 1]."""
-        z = (x[..., None] * self.freqs.to(x.dtype)).flatten(-2)
-        return torch.cat([x, torch.sin(z), torch.cos(z)], dim=-1)
-
-
-class Triplane(nn.Module):
-    """Sum of bilinear samples of three feature planes (xy, xz, yz).
-
-    Interpolation is written with gathers, not ``grid_sample``, because the eikonal loss needs
-    the second derivative with respect to positions, which ``grid_sample`` does not provide.
-    """
-
-    def __init__(self, resolution: int, features: int, init_scale: float = 0.1) -> None:
-        super().__init__()
-        self.resolution = resolution
-        self.planes = nn.Parameter(init_scale * torch.randn(3, resolution * resolution, features))
-        self.out_dim = features
-
-    def forward(self, u: Float[Tensor, "n 3"]) -> Float[Tensor, "n features"]:
-        """``u`` in [0, 1]^3."""
-        r = self.resolution
-        out = 0.0
-        for p, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-            uv = u[:, [a, b]].clamp(0.0, 1.0) * (r - 1)
-            cell = uv.detach().floor().clamp(max=r - 2)
-            t = uv - cell
-            i = cell.long()
-            table = self.planes[p]
-            out = out + sum(
-                table[(i[:, 1] + dy) * r + i[:, 0] + dx]
-                * ((t[:, 0:1] if dx else 1 - t[:, 0:1]) * (t[:, 1:2] if dy else 1 - t[:, 1:2]))
-                for dx in (0, 1)
-                for dy in (0, 1)
-            )
-        return out
 
 
 class FinerLayer(nn.Module):
@@ -146,13 +100,18 @@ def make_encoding(config: EncodingConfig, dim: int) -> Tuple[Optional[nn.Module]
         )
         return enc, enc.n_output_dims
     if config.kind == "fourier":
-        enc = FourierFeatures(dim, config.frequencies)
-        return enc, enc.out_dim
+        from sp_plugins.encodings import FrequencyEncoding
+
+        # octaves 2^0 .. 2^(n-1) times pi on [-1, 1] coordinates (NeRF's convention)
+        enc = FrequencyEncoding(dim, config.frequencies, 0.0, config.frequencies - 1.0, scale=math.pi)
+        return enc, enc.n_output_dims
     if config.kind == "triplane":
         if dim != 3:
             raise ValueError("encoding kind='triplane' is 3D only; use hashgrid or fourier for images")
-        enc = Triplane(config.plane_resolution, config.plane_features)
-        return enc, enc.out_dim
+        from sp_plugins.encodings import TriplaneEncoding
+
+        enc = TriplaneEncoding(config.plane_resolution, config.plane_features, reduce="sum")
+        return enc, enc.n_output_dims
     return None, 0
 
 

@@ -82,6 +82,9 @@ class PointCloudSDFConfig:
     geometric initialisation, which needs them (as the paper's code does)."""
     init_radius: float = 0.5
     """Radius of that sphere, in the frame (the object's diagonal is 1.9)."""
+    output_bias: Optional[float] = None
+    """Start the MLP's output bias at this value (None: PyTorch's default, uniform in
+    +-1/sqrt(width)). Without geometric initialisation its sign becomes the sign of the far field."""
     w_surface: float = 3e3
     w_normal: float = 1e2
     w_eikonal: float = 5e1
@@ -161,6 +164,9 @@ class PointCloudSDFTrainer:
                 include_input=config.geometric_init if config.include_input is None else config.include_input,
                 init_radius=config.init_radius,
             ).to(self.device)
+            if config.output_bias is not None:
+                with torch.no_grad():
+                    self.field.mlp[-1].bias.fill_(config.output_bias)
         sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
         self.sp = sp_config.setup(total_steps=config.steps, bounds=(-1.0, 1.0), dim=3).to(self.device)
         self.sp.train()
