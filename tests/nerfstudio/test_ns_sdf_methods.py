@@ -283,3 +283,19 @@ def test_eval_metrics_skip_missing_lpips_and_export_callable_works(sp_pipeline, 
         a = model.field.forward_geonetwork(x)[:, 0]
         b = model.field.forward_geonetwork(x)[:, 0]
     assert a.shape == (1000,) and torch.equal(a, b)
+
+
+def test_sampler_queries_see_the_plain_field_unless_asked(sp_pipeline):
+    model = sp_pipeline.pipeline.model
+    field = model.field
+    model.sp.set_step(0, 100)
+    model.train()
+    samples = _ray_samples(model, sp_pipeline.pipeline)
+    with torch.no_grad():
+        assert torch.equal(field.get_sdf(samples), field.get_sdf(samples))
+        field.config.perturb_sampler_queries = True
+        try:
+            assert not torch.allclose(field.get_sdf(samples), field.get_sdf(samples))
+        finally:
+            field.config.perturb_sampler_queries = False
+    model.eval()
