@@ -33,10 +33,10 @@ Why it is fast on a CPU (measured in ``bench/hashgrid_speed.py``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 from torch.autograd import Function
@@ -46,71 +46,69 @@ from sp_plugins.encodings.grid_levels import HASH_PRIMES, GridLevel
 _UINT32_MASK = 0xFFFFFFFF
 
 
-@dataclass(frozen=True)
-class TableLayout:
-    """Where each level's rows live in the table."""
-
-    offsets: Tuple[int, ...]
-    sizes: Tuple[int, ...]
-    n_rows: int
-
-    @staticmethod
-    def of(levels: Sequence[GridLevel], n_rows: int) -> "TableLayout":
-        return TableLayout(tuple(lv.offset for lv in levels), tuple(lv.size for lv in levels), n_rows)
-
-
 # ------------------------------------------------------------------------------------------------
 # corner rows and weights
 
 
-def _corner_combos(per_dim: Sequence[Tensor], op, out: Tensor) -> Tensor:
-    """Combine ``[2, N]`` values per axis with ``op`` (``torch.add`` or ``torch.bitwise_xor``) into
-    ``out`` = ``[2**D, N]``; corner ``k`` takes the ``+1`` side on axis ``d`` when bit ``D-1-d`` is set."""
-    n = out.shape[-1]
-    acc = per_dim[0]
-    for right in per_dim[1:-1]:
-        acc = op(acc[:, None], right[None]).view(-1, n)
-    if len(per_dim) == 1:
+def _corner_combos(per_dim: Tensor, op, out: Tensor) -> Tensor:
+    """Combine ``[L, D, 2, N]`` values (one pair per axis) with ``op`` (``torch.add`` or
+    ``torch.bitwise_xor``) into ``out`` = ``[L, 2**D, N]``; corner ``k`` takes the ``+1`` side on
+    axis ``d`` when bit ``D-1-d`` of ``k`` is set."""
+    n_levels, n_dims, _, n = per_dim.shape
+    acc = per_dim[:, 0]
+    for d in range(1, n_dims - 1):
+        acc = op(acc[:, :, None], per_dim[:, d, None]).view(n_levels, -1, n)
+    if n_dims == 1:
         return out.copy_(acc)
-    op(acc[:, None], per_dim[-1][None], out=out.view(-1, 2, n))
+    op(acc[:, :, None], per_dim[:, -1, None], out=out.view(n_levels, -1, 2, n))
     return out
 
 
 def corner_indices(
     cell: Int[Tensor, "levels dims n"], levels: Sequence[GridLevel], hashmap_size: int
 ) -> Int[Tensor, "levels corners n"]:
-    """Rows *within each level* (int32) of the ``2**dims`` corners of every cell, level by level so
-    that the temporaries stay small."""
+    """Rows *within each level* (int32) of the ``2**dims`` corners of every cell.
+
+    All dense levels are done together, then all hashed ones: a handful of large ops, which stays
+    cheap when threads are contended (every op pays a thread barrier)."""
     n_levels, n_dims, n = cell.shape
-    rows = torch.empty(n_levels, 2**n_dims, n, dtype=torch.int32, device=cell.device)
-    mask = hashmap_size - 1
-    for lvl, level in enumerate(levels):
-        c = cell[lvl]  # [D, N] int64
-        if level.hashed:
-            # (c + 1) * p = c * p + p, and masking commutes with + and ^ on the low bits: int32 after one mask
-            terms = []
-            for d in range(n_dims):
-                lo = (c[d] * HASH_PRIMES[d]) & mask
-                terms.append(torch.stack([lo, (lo + (HASH_PRIMES[d] & mask)) & mask]).to(torch.int32))
-            _corner_combos(terms, torch.bitwise_xor, rows[lvl])
-        else:
-            # tcnn: uint32 sum of coord * res^d, modulo the level's rows (wraps at the far face)
-            terms = [torch.stack([c[d], c[d] + 1]) * level.resolution**d for d in range(n_dims)]
-            flat = _corner_combos(terms, torch.add, torch.empty(2**n_dims, n, dtype=torch.int64, device=cell.device))
-            rows[lvl] = torch.remainder(flat & _UINT32_MASK, level.size)
+    device = cell.device
+    rows = torch.empty(n_levels, 2**n_dims, n, dtype=torch.int32, device=device)
+    n_dense = sum(not lv.hashed for lv in levels)
+    if any(lv.hashed for lv in levels[:n_dense]):
+        raise ValueError("dense levels must precede hashed levels")  # resolutions grow with the level
+    delta = torch.tensor([0, 1], device=device)[:, None]  # the two corners along an axis
+    if n_dense:
+        # tcnn: uint32 sum of coord * res^d, modulo the level's rows (wraps at the far face)
+        dense = levels[:n_dense]
+        strides = torch.tensor([[lv.resolution**d for d in range(n_dims)] for lv in dense], device=device)
+        sizes = torch.tensor([lv.size for lv in dense], device=device)
+        terms = (cell[:n_dense, :, None] + delta) * strides[:, :, None, None]  # [Ld, D, 2, N]
+        flat = _corner_combos(terms, torch.add, torch.empty(n_dense, 2**n_dims, n, dtype=torch.int64, device=device))
+        torch.remainder(flat & _UINT32_MASK, sizes[:, None, None], out=flat)
+        rows[:n_dense] = flat
+    if n_dense < n_levels:
+        # (c + 1) * p = c * p + p, and masking commutes with + and ^ on the low bits: int32 after one mask
+        mask = hashmap_size - 1
+        primes = torch.tensor(HASH_PRIMES[:n_dims], device=device)[:, None]
+        low = (cell[n_dense:] * primes) & mask  # [Lh, D, N]
+        terms = ((low[:, :, None] + (primes & mask)[:, :, None] * delta) & mask).to(torch.int32)  # [Lh, D, 2, N]
+        _corner_combos(terms, torch.bitwise_xor, rows[n_dense:])
     return rows
 
 
-def corner_weights(t: Sequence[Float[Tensor, "levels n"]], smoothstep: bool) -> Float[Tensor, "levels corners n"]:
-    """Multilinear weights of the ``2**D`` corners from the local coordinate along each axis
-    (autograd-differentiable; one tensor per axis so that backward never zero-fills a stack)."""
-    acc = None
-    for t_d in t:
-        if smoothstep:
-            t_d = t_d * t_d * (3.0 - 2.0 * t_d)
-        pair = torch.stack([1.0 - t_d, t_d], dim=1)  # [L, 2, N]
-        acc = pair if acc is None else (acc[:, :, None] * pair[:, None]).flatten(1, 2)
-    return acc
+def corner_weights(t: Float[Tensor, "levels dims n"], smoothstep: bool) -> Float[Tensor, "levels corners n"]:
+    """Multilinear weights of the ``2**D`` corners from the local coordinates (autograd-differentiable;
+    the axes are split with ``unbind``, whose backward stacks instead of zero-filling)."""
+    if smoothstep:
+        t = t * t * (3.0 - 2.0 * t)
+    # [L, D, 2, N] = (1 - t, t) per axis in one op (a stack along dim 2 is a slow strided copy)
+    sign = torch.tensor([-1.0, 1.0], dtype=t.dtype, device=t.device)[:, None]
+    pairs = torch.addcmul((sign < 0).to(t.dtype), t[:, :, None], sign).unbind(1)  # D x [L, 2, N]
+    acc = pairs[0]
+    for pair in pairs[1:]:
+        acc = (acc[:, :, None] * pair[:, None]).flatten(1, 2)
+    return acc.contiguous()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -126,86 +124,49 @@ def _scalar_view(table: Tensor) -> Optional[Tensor]:
     return None
 
 
-def _per_level(g: Tensor, scalars: Optional[Tensor]) -> Tensor:
-    """``[N, L, F]`` real -> ``[L, N]`` (complex for 2 features, real for 1) or ``[L, N, F]``, contiguous."""
+def _interp_kernel(table: Tensor, w: Tensor, rows: Tensor) -> Tensor:
+    """``embedding_bag`` is exactly a gather fused with a weighted sum: one pass, no temporaries
+    beyond the corner-last copies of ``rows`` and ``w`` it needs."""
+    n_levels, n_corners, n = w.shape
+    bags = rows.transpose(1, 2).reshape(-1, n_corners)
+    weights = w.transpose(1, 2).reshape(-1, n_corners)
+    out = F.embedding_bag(bags, table, per_sample_weights=weights, mode="sum")  # [L * N, F]
+    return out.view(n_levels, n, -1).transpose(0, 1)  # [N, L, F]
+
+
+def _dot_kernel(table: Tensor, g: Tensor, rows: Tensor) -> Tensor:
+    n_levels, n_corners, n = rows.shape
+    scalars = _scalar_view(table)
+    g_lvl = g.transpose(0, 1)  # [L, N, F]
     if scalars is None:
-        return g.transpose(0, 1).contiguous()
-    if scalars.is_complex():
-        return torch.view_as_complex(g.contiguous()).t().contiguous()
-    return g[..., 0].t().contiguous()
+        values = table.index_select(0, rows.reshape(-1).long()).view(n_levels, n_corners, n, -1)
+        return torch.sum(values * g_lvl[:, None], -1)
+    values = scalars.index_select(0, rows.reshape(-1)).view(n_levels, n_corners, n)
+    if not values.is_complex():
+        return values * g_lvl[:, None, :, 0]
+    # <a, b> over the 2 features = a.re * b.re + a.im * b.im, on the real view (no complex product)
+    values = torch.view_as_real(values)
+    return torch.addcmul(values[..., 0] * g_lvl[:, None, :, 0], values[..., 1], g_lvl[:, None, :, 1])
 
 
-class _Gather:
-    """Corner values ``table[rows]`` level by level; optionally all of them kept for reuse (the
-    eikonal's backward passes read the same values three times)."""
-
-    def __init__(self, table: Tensor, rows: Tensor, layout: TableLayout, cache: Optional[Tensor] = None):
-        self.table, self.rows, self.layout = table, rows, layout
-        self.scalars = _scalar_view(table)
-        self.cache = cache
-
-    def fill_cache(self) -> Tensor:
-        n_levels, n_corners, n = self.rows.shape
-        shape = (n_levels, n_corners, n) if self.scalars is not None else (n_levels, n_corners, n, self.table.shape[1])
-        dtype = self.scalars.dtype if self.scalars is not None else self.table.dtype
-        cache = torch.empty(shape, dtype=dtype, device=self.table.device)
-        for lvl in range(n_levels):
-            self.level(lvl, out=cache[lvl])
-        self.cache = cache
-        return cache
-
-    def level(self, lvl: int, out: Optional[Tensor] = None) -> Tensor:
-        if self.cache is not None:
-            return self.cache[lvl]
-        off, size = self.layout.offsets[lvl], self.layout.sizes[lvl]
-        n_corners, n = self.rows.shape[1:]
-        if self.scalars is not None:
-            flat = None if out is None else out.view(-1)
-            return torch.index_select(self.scalars[off : off + size], 0, self.rows[lvl].view(-1), out=flat).view(n_corners, n)
-        flat = None if out is None else out.view(-1, self.table.shape[1])
-        idx = self.rows[lvl].view(-1).long()  # 2-D index_add_/index_select are much faster with int64
-        return torch.index_select(self.table[off : off + size], 0, idx, out=flat).view(n_corners, n, -1)
-
-
-def _interp_kernel(gather: _Gather, w: Tensor) -> Tensor:
-    n_levels, _, n = w.shape
-    out = gather.table.new_empty(n_levels, n, gather.table.shape[1])
-    for lvl in range(n_levels):
-        values = gather.level(lvl)
-        if gather.scalars is None:
-            torch.sum(values * w[lvl][..., None], 0, out=out[lvl])
-        else:
-            target = torch.view_as_complex(out[lvl]) if values.is_complex() else out[lvl, :, 0]
-            torch.sum(values * w[lvl], 0, out=target)
-    return out.transpose(0, 1)  # [N, L, F]
-
-
-def _dot_kernel(gather: _Gather, g: Tensor) -> Tensor:
-    n_levels, n_corners, n = gather.rows.shape
-    out = gather.table.new_empty(n_levels, n_corners, n)
-    g_lvl = _per_level(g, gather.scalars)
-    if gather.scalars is not None and gather.scalars.is_complex():
-        g_lvl = g_lvl.conj()  # Re(a * conj(b)) = a.re * b.re + a.im * b.im
-    for lvl in range(n_levels):
-        prod = gather.level(lvl) * g_lvl[lvl]
-        if gather.scalars is None:
-            torch.sum(prod, -1, out=out[lvl])
-        else:
-            out[lvl] = prod.real if prod.is_complex() else prod
-    return out
-
-
-def _splat_kernel(w: Tensor, g: Tensor, rows: Tensor, layout: TableLayout) -> Tensor:
+def _splat_kernel(w: Tensor, g: Tensor, rows: Tensor, n_rows: int) -> Tensor:
+    """One zero fill and one ``index_add_`` of ``w * g`` into the rows (int32, 1-D when possible)."""
+    n_levels, n_corners, n = w.shape
     n_features = g.shape[-1]
-    grad = g.new_zeros(layout.n_rows, n_features)
+    grad = g.new_zeros(n_rows, n_features)
     scalars = _scalar_view(grad)
-    g_lvl = _per_level(g, scalars)
-    for lvl, (off, size) in enumerate(zip(layout.offsets, layout.sizes)):
-        if scalars is not None:
-            scalars[off : off + size].index_add_(0, rows[lvl].view(-1), (w[lvl] * g_lvl[lvl]).view(-1))
-        else:
-            src = (w[lvl][..., None] * g_lvl[lvl][None]).view(-1, n_features)
-            grad[off : off + size].index_add_(0, rows[lvl].view(-1).long(), src)
+    g_lvl = g.transpose(0, 1)  # [L, N, F]
+    if scalars is None:
+        src = (w[..., None] * g_lvl[:, None]).reshape(-1, n_features)
+        grad.index_add_(0, rows.reshape(-1).long(), src)
+    elif not scalars.is_complex():
+        scalars.index_add_(0, rows.reshape(-1), (w * g_lvl[:, None, :, 0]).reshape(-1))
+    else:
+        # write w * g into the real view of a complex source: no real-to-complex conversion pass
+        src = torch.empty(n_levels, n_corners, n, 2, dtype=w.dtype, device=w.device)
+        torch.mul(w, g_lvl[:, None, :, 0], out=src[..., 0])
+        torch.mul(w, g_lvl[:, None, :, 1], out=src[..., 1])
+        scalars.index_add_(0, rows.reshape(-1), torch.view_as_complex(src).view(-1))
     return grad
 
 
@@ -227,40 +188,34 @@ def _wanted(ctx, i: int) -> bool:
 
 
 class _Interp(Function):
-    """``out[n, l] = sum_c w[l, c, n] * table[row(l, c, n)]``. ``cache`` (optional) holds
-    ``table[rows]`` already gathered; it is kept when ``w`` needs a gradient."""
+    """``out[n, l] = sum_c w[l, c, n] * table[row(l, c, n)]``."""
 
     @staticmethod
-    def forward(ctx, table, w, rows, layout, cache):
-        gather = _Gather(table, rows, layout, cache)
-        if cache is None and ctx.needs_input_grad[1]:
-            cache = gather.fill_cache()
-        ctx.save_for_backward(table, w, rows, cache)
-        ctx.layout = layout
-        return _interp_kernel(gather, w)
+    def forward(ctx, table, w, rows):
+        ctx.save_for_backward(table, w, rows)
+        return _interp_kernel(table, w, rows)
 
     @staticmethod
     def backward(ctx, g):
-        table, w, rows, cache = ctx.saved_tensors
-        grad_table = _Splat.apply(w, g, rows, ctx.layout) if _wanted(ctx, 0) else None
-        grad_w = _Dot.apply(table, g, rows, ctx.layout, cache) if _wanted(ctx, 1) else None
-        return grad_table, grad_w, None, None, None
+        table, w, rows = ctx.saved_tensors
+        grad_table = _Splat.apply(w, g, rows, table.shape[0]) if _wanted(ctx, 0) else None
+        grad_w = _Dot.apply(table, g, rows) if _wanted(ctx, 1) else None
+        return grad_table, grad_w, None
 
 
 class _Splat(Function):
     """``grad[r] = sum_{l,c,n: row(l,c,n) = r} w[l, c, n] * g[n, l]`` (d interp / d table)."""
 
     @staticmethod
-    def forward(ctx, w, g, rows, layout):
+    def forward(ctx, w, g, rows, n_rows):
         ctx.save_for_backward(w, g, rows)
-        ctx.layout = layout
-        return _splat_kernel(w, g, rows, layout)
+        return _splat_kernel(w, g, rows, n_rows)
 
     @staticmethod
     def backward(ctx, grad_table):
         w, g, rows = ctx.saved_tensors
-        grad_w = _Dot.apply(grad_table, g, rows, ctx.layout, None) if _wanted(ctx, 0) else None
-        grad_g = _Interp.apply(grad_table, w, rows, ctx.layout, None) if _wanted(ctx, 1) else None
+        grad_w = _Dot.apply(grad_table, g, rows) if _wanted(ctx, 0) else None
+        grad_g = _Interp.apply(grad_table, w, rows) if _wanted(ctx, 1) else None
         return grad_w, grad_g, None, None
 
 
@@ -268,17 +223,16 @@ class _Dot(Function):
     """``out[l, c, n] = <table[row(l, c, n)], g[n, l]>`` (d interp / d w)."""
 
     @staticmethod
-    def forward(ctx, table, g, rows, layout, cache):
-        ctx.save_for_backward(table, g, rows, cache)
-        ctx.layout = layout
-        return _dot_kernel(_Gather(table, rows, layout, cache), g)
+    def forward(ctx, table, g, rows):
+        ctx.save_for_backward(table, g, rows)
+        return _dot_kernel(table, g, rows)
 
     @staticmethod
     def backward(ctx, grad_w):
-        table, g, rows, cache = ctx.saved_tensors
-        grad_table = _Splat.apply(grad_w, g, rows, ctx.layout) if _wanted(ctx, 0) else None
-        grad_g = _Interp.apply(table, grad_w, rows, ctx.layout, cache) if _wanted(ctx, 1) else None
-        return grad_table, grad_g, None, None, None
+        table, g, rows = ctx.saved_tensors
+        grad_table = _Splat.apply(grad_w, g, rows, table.shape[0]) if _wanted(ctx, 0) else None
+        grad_g = _Interp.apply(table, grad_w, rows) if _wanted(ctx, 1) else None
+        return grad_table, grad_g, None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -292,12 +246,13 @@ def hashgrid_encode(
     smoothstep: bool = False,
 ) -> Float[Tensor, "n levels_times_features"]:
     """Interpolated features of ``levels`` at ``x`` (expected in [0, 1]), concatenated level by level."""
-    n, n_dims = x.shape
-    scales = torch.tensor([lv.scale for lv in levels], dtype=x.dtype, device=x.device)[:, None]
-    pos = [x[:, d][None] * scales + 0.5 for d in range(n_dims)]  # per axis [L, N]
+    n = x.shape[0]
+    scales = torch.tensor([lv.scale for lv in levels], dtype=x.dtype, device=x.device)
+    pos = torch.addcmul(torch.full_like(scales, 0.5)[:, None, None], x.t()[None], scales[:, None, None])  # [L, D, N]
     with torch.no_grad():
-        cells = [torch.floor(p) for p in pos]
-        rows = corner_indices(torch.stack(cells, dim=1).to(torch.int64), levels, hashmap_size)
-    weights = corner_weights([p - c for p, c in zip(pos, cells)], smoothstep)  # [L, 2^D, N]
-    out = _Interp.apply(table, weights, rows, TableLayout.of(levels, table.shape[0]), None)  # [N, L, F]
+        cell = torch.floor(pos)
+        rows = corner_indices(cell.to(torch.int64), levels, hashmap_size)
+        rows += torch.tensor([lv.offset for lv in levels], dtype=torch.int32, device=x.device)[:, None, None]
+    weights = corner_weights(pos - cell, smoothstep)  # [L, 2^D, N]
+    out = _Interp.apply(table, weights, rows)  # [N, L, F]
     return out.reshape(n, -1)
