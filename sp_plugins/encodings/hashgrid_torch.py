@@ -18,17 +18,20 @@ eikonal loss needs the second):
 - ``splat(w, g)[r] = sum_{l,c,n: row = r} w[l, c, n] * g[n, l]``        (d interp / d table),
 - ``dot(table, g)[l, c, n] = <table[row(l, c, n)], g[n, l]>``           (d interp / d w).
 
-Why it is fast on a CPU (measured in ``bench/hashgrid_speed.py``):
+Why it is fast on a CPU (measured in ``bench/hashgrid_speed.py``; what was tried and dropped is
+listed in ``bench/RESULTS.md``):
 
-- level by level, so one level's slice of the table and all temporaries stay small and cached;
-- with 2 features per level a table row is viewed as one complex number: gather, weighted sum
-  and scatter-add (``index_add_`` with int32 rows) move one 8-byte element per corner;
-- corner rows in int32, each axis' hash product masked once (XOR commutes with the mask);
-- the table gradient is one zero fill plus one ``index_add_`` per level (no sort, no
-  ``index_put_``); nothing is computed for ``x`` unless it requires a gradient, and a pass that
-  only wants the input gradient (``autograd.grad(y, x)``) skips the table's scatter;
-- when ``x`` requires a gradient the gathered corner values are kept (one ``[L, 2^D, N]`` tensor)
-  and reused by the backward passes instead of gathered again.
+- all levels go through a handful of large ops: on a shared CPU every op pays a thread barrier,
+  so op count matters as much as memory traffic;
+- corner rows in int32 (each axis' hash product masked once: XOR commutes with the mask), with
+  the level offsets added, so one gather / one scatter covers every level;
+- forward = ``embedding_bag`` with per-corner weights: gather and weighted sum fused, no
+  ``[levels, corners, N, features]`` temporary;
+- table gradient = one zero fill + one ``index_add_`` (no sort, no ``index_put_``); with 2
+  features a row is viewed as one complex number, so the scatter moves one 8-byte element per
+  corner with a 1-D int32 index;
+- nothing is computed for ``x`` unless it requires a gradient, and a pass that only wants the
+  input gradient (``autograd.grad(y, x)``, the eikonal's first pass) skips the table's scatter.
 """
 
 from __future__ import annotations
