@@ -564,7 +564,7 @@ def main(argv=None) -> None:
     cost.add_argument("--samples", type=int, default=96)
     cost.add_argument("--color-mode", default="rgb", choices=["rgb", "sh"])
     cost.add_argument("--repeats", type=int, default=30)
-    cost.add_argument("--voxels", type=float, default=8.0)
+    cost.add_argument("--voxels", nargs="+", type=float, default=[0.25, 2.0, 8.0], help="alpha in voxels of the grid")
     cost.add_argument("--end", type=float, default=0.3)
     for p in (relu, mip, cost):
         p.add_argument("--threads", type=int, default=1, help="torch threads (1 on a shared machine)")
@@ -594,14 +594,14 @@ def main(argv=None) -> None:
                 mip_study(scene, budget, seed, args.tag, args.overwrite)
         table = mip_table(collect("mipnerf", args.tag))
     else:
-        results = [cost_study(r, args.rays, args.samples, args.color_mode, args.repeats, args.voxels, args.end)
-                   for r in args.resolutions]
+        results = [cost_study(r, args.rays, args.samples, args.color_mode, args.repeats, v, args.end)
+                   for r in args.resolutions for v in args.voxels]
         (OUT / f"cost_{args.tag}.json").write_text(json.dumps(results, indent=1))
-        lines = ["| grid | s/step plain | SP total | SP arithmetic | slower lookups | alpha = 0 | averaged over the schedule |",
-                 "|---|---|---|---|---|---|---|"]
+        lines = ["| grid | alpha | s/step plain | SP total | SP arithmetic | slower lookups | alpha = 0 | averaged over the schedule |",
+                 "|---|---|---|---|---|---|---|---|"]
         for r in results:
             s = r["summary"]
-            lines.append(f"| {r['resolution']}^3 {r['color_mode']} | {s['plain']['median_s']:.3f} | {r['sp_total_ratio']:.3f} | "
+            lines.append(f"| {r['resolution']}^3 {r['color_mode']} | {r['alpha_voxels']:g} vox | {s['plain']['median_s']:.3f} | {r['sp_total_ratio']:.3f} | "
                          f"+{100 * r['sp_arithmetic_share']:.1f}% | +{100 * r['lookup_slowdown_share']:.1f}% | "
                          f"{s['sp_inactive']['ratio_vs_plain']:.3f} | {r['schedule_average_ratio']:.3f} (end {r['end']}) |")
         table = "\n".join(lines)
