@@ -127,10 +127,17 @@ def _scalar_view(table: Tensor) -> Optional[Tensor]:
     return None
 
 
+# devices with a native embedding_bag; elsewhere (e.g. MPS) the forward gathers, then sums
+EMBEDDING_BAG_DEVICES = {"cpu", "cuda"}
+
+
 def _interp_kernel(table: Tensor, w: Tensor, rows: Tensor) -> Tensor:
     """``embedding_bag`` is exactly a gather fused with a weighted sum: one pass, no temporaries
     beyond the corner-last copies of ``rows`` and ``w`` it needs."""
     n_levels, n_corners, n = w.shape
+    if table.device.type not in EMBEDDING_BAG_DEVICES:
+        values = table.index_select(0, rows.reshape(-1).long()).view(n_levels, n_corners, n, -1)
+        return torch.sum(values * w[..., None], 1).transpose(0, 1)
     bags = rows.transpose(1, 2).reshape(-1, n_corners)
     weights = w.transpose(1, 2).reshape(-1, n_corners)
     out = F.embedding_bag(bags, table, per_sample_weights=weights, mode="sum")  # [L * N, F]
@@ -140,36 +147,33 @@ def _interp_kernel(table: Tensor, w: Tensor, rows: Tensor) -> Tensor:
 def _dot_kernel(table: Tensor, g: Tensor, rows: Tensor) -> Tensor:
     n_levels, n_corners, n = rows.shape
     scalars = _scalar_view(table)
-    g_lvl = g.transpose(0, 1)  # [L, N, F]
     if scalars is None:
         values = table.index_select(0, rows.reshape(-1).long()).view(n_levels, n_corners, n, -1)
-        return torch.sum(values * g_lvl[:, None], -1)
+        return torch.sum(values * g.transpose(0, 1)[:, None], -1)
+    planes = g.permute(2, 1, 0).contiguous()  # [F, L, N]: contiguous operands vectorise
     values = scalars.index_select(0, rows.reshape(-1)).view(n_levels, n_corners, n)
     if not values.is_complex():
-        return values * g_lvl[:, None, :, 0]
-    # <a, b> over the 2 features = a.re * b.re + a.im * b.im, on the real view (no complex product)
+        return values * planes[0][:, None]
+    # <a, b> over the 2 features = a.re * b.re + a.im * b.im
     values = torch.view_as_real(values)
-    return torch.addcmul(values[..., 0] * g_lvl[:, None, :, 0], values[..., 1], g_lvl[:, None, :, 1])
+    return torch.addcmul(values[..., 0] * planes[0][:, None], values[..., 1], planes[1][:, None])
 
 
 def _splat_kernel(w: Tensor, g: Tensor, rows: Tensor, n_rows: int) -> Tensor:
     """One zero fill and one ``index_add_`` of ``w * g`` into the rows (int32, 1-D when possible)."""
-    n_levels, n_corners, n = w.shape
     n_features = g.shape[-1]
     grad = g.new_zeros(n_rows, n_features)
     scalars = _scalar_view(grad)
-    g_lvl = g.transpose(0, 1)  # [L, N, F]
     if scalars is None:
-        src = (w[..., None] * g_lvl[:, None]).reshape(-1, n_features)
+        src = (w[..., None] * g.transpose(0, 1)[:, None]).reshape(-1, n_features)
         grad.index_add_(0, rows.reshape(-1).long(), src)
     elif not scalars.is_complex():
-        scalars.index_add_(0, rows.reshape(-1), (w * g_lvl[:, None, :, 0]).reshape(-1))
+        scalars.index_add_(0, rows.reshape(-1), (w * g[..., 0].t().contiguous()[:, None]).reshape(-1))
     else:
-        # write w * g into the real view of a complex source: no real-to-complex conversion pass
-        src = torch.empty(n_levels, n_corners, n, 2, dtype=w.dtype, device=w.device)
-        torch.mul(w, g_lvl[:, None, :, 0], out=src[..., 0])
-        torch.mul(w, g_lvl[:, None, :, 1], out=src[..., 1])
-        scalars.index_add_(0, rows.reshape(-1), torch.view_as_complex(src).view(-1))
+        g_lvl = torch.view_as_complex(g.contiguous()).t().contiguous()  # [L, N]
+        src = torch.empty(w.shape, dtype=scalars.dtype, device=w.device).copy_(w)  # contiguous complex
+        src.mul_(g_lvl[:, None])
+        scalars.index_add_(0, rows.reshape(-1), src.view(-1))
     return grad
 
 

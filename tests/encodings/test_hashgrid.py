@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from sp_plugins.encodings import HashGrid
 from sp_plugins.encodings import hashgrid as hashgrid_module
 from sp_plugins.encodings.grid_levels import HASH_PRIMES, grid_levels
+from sp_plugins.encodings import hashgrid_torch
 from sp_plugins.encodings.hashgrid_torch import corner_indices
 
 
@@ -39,9 +40,12 @@ def test_small_grid_has_dense_and_hashed_levels():
 
 
 @pytest.mark.parametrize("interpolation, features", [("Linear", 2), ("Smoothstep", 2), ("Linear", 1), ("Smoothstep", 4)])
-def test_gradcheck_inputs_and_table(interpolation, features):
+@pytest.mark.parametrize("embedding_bag", [True, False], ids=["bag", "gather"])
+def test_gradcheck_inputs_and_table(interpolation, features, embedding_bag, monkeypatch):
     """First and second derivatives; 1, 2 and 4 features take the three table-access code paths.
     Levels of res 2 and 3 (dense) and 5 (hashed into 32 rows): 72 rows keep gradgradcheck quick."""
+    if not embedding_bag:  # the forward used on devices without embedding_bag (e.g. MPS)
+        monkeypatch.setattr(hashgrid_torch, "EMBEDDING_BAG_DEVICES", set())
     grid = small_grid(interpolation, features_per_level=features, log2_hashmap_size=5, base_resolution=2, per_level_scale=1.5)
     assert [lv.hashed for lv in grid.levels] == [False, False, True]
     x = torch.rand(6, 3, dtype=torch.float64, requires_grad=True)
@@ -67,8 +71,6 @@ def test_eikonal_double_backward_reaches_table_and_inputs():
 
 def test_input_gradient_alone_does_not_scatter_into_the_table(monkeypatch):
     """autograd.grad(y, x) must not pay for the table's gradient (the eikonal's first pass)."""
-    from sp_plugins.encodings import hashgrid_torch
-
     calls = []
     real_splat = hashgrid_torch._splat_kernel
     monkeypatch.setattr(hashgrid_torch, "_splat_kernel", lambda *a: calls.append(1) or real_splat(*a))
