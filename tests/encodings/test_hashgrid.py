@@ -244,6 +244,7 @@ def test_tcnn_config_round_trip():
         (dict(per_level_scale=1.5, max_resolution=64), "not both"),
         (dict(n_input_dims=4), "n_input_dims"),
         (dict(features_per_level=3), "features_per_level"),
+        (dict(grid_type="Dense", base_resolution=512, per_level_scale=2.0), "would hold"),
     ],
 )
 def test_bad_arguments_raise_value_error(kwargs, match):
