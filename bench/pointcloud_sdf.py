@@ -81,6 +81,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--keep-meshes", action="store_true", help="also write each final mesh (PLY, in the frame)")
     p.add_argument("--summarize-only", action="store_true", help="only rebuild the table from existing results")
+    p.add_argument("--soundness-seeds", type=int, nargs="+", default=None,
+                   help="instead of the table: for each seed, run --configs for --steps and record whether the "
+                        "field came out sound (one sheet, positive outside); cheap, use a few hundred steps")
     return p.parse_args(argv)
 
 
@@ -125,6 +128,61 @@ def run_mesh(args, name: str, out_dir: Path) -> dict:
         }
     result["eval_seconds"] = time.time() - start - train_seconds
     return result
+
+
+def field_soundness(trainer, true_area: float, resolution: int = 64) -> dict:
+    """Sign and sheet count of a fitted field, from a coarse grid: the negative share of the
+    volume and the reconstructed / true area. Sound = one sheet (0.75 < area ratio < 1.3) with
+    the object's interior negative (negative share < 0.5)."""
+    from sp_plugins.geometry import evaluate_grid, mesh_from_grid
+
+    with torch.no_grad():
+        volume = evaluate_grid(trainer.sdf, (-1.0, 1.0), resolution)
+    mesh = mesh_from_grid(volume, (-1.0, 1.0))
+    ratio = float(mesh.area / (true_area * trainer.frame.scale**2)) if len(mesh.faces) else 0.0
+    negative = float((volume < 0).mean())
+    return {"negative_fraction": negative, "area_ratio": ratio, "sound": bool(0.75 < ratio < 1.3 and negative < 0.5)}
+
+
+def run_soundness(args, name: str) -> dict:
+    data = load_oriented_points(args.mesh_dir / f"{name}.ply", n_points=200_000, seed=0)
+    out = {"mesh": name, "seeds": {}}
+    start = time.time()
+    for seed in args.soundness_seeds:
+        seeded = argparse.Namespace(**{**vars(args), "seed": seed})
+        trainers = {c: make_config(seeded, *CONFIGS[c]).setup(data) for c in args.configs}
+        for step in range(args.steps):
+            for t in trainers.values():
+                t.step()
+        out["seeds"][seed] = {c: field_soundness(t, data.mesh.area) for c, t in trainers.items()}
+        print(f"  {name} seed {seed}: " + "  ".join(
+            f"{c} {'sound' if r['sound'] else 'UNSOUND'} (neg {r['negative_fraction']:.3f}, area x{r['area_ratio']:.2f})"
+            for c, r in out["seeds"][seed].items()), flush=True)
+    out["seconds"] = time.time() - start
+    return out
+
+
+def summarize_soundness(args, out_dir: Path) -> None:
+    results = {n: json.loads((out_dir / f"soundness_{n}.json").read_text()) for n in args.meshes
+               if (out_dir / f"soundness_{n}.json").exists()}
+    if not results:
+        return
+    lines = [f"Soundness `{out_dir.name}`: {json.loads((out_dir / 'settings.json').read_text())['command']}", "",
+             "| mesh | " + " | ".join(f"{c} sound" for c in args.configs) + " |", "|---|" + "---|" * len(args.configs)]
+    totals = {c: [0, 0] for c in args.configs}
+    for name, r in results.items():
+        cells = []
+        for c in args.configs:
+            flags = [s[c]["sound"] for s in r["seeds"].values() if c in s]
+            totals[c][0] += sum(flags)
+            totals[c][1] += len(flags)
+            cells.append(f"{sum(flags)}/{len(flags)}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("| all | " + " | ".join(f"{a}/{b}" for a, b in totals.values()) + " |")
+    total = sum(r["seconds"] for r in results.values())
+    lines.append(f"\nWall time: {total / 60:.1f} min.")
+    (out_dir / "soundness.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 def step_ratio(a: List[float], b: List[float]) -> float:
@@ -211,7 +269,7 @@ def main(argv=None) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     settings_path = out_dir / "settings.json"
-    budget_keys = [k for k in settings if k not in ("meshes", "summarize_only", "keep_meshes", "threads", "mesh_dir", "configs")]
+    budget_keys = [k for k in settings if k not in ("meshes", "summarize_only", "keep_meshes", "threads", "mesh_dir")]
     if settings_path.exists():
         old = json.loads(settings_path.read_text())
         changed = [k for k in budget_keys if old.get("args", {}).get(k) != settings[k]]
@@ -223,6 +281,15 @@ def main(argv=None) -> None:
             f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
             for k, v in settings.items() if k in budget_keys and v is not None)
         settings_path.write_text(json.dumps({"args": settings, "command": command, "machine": machine_info()}, indent=2))
+    if args.soundness_seeds is not None:
+        for name in args.meshes:
+            path = out_dir / f"soundness_{name}.json"
+            if path.exists() or args.summarize_only:
+                continue
+            print(f"{name}: soundness over seeds {args.soundness_seeds}", flush=True)
+            path.write_text(json.dumps(dict(run_soundness(args, name), machine=machine_info())))
+        summarize_soundness(args, out_dir)
+        return
     if not args.summarize_only:
         for name in args.meshes:
             path = out_dir / f"{name}.json"

@@ -93,3 +93,20 @@ class StepTimer:
     @property
     def total(self) -> float:
         return float(sum(self.times))
+
+
+def run_to_end(trainer, desc: str, callback=None, progress: bool = False) -> None:
+    """Step ``trainer`` (anything with ``step()``, ``done``, ``step_index`` and ``config.steps``)
+    to its last step, with a tqdm bar showing the loss and alpha; ``callback(trainer, record)``
+    after each step."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=trainer.config.steps, initial=trainer.step_index, disable=not progress, desc=desc)
+    while not trainer.done:
+        record = trainer.step()
+        bar.update(1)
+        if trainer.step_index % 25 == 0 or trainer.done:
+            bar.set_postfix(loss=f"{record['loss']:.4g}", alpha=f"{record['alpha']:.3g}")
+        if callback is not None:
+            callback(trainer, record)
+    bar.close()

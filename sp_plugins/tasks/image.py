@@ -22,7 +22,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
-from sp_plugins.tasks.common import StepTimer
+from sp_plugins.tasks.common import StepTimer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -198,14 +198,5 @@ class ImageFitTrainer:
         return psnr(self.render(), self.image)
 
     def fit(self, callback=None, progress: bool = False) -> None:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=self.config.steps, initial=self.step_index, disable=not progress, desc="sp-fit image")
-        while not self.done:
-            rec = self.step()
-            bar.update(1)
-            if self.step_index % 25 == 0 or self.done:
-                bar.set_postfix(loss=f"{rec['loss']:.4g}", alpha=f"{rec['alpha']:.3g}")
-            if callback is not None:
-                callback(self, rec)
-        bar.close()
+        """Run the remaining steps (``callback(trainer, record)`` after each)."""
+        run_to_end(self, "sp-fit image", callback, progress)

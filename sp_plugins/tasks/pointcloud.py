@@ -21,7 +21,7 @@ import dataclasses
 import math
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Callable, Literal, Optional, Tuple, Type
+from typing import Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ from sp_plugins.geometry import (
     mesh_from_grid,
     mesh_metrics,
 )
-from sp_plugins.tasks.common import StepTimer
+from sp_plugins.tasks.common import StepTimer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -84,7 +84,9 @@ class PointCloudSDFConfig:
     """Radius of that sphere, in the frame (the object's diagonal is 1.9)."""
     output_bias: Optional[float] = None
     """Start the MLP's output bias at this value (None: PyTorch's default, uniform in
-    +-1/sqrt(width)). Without geometric initialisation its sign becomes the sign of the far field."""
+    +-1/sqrt(width)); ignored with geometric_init, which sets it to -init_radius. Without
+    geometric initialisation the sign of the initial output tends to become the sign of the far
+    field (see bench/RESULTS.md); 0 leaves that choice to training."""
     w_surface: float = 3e3
     w_normal: float = 1e2
     w_eikonal: float = 5e1
@@ -164,7 +166,7 @@ class PointCloudSDFTrainer:
                 include_input=config.geometric_init if config.include_input is None else config.include_input,
                 init_radius=config.init_radius,
             ).to(self.device)
-            if config.output_bias is not None:
+            if config.output_bias is not None and not config.geometric_init:
                 with torch.no_grad():
                     self.field.mlp[-1].bias.fill_(config.output_bias)
         sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
@@ -262,21 +264,7 @@ class PointCloudSDFTrainer:
         metrics.update(info, components=components, step=self.step_index)
         return mesh, metrics
 
-    def fit(self, callback: Optional[Callable[["PointCloudSDFTrainer", dict], None]] = None, progress: bool = False) -> None:
+    def fit(self, callback=None, progress: bool = False) -> None:
         """Run the remaining steps (``callback(trainer, record)`` after each)."""
-        from tqdm.auto import tqdm
+        run_to_end(self, "sp-fit pointcloud", callback, progress)
 
-        bar = tqdm(total=self.config.steps, initial=self.step_index, disable=not progress, desc="sp-fit pointcloud")
-        while not self.done:
-            rec = self.step()
-            bar.update(1)
-            if self.step_index % 25 == 0 or self.done:
-                bar.set_postfix(loss=f"{rec['loss']:.4g}", alpha=f"{rec['alpha']:.3g}")
-            if callback is not None:
-                callback(self, rec)
-        bar.close()
-
-
-def default_gt(data: OrientedPoints) -> Optional[trimesh.Trimesh]:
-    """The input mesh, when the input was a mesh."""
-    return data.mesh

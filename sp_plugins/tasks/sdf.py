@@ -23,7 +23,7 @@ from torch import Tensor
 
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, evaluate_grid, largest_component, mesh_from_grid, mesh_metrics, sample_surface
-from sp_plugins.tasks.common import StepTimer
+from sp_plugins.tasks.common import StepTimer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -177,14 +177,5 @@ class SDFFitTrainer:
         return mesh, metrics
 
     def fit(self, callback=None, progress: bool = False) -> None:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=self.config.steps, initial=self.step_index, disable=not progress, desc="sp-fit sdf")
-        while not self.done:
-            rec = self.step()
-            bar.update(1)
-            if self.step_index % 25 == 0 or self.done:
-                bar.set_postfix(loss=f"{rec['loss']:.4g}", alpha=f"{rec['alpha']:.3g}")
-            if callback is not None:
-                callback(self, rec)
-        bar.close()
+        """Run the remaining steps (``callback(trainer, record)`` after each)."""
+        run_to_end(self, "sp-fit sdf", callback, progress)
