@@ -52,7 +52,8 @@ class FrequencyEncoding(nn.Module):
         self.include_input = include_input
         self.n_output_dims = n_input_dims * (2 * num_frequencies + int(include_input))
         exps = torch.linspace(min_freq_exp, max_freq_exp, num_frequencies, dtype=torch.float64)
-        self.register_buffer("angular_frequencies", scale * 2.0**exps, persistent=False)
+        # plain floats, made in the input's dtype and device per call (MPS has no float64 buffers)
+        self.angular_frequencies = tuple(float(v) for v in scale * 2.0**exps)
 
     def get_out_dim(self) -> int:
         return self.n_output_dims
@@ -64,7 +65,7 @@ class FrequencyEncoding(nn.Module):
         diagonal is used) return the expected encoding under ``N(x, variance)``."""
         if x.shape[-1] != self.n_input_dims:
             raise ValueError(f"positions have {x.shape[-1]} coordinates; this encoding expects {self.n_input_dims}")
-        w = self.angular_frequencies.to(x.dtype)
+        w = torch.tensor(self.angular_frequencies, dtype=x.dtype, device=x.device)
         phase = (w[:, None] * x[..., None, :]).flatten(-2)  # [*batch, K * D], frequency-major
         features = torch.cat([torch.sin(phase), torch.cos(phase)], dim=-1)
         if variance is not None:
