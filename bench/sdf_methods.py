@@ -256,6 +256,10 @@ def main(argv=None) -> None:
                 path.write_text(json.dumps(result, indent=1))
                 results.append(result)
                 logging.info("wrote %s", path)
+    # the summary covers every finished run at this budget, not only the ones asked for now
+    done = sorted(args.out.glob(f"*_steps{budget.steps}.json"))
+    results = [json.loads(p.read_text()) for p in done]
+    results.sort(key=lambda r: (r["scene"], r["pair"], r["seed"]))
     print(summarise(results, args.out))
     print(f"\nbudget: {dataclasses.asdict(budget)}\nmachine: {machine_info()}")
 
