@@ -78,9 +78,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     if not args.quiet:
         print(f"wrote {paths.root}: {paths.gt_mesh.name}, {paths.scene_json.name}")
         if paths.blender is not None:
-            print(f"  ns-train nerfacto --data {paths.blender} blender-data")
+            print(f"  {paths.blender}  (nerfstudio dataparser: blender-data)")
         if paths.sdfstudio is not None:
-            print(f"  ns-train neus-facto --data {paths.sdfstudio} sdfstudio-data   # needs tiny-cuda-nn")
+            print(f"  {paths.sdfstudio}  (nerfstudio dataparser: sdfstudio-data)")
     return 0
 
 

@@ -8,6 +8,7 @@ otherwise its rtree-based triangle intersector.
 
 from __future__ import annotations
 
+import warnings
 from typing import Optional
 
 import numpy as np
@@ -37,6 +38,7 @@ def ray_intersector(mesh: trimesh.Trimesh, backend: str = "auto"):
         except Exception:  # embreex missing or broken on this platform
             if backend == "embree":
                 raise ValueError("the Embree ray caster is unavailable: `pip install embreex`, or use backend='triangle'.") from None
+            warnings.warn("embreex is not installed: falling back to trimesh's rtree ray caster, about 100x slower.", stacklevel=2)
     from trimesh.ray.ray_triangle import RayMeshIntersector
 
     return RayMeshIntersector(mesh)

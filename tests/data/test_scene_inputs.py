@@ -1,6 +1,7 @@
 """make_scene: mesh sources, normalisation, determinism, shading, and refusal to overwrite."""
 
 import json
+import sys
 
 import imageio.v2 as imageio
 import numpy as np
@@ -117,3 +118,22 @@ def test_bad_inputs_raise_value_errors(tmp_path):
     with pytest.raises(ValueError, match="distance"):
         make_scene("sphere", tmp_path / "f", camera_distance=0.5)
     assert not any((tmp_path / name).exists() for name in "abcdef"), "nothing is written on bad input"
+
+
+def test_ray_casters_agree_and_missing_embree_falls_back(monkeypatch):
+    from sp_plugins.data.cameras import intrinsics, look_at_origin
+    from sp_plugins.data.render import ray_intersector, render_views
+
+    mesh = load_mesh("torus")
+    c2w = look_at_origin(np.array([[1.5, -2.0, 1.0]]))
+    K = intrinsics(16, 16, 1.0)
+    fast = render_views(mesh, c2w, K, 16, 16, backend="embree")
+    slow = render_views(mesh, c2w, K, 16, 16, backend="triangle")
+    assert 0.1 < (fast[..., 3] > 0).mean() < 0.9
+    np.testing.assert_array_equal(fast[..., 3], slow[..., 3])
+    np.testing.assert_allclose(fast[..., :3], slow[..., :3], atol=1e-4)
+    monkeypatch.setitem(sys.modules, "trimesh.ray.ray_pyembree", None)  # import now fails
+    with pytest.warns(UserWarning, match="embreex"):
+        assert type(ray_intersector(mesh)).__module__ == "trimesh.ray.ray_triangle"
+    with pytest.raises(ValueError, match="pip install embreex"):
+        ray_intersector(mesh, "embree")
