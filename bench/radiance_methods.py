@@ -75,6 +75,9 @@ class ReLUBudget:
     views: int = 24
     test_views: int = 8
     image: int = 64
+    background: str = "white"
+    """Training background: white (the data's), or random (a random colour per ray; floaters
+    cannot hide in front of it). Test renders are always composited on white."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,8 +125,18 @@ class MipBudget:
     test_views: int = 8
 
 
+OMITTED_FROM_KEY = {"background": "white"}
+"""Settings added after the first tables: left out of the key at their defaults, so finished runs stay found."""
+
+
 def budget_key(*parts) -> str:
-    text = json.dumps([dataclasses.asdict(p) if dataclasses.is_dataclass(p) else p for p in parts], sort_keys=True, default=str)
+    def plain(p):
+        if not dataclasses.is_dataclass(p):
+            return p
+        d = dataclasses.asdict(p)
+        return {k: v for k, v in d.items() if OMITTED_FROM_KEY.get(k, object()) != v}
+
+    text = json.dumps([plain(p) for p in parts], sort_keys=True, default=str)
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
@@ -197,8 +210,11 @@ class Run:
             alpha = torch.from_numpy(rgba[..., 3:])
             gt = torch.from_numpy(rgba[..., :3]) * alpha + (1.0 - alpha)  # straight alpha over white
             out = model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))
-            rgb = out[rgb_key].clamp(0, 1)
             acc = out[acc_key][..., 0]
+            rgb = out[rgb_key]
+            if getattr(model.config, "background_color", "white") == "random":  # rendered over black
+                rgb = rgb + (1.0 - acc[..., None])
+            rgb = rgb.clamp(0, 1)
             mse = float(((rgb - gt) ** 2).mean())
             psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
             a, b = gt.permute(2, 0, 1)[None], rgb.permute(2, 0, 1)[None]
@@ -320,6 +336,7 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     m.density_init = tuple(budget.density_init)  # type: ignore[assignment]
     m.density_scale = budget.density_scale
     m.eval_num_rays_per_chunk = 4096
+    m.background_color = budget.background  # type: ignore[assignment]
     if variant is not None:
         voxel = BOX_EXTENT / (budget.resolution - 1)
         m.sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
@@ -331,6 +348,8 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
                   experiment_name=(label or name).replace("[", "_").replace("]", "").replace(",", "_"))
     config.pipeline.datamanager.dataparser.scale_factor = SCALE
+    if budget.background == "random":  # keep the alpha channel so the loss can composite
+        config.pipeline.datamanager.dataparser.alpha_color = None
     config.pipeline.datamanager.eval_num_rays_per_batch = 4096
     return config
 
