@@ -68,14 +68,21 @@ class SDFFitConfig:
         return self._target(self, mesh, **kwargs)
 
 
-def signed_distance(mesh: trimesh.Trimesh, points: Float[np.ndarray, "n 3"]) -> Float[np.ndarray, "n"]:
-    """Signed distance to ``mesh`` (negative inside)."""
-    closest, dist, tri = trimesh.proximity.closest_point(mesh, points)
-    if mesh.is_watertight:
-        inside = mesh.contains(points)
-    else:
-        inside = np.sum((points - closest) * mesh.face_normals[tri], axis=1) < 0
-    return np.where(inside, -dist, dist)
+def signed_distance(
+    mesh: trimesh.Trimesh, points: Float[np.ndarray, "n 3"], chunk: int = 8192
+) -> Float[np.ndarray, "n"]:
+    """Signed distance to ``mesh`` (negative inside), ``chunk`` points at a time (trimesh's
+    closest-point query holds large candidate arrays)."""
+    out = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        p = points[s : s + chunk]
+        closest, dist, tri = trimesh.proximity.closest_point(mesh, p)
+        if mesh.is_watertight:
+            inside = mesh.contains(p)
+        else:
+            inside = np.sum((p - closest) * mesh.face_normals[tri], axis=1) < 0
+        out[s : s + chunk] = np.where(inside, -dist, dist)
+    return out
 
 
 def mape(pred: Tensor, target: Tensor, eps: float = 0.01) -> Tensor:
