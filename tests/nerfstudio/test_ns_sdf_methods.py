@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import SDF_METHODS  # type: ignore[import-not-found]
+from ns_tiny import SDF_METHODS, _tiny_config  # type: ignore[import-not-found]
 
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.neus import NeuralangeloLiteModel, SPNeuSModel
@@ -100,8 +100,6 @@ def _ray_samples(model, pipeline, n_rays=16):
 @pytest.fixture(scope="module")
 def sp_pipeline(tiny_scene, tmp_path_factory):
     """An sp-neus-hashgrid pipeline set up by the trainer (no iterations run)."""
-    from conftest import _tiny_config  # type: ignore[import-not-found]
-
     config = _tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path_factory.mktemp("run"), steps=100, alpha0=0.05, end=0.5, seed=3)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
