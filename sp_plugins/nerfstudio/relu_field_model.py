@@ -105,7 +105,8 @@ class ReLUFieldModelConfig(SPModelConfig, ModelConfig):
     num_samples: int = 96
     """Stratified samples per ray inside the box."""
     background_color: Literal["white", "black", "random"] = "white"
-    """Colour behind the field."""
+    """Colour behind the field; random (a new colour per ray while training) needs RGBA images
+    (Blender data: --alpha-color None) and keeps floaters from hiding in front of a white background."""
 
     def __post_init__(self) -> None:
         color_channels(self.color_mode, self.sh_degree)
@@ -199,6 +200,11 @@ class ReLUFieldBaseModel(Model):
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         image = batch["image"].to(self.device)
+        if self.config.background_color == "random" and image.shape[-1] != 4:
+            raise ValueError(
+                "background_color='random' needs images with an alpha channel, but the data manager serves RGB "
+                "(already composited): for Blender data pass `blender-data --alpha-color None`"
+            )
         pred, gt = self.renderer_rgb.blend_background_for_loss_computation(
             pred_image=outputs["rgb"], pred_accumulation=outputs["accumulation"], gt_image=image
         )

@@ -196,3 +196,15 @@ def test_ns_eval_loads_the_final_grid_of_a_hierarchical_run(tiny_scene, tmp_path
     results = json.loads(out.read_text())["results"]
     assert math.isfinite(results["psnr"]) and "ssim" in results
     assert not any(k.endswith("lpips") and not math.isfinite(v) for k, v in results.items())
+
+
+def test_random_background_trains_on_rgba_and_refuses_composited_images(tiny_scene, tmp_path):
+    config = tiny_relu_config("relu-field-flat", tiny_scene, tmp_path / "rgb", steps=2)
+    config.pipeline.model.background_color = "random"
+    with pytest.raises(ValueError, match="alpha-color None"):
+        run(config)
+    config = tiny_relu_config("relu-field-flat", tiny_scene, tmp_path / "rgba", steps=2)
+    config.pipeline.model.background_color = "random"
+    config.pipeline.datamanager.dataparser.alpha_color = None
+    _, record = run(config)
+    assert all(math.isfinite(loss) for loss, _ in record)
