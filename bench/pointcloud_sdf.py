@@ -232,18 +232,22 @@ def summarize(args, out_dir: Path) -> None:
     configs = [c for c in CONFIGS if all(c in r["configs"] for r in results.values())]
     lines = [f"Budget `{out_dir.name}`: {json.loads((out_dir / 'settings.json').read_text())['command']}", ""]
 
-    def table(key: str, title: str, fmt: str = "{:.5f}") -> None:
-        lines.extend([f"**{title}**", "", "| mesh | " + " | ".join(configs) + " | sp / baseline | sp+geo / geo |",
-                      "|---|" + "---|" * (len(configs) + 2)])
+    floors = sampling_floors(args, list(results))
+
+    def table(key: str, title: str, fmt: str = "{:.5f}", floor: bool = False) -> None:
+        extra = " truth vs itself |" if floor else ""
+        lines.extend([f"**{title}**", "", "| mesh | " + " | ".join(configs) + " | sp / baseline | sp+geo / geo |" + extra,
+                      "|---|" + "---|" * (len(configs) + 2 + int(floor))])
         for name, r in results.items():
             vals = {c: r["configs"][c]["final"][key] for c in configs}
             ratio = lambda a, b: f"{vals[a] / vals[b]:.2f}" if a in vals and b in vals and vals[b] else "-"  # noqa: E731
             lines.append(f"| {name} | " + " | ".join(fmt.format(vals[c]) for c in configs)
-                         + f" | {ratio('sp', 'baseline')} | {ratio('sp+geo-init', 'geo-init')} |")
+                         + f" | {ratio('sp', 'baseline')} | {ratio('sp+geo-init', 'geo-init')} |"
+                         + (f" {floors[name]:.5f} |" if floor else ""))
         lines.append("")
 
-    table("chamfer", "Chamfer (mean of both directions, / GT bbox diagonal)")
-    table("clean_chamfer", "Chamfer after keeping the largest component")
+    table("chamfer", "Chamfer (mean of both directions, / GT bbox diagonal; the last column is the sampling floor)", floor=True)
+    table("clean_chamfer", "Chamfer after keeping the largest component", floor=True)
     table("accuracy", "Accuracy: reconstruction -> truth (floaters, extra sheets)")
     table("completeness", "Completeness: truth -> reconstruction (the true surface)")
     table("fscore", "F-score at 1% of the diagonal", "{:.3f}")
@@ -268,6 +272,15 @@ def summarize(args, out_dir: Path) -> None:
         {n: {c: {k: r["configs"][c]["final"][k] for k in SUMMARY_KEYS} for c in configs} for n, r in results.items()}, indent=2))
     plot_curves(results, configs, out_dir / "chamfer_vs_steps.png")
     print("\n".join(lines))
+
+
+def sampling_floors(args, names: List[str]) -> Dict[str, float]:
+    """Chamfer of each true mesh against itself (two independent samplings of --metric-points):
+    the lowest value any reconstruction can reach here."""
+    from sp_plugins.geometry import load_mesh, mesh_metrics
+
+    return {n: mesh_metrics(load_mesh(args.mesh_dir / f"{n}.ply"), load_mesh(args.mesh_dir / f"{n}.ply"),
+                            n_points=args.metric_points)["chamfer"] for n in names}
 
 
 def plot_curves(results: dict, configs: List[str], path: Path) -> None:
