@@ -176,6 +176,8 @@ def run_image(cmd: ImageCommand) -> dict:
     config.validate()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     image = load_image(cmd.input)
+    if not config.adaptive_alpha:
+        (out / "alpha_map.png").unlink(missing_ok=True)  # an earlier --adaptive-alpha run's map would mislead
     trainer = config.setup(image)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)

@@ -1,4 +1,6 @@
 import json
+import logging
+
 import numpy as np
 import pytest
 import trimesh
@@ -6,6 +8,7 @@ from trimesh.exchange.ply import export_ply
 
 from sp_plugins.cli.fit import main
 from sp_plugins.tasks.image import save_image
+from PIL import Image
 
 TINY = ["--encoding.levels", "4", "--encoding.log2-table-size", "12", "--encoding.base-resolution", "8",
         "--encoding.max-resolution", "64", "--hidden", "16", "--quiet"]
@@ -23,6 +26,12 @@ def read_json(path):
     return json.loads(path.read_text())  # strict: no NaN / Infinity
 
 
+def read_png(path):
+    with Image.open(path) as im:
+        im.load()  # decodes the whole file: a truncated PNG fails here
+        return im.size
+
+
 def test_pointcloud_writes_mesh_metrics_and_curve(tmp_path, mesh_path):
     out = tmp_path / "run"
     args = ["pointcloud", str(mesh_path), "--out", str(out), "--steps", "12", "--seed", "3", "--n-points", "4000",
@@ -33,7 +42,7 @@ def test_pointcloud_writes_mesh_metrics_and_curve(tmp_path, mesh_path):
         assert key in metrics
     assert metrics["steps"] == 12 and metrics["sp"]["enabled"] is True and metrics["sp"]["alpha0"] == 0.03
     assert metrics["config"]["seed"] == 3 and metrics["normals"] == "mesh"
-    assert (out / "loss.png").stat().st_size > 0
+    assert min(read_png(out / "loss.png")) > 100
     mesh = trimesh.load(out / "mesh.ply")  # geometric init: a sphere from the start
     assert len(mesh.faces) > 0
     assert np.abs(mesh.vertices).max() > 1.2  # written back in the input's coordinates (radius 3), not the frame
@@ -53,7 +62,7 @@ def test_no_sp_and_overwrite(tmp_path, mesh_path, capsys):
     assert read_json(out / "metrics.json")["sp"]["enabled"] is True
 
 
-def test_bad_inputs_give_clean_errors(tmp_path, capsys):
+def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
     empty = tmp_path / "cloud.ply"
     pts = np.random.default_rng(0).normal(size=(100, 3))
     empty.write_bytes(export_ply(trimesh.Trimesh(pts, np.zeros((0, 3), dtype=np.int64), process=False)))
@@ -69,6 +78,7 @@ def test_bad_inputs_give_clean_errors(tmp_path, capsys):
         (["pointcloud", str(nan_path)], "NaN"),
         (["pointcloud", str(tmp_path / "missing.ply")], "no such file"),
         (["sdf", str(empty)], "no faces"),
+        (["pointcloud", str(mesh_path), "--gt", str(empty)], "no faces"),  # a cloud cannot be the ground truth
         (["image", str(junk)], "cannot be read"),
     ]
     for args, message in cases:
@@ -77,7 +87,17 @@ def test_bad_inputs_give_clean_errors(tmp_path, capsys):
         assert message in err and "Traceback" not in err
 
 
-def test_point_cloud_without_normals_can_be_estimated(tmp_path):
+def test_progress_bar_unless_quiet(tmp_path, mesh_path, capsys):
+    base = ["pointcloud", str(mesh_path), "--steps", "4", "--n-points", "2000", "--surface-batch", "64",
+            "--space-batch", "64"] + [a for a in TINY_SDF if a != "--quiet"]
+    assert main(base + ["--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "sp-fit pointcloud" in err and "4/4" in err
+    assert main(base + ["--out", str(tmp_path / "b"), "--quiet"]) == 0
+    assert "4/4" not in capsys.readouterr().err
+
+
+def test_point_cloud_without_normals_can_be_estimated(tmp_path, caplog):
     pts = np.random.default_rng(0).normal(size=(3000, 3))
     pts /= np.linalg.norm(pts, axis=1, keepdims=True)
     cloud = tmp_path / "cloud.ply"
@@ -87,7 +107,9 @@ def test_point_cloud_without_normals_can_be_estimated(tmp_path):
     out = tmp_path / "run"
     args = ["pointcloud", str(cloud), "--estimate-normals", "--gt", str(gt), "--out", str(out), "--steps", "3",
             "--surface-batch", "64", "--space-batch", "64"] + TINY_SDF
-    assert main(args) == 0
+    with caplog.at_level(logging.WARNING):
+        assert main(args) == 0
+    assert "estimating them" in caplog.text  # the user is told the normals are not theirs
     metrics = read_json(out / "metrics.json")
     assert metrics["normals"] == "estimated" and metrics["gt"] == str(gt)
 
@@ -100,8 +122,12 @@ def test_image_with_alpha_map(tmp_path):
     metrics = read_json(out / "metrics.json")
     assert metrics["psnr"] > 0 and metrics["adaptive_alpha"] is True
     assert metrics["alpha_map_resolution"] == [4, 3]  # 64 x 48 pixels / 16
-    for name in ("fitted.png", "alpha_map.png", "loss.png"):
-        assert (out / name).stat().st_size > 0
+    assert read_png(out / "fitted.png") == (64, 48)
+    for name in ("alpha_map.png", "loss.png"):
+        assert min(read_png(out / name)) > 50
+    # a rerun without the alpha map replaces the results and leaves no stale map behind
+    assert main(["image", str(path), "--out", str(out), "--steps", "2", "--overwrite"] + TINY) == 0
+    assert not (out / "alpha_map.png").exists() and read_json(out / "metrics.json")["adaptive_alpha"] is False
 
 
 def test_sdf_command(tmp_path, mesh_path):
