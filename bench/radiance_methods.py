@@ -46,13 +46,15 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary
+from sp_plugins.nerfstudio.relu_field_model import voxel_size
 
 OUT = OUT_DIR / "radiance_methods"
 SCENES = {"spot": "spot", "cow": "/work/shared/data/meshes/cow.ply", "bunny": "/work/shared/data/meshes/bunny.ply"}
 SCALE = 1.5
 """Blender-data scale factor: the [-1.5, 1.5]^3 box nerfstudio fixes for Blender scenes then holds the
 object (radius 0.85 * 1.5) as [-1, 1]^3 holds it unscaled."""
-BOX_EXTENT = 3.0
+BOX = torch.tensor([[-1.5] * 3, [1.5] * 3])
+"""nerfstudio's fixed scene box for Blender data."""
 
 
 # -- settings -----------------------------------------------------------------------------------
@@ -338,7 +340,7 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     m.eval_num_rays_per_chunk = 4096
     m.background_color = budget.background  # type: ignore[assignment]
     if variant is not None:
-        voxel = BOX_EXTENT / (budget.resolution - 1)
+        voxel = voxel_size(BOX, budget.resolution)
         m.sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
                                    schedule=variant.schedule, final_ratio=variant.final_ratio, seed=seed)
     opt = config.optimizers["fields"]
@@ -354,8 +356,13 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     return config
 
 
+def grid_path(result_path: Path, run_name: str) -> Path:
+    safe = run_name.replace("[", "_").replace("]", "").replace(",", "_")
+    return result_path.with_name(f"{result_path.stem}.{safe}.grid.pt")
+
+
 def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], methods: Sequence[str], seed: int,
-               tag: str, overwrite: bool) -> dict:
+               tag: str, overwrite: bool, save_grids: bool = False) -> dict:
     key = budget_key(scene, budget, list(variants), list(methods), seed)
     path = OUT / "relu" / f"{tag}_{scene}_{key}.json"
     if path.is_file() and not overwrite:
@@ -375,6 +382,11 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
         result[name] = run_summary(run, run.evaluate())
         logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
                      result[name]["background_opacity"])
+        if save_grids:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            field = run.model.field
+            torch.save({"grid": field.grid.detach().cpu(), "aabb": field.aabb.cpu(), "density_scale": field.density_scale},
+                       grid_path(path, name))
     if "relu-field-flat" in runs:
         flat = runs["relu-field-flat"].times
         for variant in variants:
@@ -457,8 +469,8 @@ def cost_study(resolution: int, rays: int, samples: int, color_mode: str, repeat
     from sp_plugins.core import SPConfig
     from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
 
-    box = SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3]))
-    voxel = BOX_EXTENT / (resolution - 1)
+    box = SceneBox(aabb=BOX)
+    voxel = voxel_size(BOX, resolution)
 
     def make(sp_on: bool):
         cfg = ReLUFieldModelConfig(resolution=resolution, num_samples=samples, color_mode=color_mode,  # type: ignore[arg-type]
@@ -573,6 +585,7 @@ def main(argv=None) -> None:
             relu.add_argument("--" + f.name.replace("_", "-"), nargs=2, type=float, default=f.default)
         else:
             relu.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
+    relu.add_argument("--save-grids", action="store_true", help="keep each run's final grid (<result>.<run>.grid.pt)")
     mip = sub.add_parser("mipnerf", help="mipnerf vs sp-mipnerf on few views")
     mip.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
     for f in dataclasses.fields(MipBudget):
@@ -604,7 +617,7 @@ def main(argv=None) -> None:
         budget.density_init = tuple(budget.density_init)  # type: ignore[assignment]
         for scene in args.scenes:
             for seed in args.seeds:
-                relu_study(scene, budget, args.sp, args.methods, seed, args.tag, args.overwrite)
+                relu_study(scene, budget, args.sp, args.methods, seed, args.tag, args.overwrite, args.save_grids)
         table = relu_table(collect("relu", args.tag))
     elif args.study == "mipnerf":
         budget = MipBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(MipBudget)})

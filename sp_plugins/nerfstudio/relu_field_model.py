@@ -41,6 +41,12 @@ GRID_GROUP = "fields"
 """Optimizer group holding the grid."""
 
 
+def voxel_size(aabb: torch.Tensor, resolution: int) -> float:
+    """Edge of one voxel of a grid with ``resolution`` vertices per axis spanning ``aabb`` ``[2, 3]``
+    (along its longest side): the unit of ``density_scale``, and a natural unit for SP's alpha."""
+    return float((aabb[1] - aabb[0]).max()) / (resolution - 1)
+
+
 def stage_resolutions(resolution: int, stages: int) -> List[int]:
     """Vertices per axis of each stage, coarsest first, halving the cell count per stage:
     129 over 4 stages gives 17, 33, 65, 129."""
@@ -126,7 +132,7 @@ class ReLUFieldBaseModel(Model):
         c = self.config
         self.resolutions = stage_resolutions(c.resolution, c.hierarchy_stages)
         aabb = self.scene_box.aabb.float()
-        voxel = float((aabb[1] - aabb[0]).max()) / (c.resolution - 1)
+        voxel = voxel_size(aabb, c.resolution)
         self.field = ReLUField(
             aabb,
             self.resolutions[0],

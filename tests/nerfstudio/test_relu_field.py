@@ -208,3 +208,77 @@ def test_random_background_trains_on_rgba_and_refuses_composited_images(tiny_sce
     config.pipeline.datamanager.dataparser.alpha_color = None
     _, record = run(config)
     assert all(math.isfinite(loss) for loss, _ in record)
+
+
+def _capture_lookups(field):
+    """Record the positions the grid is read at (after SP)."""
+    seen = []
+    plain = field.lookup
+
+    def lookup(x):
+        seen.append(x.detach().clone())
+        return plain(x)
+
+    field.lookup = lookup
+    return seen
+
+
+def _samples_at(x):
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    n = x.shape[0]
+    zeros = torch.zeros(n, 1, 1)
+    return RaySamples(Frustums(origins=x[:, None], directions=torch.nn.functional.normalize(torch.randn(n, 1, 3), dim=-1),
+                               starts=zeros, ends=zeros, pixel_area=torch.ones(n, 1, 1)))
+
+
+def test_sp_offsets_in_world_units_are_alpha_voxels_reflected_and_training_only(tiny_scene, tmp_path):
+    from sp_plugins.nerfstudio.relu_field_model import voxel_size
+
+    box = SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3]))  # the bench's box and grid: 129^3, voxel 3/128
+    voxels = 2.0
+    alpha = voxels * voxel_size(box.aabb, 129)
+    assert alpha == pytest.approx(2 * 3 / 128)
+    config = tiny_relu_config("sp-relu-field", tiny_scene, tmp_path, steps=100, alpha0=alpha, end=0.5, schedule="constant")
+    config.pipeline.model.resolution, config.pipeline.model.color_mode = 129, "rgb"
+    model = config.pipeline.model.setup(scene_box=box, num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
+    assert model.field.density_scale == pytest.approx(1.0 / voxel_size(box.aabb, 129))  # the same voxel
+    model.sp.set_step(0, 100)
+    seen = _capture_lookups(model.field)
+    torch.manual_seed(0)
+    inner = torch.rand(20000, 3) * 2.0 - 1.0  # at least 10 alphas from every wall
+    wall = torch.rand(20000, 3) * 2 * alpha + (1.5 - 2 * alpha)  # within 2 alphas of the +x/+y/+z walls
+    model.train()
+    model.field.get_density(_samples_at(inner))
+    model.field.get_density(_samples_at(wall))
+    offsets = seen[0] - inner
+    assert offsets.mean(0).abs().max() < 0.05 * alpha
+    assert torch.allclose(offsets.std(0), torch.full((3,), alpha), rtol=0.03)
+    assert (seen[1].abs() <= 1.5).all()  # reflected back into the box, never read in the zeroed outside
+    assert ((seen[1] - wall).abs() > 2 * alpha).any()  # (there was something to reflect)
+    assert ((seen[1] - wall).std(0) < alpha).all()  # a reflected kernel is narrower near the wall
+    model.eval()
+    model.field.get_density(_samples_at(inner))
+    assert torch.equal(seen[2], inner)
+
+
+def test_schedule_callback_sets_the_scheduled_alpha_at_every_training_step(tiny_scene, tmp_path):
+    _, record = run(tiny_relu_config("sp-relu-field", tiny_scene, tmp_path, steps=6, alpha0=0.05, end=4))
+    schedule = AlphaSchedule("exponential", 0.05, end_step=4)
+    assert [m["sp_alpha"] for _, m in record] == pytest.approx([schedule(step) for step in range(6)])
+    assert record[0][1]["sp_alpha"] == pytest.approx(0.05) and record[-1][1]["sp_alpha"] == 0.0
+
+
+def test_ns_export_pointcloud_from_a_relu_field_checkpoint(tiny_scene, tmp_path):
+    pytest.importorskip("open3d")
+    from nerfstudio.scripts.exporter import ExportPointCloud
+
+    config = tiny_relu_config("sp-relu-field", tiny_scene, tmp_path, steps=3)
+    run(config)
+    out = tmp_path / "export"
+    ExportPointCloud(load_config=config.get_base_dir() / "config.yml", output_dir=out, num_points=200,
+                     normal_method="open3d", remove_outliers=False, num_rays_per_batch=256).main()
+    import trimesh
+
+    cloud = trimesh.load(out / "point_cloud.ply")
+    assert len(cloud.vertices) > 0 and (abs(cloud.vertices) <= 1.5 + 1e-4).all()  # depths inside the scene box
