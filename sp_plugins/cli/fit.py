@@ -18,15 +18,31 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
 import tyro
 
-from sp_plugins.tasks.image import ImageFitConfig
-from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
-from sp_plugins.tasks.sdf import SDFFitConfig
+from sp_plugins.core import SPConfig
+from sp_plugins.core.schedule import AlphaSchedule
+from sp_plugins.tasks.image import ImageFitConfig, _image_sp
+from sp_plugins.tasks.pointcloud import PointCloudSDFConfig, _pointcloud_sp
+from sp_plugins.tasks.sdf import SDFFitConfig, _sdf_sp
+
+
+@dataclass
+class _SPFlags(SPConfig):
+    """Stochastic preconditioning settings. Checked with the rest of the config (not while
+    parsing), so a bad ``--sp.*`` value is one clean error line instead of a parser box."""
+
+    def __post_init__(self) -> None:
+        pass
+
+
+def _sp_flags(default) -> Any:
+    """A ``field`` whose default is the task's own SP default, as :class:`_SPFlags`."""
+    return field(default_factory=lambda: _SPFlags(**{f.name: getattr(default(), f.name) for f in dataclasses.fields(SPConfig)}))
 
 
 @dataclass(kw_only=True)
@@ -48,6 +64,8 @@ class PointCloudCommand(PointCloudSDFConfig, _Output):
 
     input: tyro.conf.Positional[Path]
     """A mesh (sampled into oriented points) or a PLY point cloud with normals (nx, ny, nz)."""
+    sp: _SPFlags = _sp_flags(_pointcloud_sp)
+    """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
     gt: Optional[Path] = None
     """Ground-truth mesh for the metrics (default: the input, when it is a mesh)."""
     estimate_normals: tyro.conf.FlagCreatePairsOff[bool] = False
@@ -61,6 +79,8 @@ class ImageCommand(ImageFitConfig, _Output):
 
     input: tyro.conf.Positional[Path]
     """An image file (PNG, JPEG, ...)."""
+    sp: _SPFlags = _sp_flags(_image_sp)
+    """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
 
 
 @dataclass(kw_only=True)
@@ -70,6 +90,8 @@ class SDFCommand(SDFFitConfig, _Output):
 
     input: tyro.conf.Positional[Path]
     """A triangle mesh."""
+    sp: _SPFlags = _sp_flags(_sdf_sp)
+    """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
 
 
 _OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "gt", "estimate_normals"}
@@ -81,7 +103,23 @@ def _task_config(cmd, cls):
     config = cls(**kwargs)
     if cmd.no_sp:
         config.sp = dataclasses.replace(config.sp, enabled=False)
+    _check_sp(config.sp, config.steps)
+    config.validate()
     return config
+
+
+def _check_sp(sp: SPConfig, steps: int) -> None:
+    """The SP settings, including an end after the last step, before any data is loaded; the
+    message names the flag (``--sp.alpha0=-1.0: must be ...``)."""
+    try:
+        sp.validate()
+        if sp.enabled and sp.schedule != "constant":
+            AlphaSchedule.resolve(sp.schedule, sp.alpha0, end=sp.end, total_steps=steps, final_ratio=sp.final_ratio)
+    except ValueError as exc:
+        name, sep, rest = str(exc).partition("=")
+        if sep and name.isidentifier():
+            raise ValueError(f"--sp.{name.replace('_', '-')}={rest}") from None
+        raise
 
 
 def _jsonable(obj: Any) -> Any:
@@ -131,7 +169,6 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, PointCloudSDFConfig)
-    config.validate()
     from sp_plugins.tasks.common import prepare_output_dir
 
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
@@ -173,7 +210,6 @@ def run_image(cmd: ImageCommand) -> dict:
 
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
     config = _task_config(cmd, ImageFitConfig)
-    config.validate()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     image = load_image(cmd.input)
     if not config.adaptive_alpha:
@@ -209,7 +245,6 @@ def run_sdf(cmd: SDFCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
-    config.validate()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     gt = load_mesh(cmd.input)
     trainer = config.setup(gt)

@@ -87,6 +87,19 @@ def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
         assert message in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("task", ["pointcloud", "image", "sdf"])
+@pytest.mark.parametrize("flags, message", [
+    (["--sp.alpha0", "-0.5"], "--sp.alpha0=-0.5: must be a finite number >= 0"),
+    (["--sp.end", "500", "--steps", "20"], "--sp.end=500.0: the schedule ends at step 500, after the end of training (20 steps)"),
+])
+def test_bad_sp_flags_are_one_line_before_any_output(tmp_path, mesh_path, capsys, task, flags, message):
+    out = tmp_path / "o"
+    assert main([task, str(mesh_path), "--out", str(out), "--quiet", *flags]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"sp-fit: error: {message}" or (err.startswith(f"sp-fit: error: {message}") and err.count("\n") == 1)
+    assert not out.exists()  # refused before creating --out or reading the input
+
+
 def test_progress_bar_unless_quiet(tmp_path, mesh_path, capsys):
     base = ["pointcloud", str(mesh_path), "--steps", "4", "--n-points", "2000", "--surface-batch", "64",
             "--space-batch", "64"] + [a for a in TINY_SDF if a != "--quiet"]
