@@ -104,6 +104,7 @@ def _task_config(cmd, cls):
     if cmd.no_sp:
         config.sp = dataclasses.replace(config.sp, enabled=False)
     _check_sp(config.sp, config.steps)
+    config.sp = SPConfig(**{f.name: getattr(config.sp, f.name) for f in dataclasses.fields(SPConfig)})  # the plain class downstream
     config.validate()
     return config
 
