@@ -165,6 +165,12 @@ def _loss_plot(trainer, path: Path, terms: tuple[str, ...]) -> None:
     plot_curves(curves, path, title=f"training loss (running mean over {window} steps)", marks=marks)
 
 
+def _warn_if_empty(mesh) -> None:
+    if len(mesh.faces) == 0:
+        print("sp-fit: warning: the field has no zero crossing in the domain: the mesh is empty (train longer "
+              "or check the input)", file=sys.stderr)
+
+
 def run_pointcloud(cmd: PointCloudCommand) -> dict:
     from sp_plugins.geometry import load_mesh, load_oriented_points, save_mesh
 
@@ -185,9 +191,7 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
         mesh, info = trainer.mesh()
         metrics = dict(info, chamfer=None, normal_consistency=None, fscore=None,
                        note="no ground-truth mesh: pass --gt MESH for chamfer, normal consistency and F-score")
-    if len(mesh.faces) == 0:
-        print("sp-fit: warning: the field has no zero crossing in the domain: the mesh is empty (train longer "
-              "or check the input)", file=sys.stderr)
+    _warn_if_empty(mesh)
     save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
@@ -253,6 +257,7 @@ def run_sdf(cmd: SDFCommand) -> dict:
     trainer.fit(progress=not cmd.quiet)
     seconds = time.perf_counter() - start
     mesh, metrics = trainer.evaluate()
+    _warn_if_empty(mesh)
     save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),

@@ -143,12 +143,18 @@ def test_image_with_alpha_map(tmp_path):
     assert not (out / "alpha_map.png").exists() and read_json(out / "metrics.json")["adaptive_alpha"] is False
 
 
-def test_sdf_command(tmp_path, mesh_path):
+def test_sdf_command(tmp_path, mesh_path, capsys):
     out = tmp_path / "run"
     args = ["sdf", str(mesh_path), "--out", str(out), "--steps", "5", "--pool", "2000", "--batch", "256"] + TINY_SDF
     assert main(args) == 0
     metrics = read_json(out / "metrics.json")
     assert metrics["steps"] == 5 and "near_mae" in metrics and (out / "mesh.ply").exists()
+    for key in ("chamfer", "normal_consistency", "fscore", "steps", "seconds", "sp"):
+        assert key in metrics
+    assert min(read_png(out / "loss.png")) > 100
+    # an empty mesh (chamfer written as null) is never reported silently
+    empty = metrics["chamfer"] is None
+    assert ("the mesh is empty" in capsys.readouterr().err) == empty
 
 
 def test_console_script_is_registered(capsys):
