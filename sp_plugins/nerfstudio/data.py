@@ -46,9 +46,24 @@ class SurfaceDataset(SDFDataset):
 # -- layout -----------------------------------------------------------------------------------
 
 
+_LAYOUT_MARKERS = {"sdfstudio-data": "meta_data.json", "blender-data": "transforms_train.json"}
+
+
+def _layout_hint(data: Path) -> str:
+    """What ``data`` looks like instead: the other layout, or a scene root with layout sub-folders."""
+    found = [parser for parser, marker in _LAYOUT_MARKERS.items() if (data / marker).is_file()]
+    if found:
+        return f"; this folder holds {_LAYOUT_MARKERS[found[0]]}, so it reads with {found[0]} --data {data}"
+    folders = sorted(p for p in data.iterdir() if p.is_dir()) if data.is_dir() else []
+    subs = [(sub, parser) for sub in folders for parser, marker in _LAYOUT_MARKERS.items() if (sub / marker).is_file()]
+    if subs:
+        return "; its sub-folders hold scenes: " + ", ".join(f"{parser} --data {sub}" for sub, parser in subs)
+    return ""
+
+
 def _load_json(path: Path, expected: str) -> dict:
     if not path.is_file():
-        raise ValueError(f"{path}: file not found; expected {expected}")
+        raise ValueError(f"{path}: file not found; expected {expected}{_layout_hint(path.parent)}")
     try:
         with open(path, encoding="utf-8") as f:
             return json.load(f)
@@ -194,11 +209,20 @@ class CheckedDataManager(VanillaDataManager):
             return f"the first image {outputs.image_filenames[0]}"
         return "its camera"
 
+    def _box_source(self) -> str:
+        parser = self.config.dataparser
+        if isinstance(parser, SDFStudioDataParserConfig):
+            data = self.config.data if self.config.data is not None else parser.data
+            return f"the scene box (scene_box.aabb of {Path(data) / 'meta_data.json'})"
+        if isinstance(parser, BlenderDataParserConfig):
+            return "the Blender scene box (fixed; poses are scaled by --scale-factor)"
+        return "the scene box"
+
     def _checked(self, dataset: InputDataset) -> InputDataset:
         if self._checks:
             outputs = dataset._dataparser_outputs
             check_image_sizes(outputs, self._size_source(outputs))
-            check_cameras_look_into_box(outputs)
+            check_cameras_look_into_box(outputs, self._box_source())
         return dataset
 
     def create_train_dataset(self):

@@ -33,11 +33,20 @@ def test_missing_folder(tiny_scene, tiny_config, tmp_path):
 def test_wrong_layout_names_the_missing_file(tiny_scene, tiny_config, tmp_path):
     config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="sdfstudio")
     config.pipeline.datamanager.data = tiny_scene / "blender"  # a Blender scene given to sdfstudio-data
-    with pytest.raises(ValueError, match=r"blender/meta_data.json: file not found; expected an SDFStudio scene"):
+    with pytest.raises(ValueError, match=r"blender/meta_data.json: file not found; expected an SDFStudio scene.*"
+                       r"holds transforms_train.json, so it reads with blender-data --data .*blender$"):
         _setup(config)
     config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="blender")
     config.pipeline.datamanager.data = tiny_scene / "sdfstudio"
-    with pytest.raises(ValueError, match=r"transforms_train.json: file not found; expected a Blender scene"):
+    with pytest.raises(ValueError, match=r"transforms_train.json: file not found; expected a Blender scene.*"
+                       r"holds meta_data.json, so it reads with sdfstudio-data --data .*sdfstudio$"):
+        _setup(config)
+
+
+def test_scene_root_points_at_its_layout_folders(tiny_scene, tiny_config, tmp_path):
+    config = tiny_config("sp-neus", tiny_scene, tmp_path, layout="blender")
+    config.pipeline.datamanager.data = tiny_scene  # the root that sp-scene wrote, not a layout folder
+    with pytest.raises(ValueError, match=r"sub-folders hold scenes: blender-data --data .*blender, sdfstudio-data --data .*sdfstudio"):
         _setup(config)
 
 
@@ -71,7 +80,19 @@ def test_scene_box_that_misses_the_cameras_look_at_points(scene_copy, tiny_confi
     meta["scene_box"]["aabb"] = [[5.0, 5.0, 5.0], [7.0, 7.0, 7.0]]  # wrong units / frame
     path.write_text(json.dumps(meta))
     config = tiny_config("sp-neus", scene_copy, tmp_path, layout="sdfstudio")
-    with pytest.raises(ValueError, match=r"rgb/.*: its camera .* looks past the scene box .* cameras do"):
+    with pytest.raises(ValueError, match=r"rgb/.*: its camera .* looks past the scene box \(scene_box.aabb of .*meta_data.json\) .* cameras do"):
+        _setup(config)
+
+
+def test_blender_cameras_outside_the_fixed_box_are_named(scene_copy, tiny_config, tmp_path):
+    for split in ("train", "val"):
+        path = scene_copy / "blender" / f"transforms_{split}.json"
+        meta = json.loads(path.read_text())
+        for frame in meta["frames"]:
+            frame["transform_matrix"][0][3] += 10.0  # poses in other units / another origin
+        path.write_text(json.dumps(meta))
+    config = tiny_config("sp-neus", scene_copy, tmp_path, layout="blender")
+    with pytest.raises(ValueError, match=r"r_0.png: its camera .* looks past the Blender scene box .*--scale-factor"):
         _setup(config)
 
 
