@@ -147,15 +147,23 @@ def run(args: argparse.Namespace) -> dict:
     import torch
     from tqdm.auto import tqdm
 
-    from sp_plugins.data import make_scene
+    from sp_plugins.data import load_mesh, make_scene
     from sp_plugins.geometry import load_oriented_points, save_mesh
     from sp_plugins.tasks.common import prepare_output_dir
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    # every argument is checked before --out is created, so a typo leaves nothing behind
+    try:
+        configs = _paired_configs(args)
+    except ValueError as err:
+        raise UserInputError(str(err)) from None
+    try:
+        source = load_mesh(args.mesh)
+    except ValueError as err:
+        raise UserInputError(f"--mesh {args.mesh}: {err}") from None
     try:
         out = prepare_output_dir(args.out, OUTPUTS, args.overwrite)
-        configs = _paired_configs(args)
     except ValueError as err:
         raise UserInputError(str(err)) from None
     steps = configs["baseline"].steps
@@ -164,7 +172,7 @@ def run(args: argparse.Namespace) -> dict:
     print(f"[sp-demo] 1/4 rendering the {args.mesh!r} mesh into a multi-view scene in {out / 'scene'}")
     try:
         scene = make_scene(
-            args.mesh, out / "scene", n_train=24, n_val=4, n_test=4, resolution=96, seed=args.seed, overwrite=args.overwrite, progress=True
+            source, out / "scene", n_train=24, n_val=4, n_test=4, resolution=96, seed=args.seed, overwrite=args.overwrite, progress=True
         )
     except (ValueError, FileNotFoundError) as err:
         raise UserInputError(f"--mesh {args.mesh}: {err}") from None

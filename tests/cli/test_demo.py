@@ -32,7 +32,18 @@ def test_demo_refuses_to_overwrite_earlier_results(tmp_path, capsys):
     assert (out / "results.json").read_text() == "{}"
 
 
-@pytest.mark.parametrize("args, word", [(["--steps", "3"], "--steps"), (["--mesh", "/nonexistent.ply"], "nonexistent")])
+@pytest.mark.parametrize("args, word", [
+    (["--steps", "3"], "--steps"),
+    (["--mesh", "/nonexistent.ply"], "--mesh /nonexistent.ply: mesh '/nonexistent.ply' is neither an existing file"),
+    (["--mesh", "EMPTY"], "has no triangle faces"),
+])
 def test_demo_bad_input_is_one_clear_line(tmp_path, capsys, args, word):
+    if "EMPTY" in args:
+        empty = tmp_path / "empty.ply"
+        empty.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n")
+        args = [str(empty) if a == "EMPTY" else a for a in args]
     assert demo.main([*args, "--out", str(tmp_path / "d")]) == 2
-    assert word in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert word in captured.err and captured.err.count("\n") == 1 and "Traceback" not in captured.err
+    assert not (tmp_path / "d").exists()  # refused before creating --out
+
