@@ -178,9 +178,9 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
     config = _task_config(cmd, PointCloudSDFConfig)
     from sp_plugins.tasks.common import prepare_output_dir
 
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     data = load_oriented_points(cmd.input, config.n_points, config.seed, cmd.estimate_normals)
     gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)  # after the inputs: a bad file leaves no empty --out
     trainer = config.setup(data)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)
@@ -215,8 +215,8 @@ def run_image(cmd: ImageCommand) -> dict:
 
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
     config = _task_config(cmd, ImageFitConfig)
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     image = load_image(cmd.input)
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     if not config.adaptive_alpha:
         (out / "alpha_map.png").unlink(missing_ok=True)  # an earlier --adaptive-alpha run's map would mislead
     trainer = config.setup(image)
@@ -250,8 +250,8 @@ def run_sdf(cmd: SDFCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     gt = load_mesh(cmd.input)
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     trainer = config.setup(gt)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)

@@ -72,8 +72,15 @@ def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
     nan_mesh.vertices[0] = np.nan
     nan_path = tmp_path / "nan.ply"
     nan_path.write_bytes(export_ply(nan_mesh))
+    nan_cloud = tmp_path / "nan_cloud.ply"
+    pts_nan = pts.copy()
+    pts_nan[5] = np.nan
+    nan_cloud.write_bytes(export_ply(trimesh.Trimesh(pts_nan, np.zeros((0, 3), dtype=np.int64), process=False)))
     cases = [
         (["pointcloud", str(empty)], "no normals"),
+        (["pointcloud", str(nan_cloud), "--estimate-normals"], "1 vertices have NaN or inf coordinates"),
+        (["sdf", str(tmp_path / "missing.ply")], "no such file"),
+        (["image", str(tmp_path / "missing.png")], "no such file"),
         (["pointcloud", str(junk)], "cannot be read"),
         (["pointcloud", str(nan_path)], "NaN"),
         (["pointcloud", str(tmp_path / "missing.ply")], "no such file"),
@@ -84,7 +91,8 @@ def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
     for args, message in cases:
         assert main(args + ["--out", str(tmp_path / "o"), "--quiet"]) == 2, args
         err = capsys.readouterr().err
-        assert message in err and "Traceback" not in err
+        assert message in err and "Traceback" not in err and err.count("\n") == 1
+        assert not (tmp_path / "o").exists()  # a bad input leaves no empty --out behind
 
 
 @pytest.mark.parametrize("task", ["pointcloud", "image", "sdf"])
