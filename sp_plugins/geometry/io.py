@@ -20,7 +20,7 @@ PathLike = Union[str, Path]
 def _load_any(path: PathLike):
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+        raise ValueError(f"{path}: is a folder; give a file inside it" if path.is_dir() else f"{path}: no such file")
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many kinds for a corrupt or unknown file

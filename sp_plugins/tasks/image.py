@@ -81,7 +81,7 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+        raise ValueError(f"{path}: is a folder; give a file inside it" if path.is_dir() else f"{path}: no such file")
     try:
         with Image.open(path) as im:
             im.load()

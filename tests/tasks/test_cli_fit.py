@@ -81,6 +81,7 @@ def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
         (["pointcloud", str(nan_cloud), "--estimate-normals"], "1 vertices have NaN or inf coordinates"),
         (["sdf", str(tmp_path / "missing.ply")], "no such file"),
         (["image", str(tmp_path / "missing.png")], "no such file"),
+        (["sdf", str(tmp_path)], "is a folder; give a file inside it"),
         (["pointcloud", str(junk)], "cannot be read"),
         (["pointcloud", str(nan_path)], "NaN"),
         (["pointcloud", str(tmp_path / "missing.ply")], "no such file"),
