@@ -94,6 +94,11 @@ def test_bad_inputs_give_clean_errors(tmp_path, mesh_path, capsys):
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and err.count("\n") == 1
         assert not (tmp_path / "o").exists()  # a bad input leaves no empty --out behind
+    a_file = tmp_path / "results.txt"
+    a_file.write_text("mine")
+    assert main(["sdf", str(mesh_path), "--out", str(a_file), "--quiet"]) == 2
+    assert "exists and is not a folder; choose another --out" in capsys.readouterr().err
+    assert a_file.read_text() == "mine"
 
 
 @pytest.mark.parametrize("task", ["pointcloud", "image", "sdf"])
