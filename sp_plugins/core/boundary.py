@@ -73,7 +73,7 @@ class _Reflect(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, y: Tensor, origin: Optional[Tensor], lo: Tensor, hi: Tensor) -> Tensor:
-        out = y.detach().clone()
+        out = y.detach().clone(memory_format=torch.contiguous_format)
         flat = out.view(-1)
         dim = y.shape[-1]
         lo, hi = lo.expand(dim), hi.expand(dim)
@@ -98,7 +98,7 @@ class _Reflect(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         (flipped,) = ctx.saved_tensors
         if flipped.numel():
-            grad = grad.clone()
+            grad = grad.clone(memory_format=torch.contiguous_format)
             grad.view(-1)[flipped] *= -1.0
         return grad, None, None, None
 

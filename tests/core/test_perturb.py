@@ -85,6 +85,15 @@ def test_reflect_matches_an_unfolded_reference_in_a_non_cubic_box_with_its_deriv
     assert torch.equal(y.grad, numeric)
 
 
+def test_reflect_accepts_non_contiguous_positions_and_gradients():
+    y = (torch.randn(3, 400, generator=gen(13)) * 2.0).t().requires_grad_()  # [400, 3], transposed storage
+    out = reflect(y, torch.tensor(-1.0), torch.tensor(1.0))
+    assert (out.abs() <= 1.0).all()
+    upstream = torch.randn(3, 400, generator=gen(14)).t()
+    out.backward(upstream)  # a non-contiguous incoming gradient
+    assert torch.equal(y.grad.abs(), upstream.abs())  # derivative +-1 everywhere
+
+
 def test_mean_of_perturbed_sine_matches_gaussian_blur():
     w, alpha = 6.0, 0.2
     x = torch.linspace(-1, 1, 9, dtype=torch.float64)[:, None]
