@@ -50,6 +50,12 @@ def sp_callbacks(sp: StochasticPreconditioner, attributes: TrainingCallbackAttri
     total = trainer_total_steps(attributes)
     if total is not None:
         trainer = attributes.trainer
-        sp.set_step(int(getattr(trainer, "_start_step", 0)), total)
+        try:
+            sp.set_step(int(getattr(trainer, "_start_step", 0)), total)
+        except ValueError as err:  # name the flags a user typed, not the library's arguments
+            raise ValueError(
+                f"--pipeline.model.sp.end {sp.config.end:g} does not fit --max-num-iterations {total} ({err}); "
+                "give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= --max-num-iterations"
+            ) from None
     sync_alpha_grid_lr(sp, attributes)
     return [schedule_callback(sp, total)]

@@ -297,3 +297,11 @@ def test_sampler_queries_see_the_plain_field_unless_asked(sp_pipeline):
         finally:
             field.config.perturb_sampler_queries = False
     model.eval()
+
+
+def test_a_schedule_longer_than_training_names_the_flags(tiny_scene, tmp_path):
+    config = _tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path, steps=20, alpha0=0.05, end=500)
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    with pytest.raises(ValueError, match=r"--pipeline.model.sp.end 500 does not fit --max-num-iterations 20"):
+        trainer.setup()
