@@ -54,22 +54,19 @@ def _fold(u: Tensor) -> tuple[Tensor, Tensor]:
     return d.abs(), d < 0.0
 
 
-def _outside(y: Tensor, mid: Tensor, half: Tensor) -> Tensor:
-    """``|y - mid| > half`` per coordinate; with scalars when the box is a cube (the usual scene
-    box), which is twice as fast on the CPU as broadcasting ``[dim]`` tensors."""
-    m, h = mid.tolist(), half.tolist()
-    if min(m) == max(m) and min(h) == max(h):
-        centred = y.abs() if m[0] == 0.0 else (y - m[0]).abs_()
-        return centred > h[0]
-    return (y - mid).abs_() > half
+def _per_axis(values: Tensor) -> Union[float, Tensor]:
+    """A python float when every axis has the same value (a cube: scalar ops are about twice as
+    fast on the CPU as broadcasting a ``[dim]`` tensor), else the tensor."""
+    v = values.tolist()
+    return v[0] if min(v) == max(v) else values
 
 
 class _Reflect(torch.autograd.Function):
     """Fold ``y`` into the box where the original ``x`` was inside it; derivative +-1.
 
     Only the coordinates that left the box are folded (with a small alpha, a few percent of them),
-    so the cost is one inside-test over all coordinates plus work on the escapees; the backward
-    pass keeps only the flat indices whose derivative is -1."""
+    so the cost is one inside-test over all coordinates plus a handful of ops on the escapees; the
+    backward pass keeps only the flat indices whose derivative is -1."""
 
     @staticmethod
     def forward(ctx, y: Tensor, origin: Optional[Tensor], lo: Tensor, hi: Tensor) -> Tensor:
@@ -77,19 +74,21 @@ class _Reflect(torch.autograd.Function):
         flat = out.view(-1)
         dim = y.shape[-1]
         lo, hi = lo.expand(dim), hi.expand(dim)
-        mid, half = (lo + hi) * 0.5, (hi - lo) * 0.5
-        escaped = _outside(out, mid, half)
-        idx = escaped.view(-1).nonzero().squeeze(1)
+        mid, half, start, width = _per_axis((lo + hi) * 0.5), _per_axis((hi - lo) * 0.5), _per_axis(lo), _per_axis(hi - lo)
+        idx = ((out - mid).abs_() > half).view(-1).nonzero().squeeze(1)
         flipped = idx[:0]
         if idx.numel():
-            axis = idx % dim
-            lo_i, width_i = lo[axis], (hi - lo)[axis]
-            folded, flip = _fold((flat[idx] - lo_i) / width_i)
+            if isinstance(width, Tensor) or isinstance(start, Tensor):  # a box that is not a cube
+                axis = idx % dim
+                mid, half, start, width = (torch.as_tensor(v).expand(dim)[axis] for v in (mid, half, start, width))
+            escaped = flat[idx]
+            folded, flip = _fold((escaped - start) / width)
+            folded = folded.mul_(width).add_(start)
             if origin is not None:  # a sample the host placed outside the box stays where it is
-                o = origin.detach().reshape(-1)[idx]
-                keep = (o - mid[axis]).abs() <= half[axis]
-                idx, folded, flip, lo_i, width_i = idx[keep], folded[keep], flip[keep], lo_i[keep], width_i[keep]
-            flat[idx] = folded * width_i + lo_i
+                keep = (origin.detach().reshape(-1)[idx] - mid).abs_() <= half
+                folded = torch.where(keep, folded, escaped)
+                flip &= keep
+            flat[idx] = folded
             flipped = idx[flip]
         ctx.save_for_backward(flipped)
         return out
