@@ -22,10 +22,10 @@ from typing import Dict, List, Optional, Sequence
 BUDGETS = {
     # steps, surface (and free-space) points per step, marching-cubes resolution
     "quick": (300, 1500, 128),
-    "default": (1500, 2500, 192),
+    "default": (2000, 2500, 192),
     "long": (4000, 5000, 256),
 }
-OUTPUTS = ("scene", "results.json", "results.md", "convergence.png", "renders.png", "meshes")
+OUTPUTS = ("scene", "results.json", "results.md", "convergence.png", "renders.png", "slices.png", "meshes")
 
 
 class UserInputError(Exception):
@@ -36,7 +36,7 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="sp-demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh", default="spot", help="a mesh file, or 'spot' (bundled) / a primitive name (default: spot)")
     ap.add_argument("--out", default="sp-demo", help="output folder (default: ./sp-demo)")
-    ap.add_argument("--budget", choices=sorted(BUDGETS), default="default", help="quick (~1 min), default (~6 min on 2 cores), long")
+    ap.add_argument("--budget", choices=sorted(BUDGETS), default="default", help="quick (300 steps, ~1 min), default (2000 steps, ~5 min on 2 idle cores), long (4000 steps)")
     ap.add_argument("--steps", type=int, default=None, help="override the budget's number of steps")
     ap.add_argument("--alpha0", type=float, default=0.03, help="SP's alpha in the [-1, 1] frame (default 0.03)")
     ap.add_argument("--sp-end", type=float, default=0.2, help="SP stops at this fraction of training (default 0.2)")
@@ -143,6 +143,56 @@ def _render_grid(meshes: Dict[str, "object"], path: Path, size: int = 200) -> Pa
     return path
 
 
+def _slice_plot(trainers: Dict[str, "object"], gt_frame_mesh, path: Path, size: int = 256) -> Path:
+    """The fitted SDFs on the cross-section through the object's centre (the plane of its two
+    longest extents): sign as colour, the zero level in black, the true outline dashed. A second
+    sheet or a field of the wrong sign is plain to see here, where a render only shows the outside."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    import torch
+
+    extent = gt_frame_mesh.extents
+    normal_axis = int(np.argmin(extent))
+    u_axis, v_axis = [a for a in range(3) if a != normal_axis]
+    ticks = np.linspace(-1.0, 1.0, size)
+    uu, vv = np.meshgrid(ticks, ticks)
+    points = np.zeros((size * size, 3), dtype=np.float32)
+    points[:, u_axis], points[:, v_axis] = uu.ravel(), vv.ravel()
+    normal = np.eye(3)[normal_axis]
+    outline = gt_frame_mesh.section(plane_origin=np.zeros(3), plane_normal=normal)
+    fig, axes = plt.subplots(1, len(trainers), figsize=(4.2 * len(trainers), 4.2), squeeze=False)
+    for ax, (name, trainer) in zip(axes[0], trainers.items()):
+        with torch.no_grad():
+            values = trainer.sdf(torch.from_numpy(points).to(trainer.device)).cpu().numpy().reshape(size, size)
+        ax.imshow(values, extent=(-1, 1, -1, 1), origin="lower", cmap="RdBu_r", vmin=-0.25, vmax=0.25)
+        if values.min() < 0 < values.max():
+            ax.contour(uu, vv, values, levels=[0.0], colors="black", linewidths=1.2)
+        if outline is not None:
+            for line in outline.discrete:
+                ax.plot(line[:, u_axis], line[:, v_axis], "--", color="limegreen", lw=1.0)
+        inside = float((values < 0).mean())
+        ax.set_title(f"{name}: negative on {inside:.0%} of the slice", fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    truth = ""
+    if outline is not None:  # even-odd fill of the true outline's loops
+        from matplotlib.path import Path as PolygonPath
+
+        uv = np.stack([uu.ravel(), vv.ravel()], -1)
+        inside_truth = np.zeros(len(uv), dtype=bool)
+        for line in outline.discrete:
+            inside_truth ^= PolygonPath(line[:, [u_axis, v_axis]]).contains_points(uv)
+        truth = f"; truly inside: {inside_truth.mean():.0%} of the slice"
+    fig.suptitle(f"SDF on a slice through the object (blue < 0 < red; black: zero level; dashed green: true surface{truth})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def run(args: argparse.Namespace) -> dict:
     import torch
     from tqdm.auto import tqdm
@@ -214,6 +264,7 @@ def run(args: argparse.Namespace) -> dict:
 
     print("[sp-demo] 4/4 rendering the meshes and plotting convergence")
     renders = _render_grid({"ground truth": data.mesh, **meshes}, out / "renders.png")
+    slices = _slice_plot(trainers, trainers["baseline"].frame.mesh_to_frame(data.mesh), out / "slices.png")
     plot = _convergence_plot(curves, int(round(args.sp_end * steps)), out / "convergence.png")
 
     rows = [
@@ -223,6 +274,7 @@ def run(args: argparse.Namespace) -> dict:
         ("  truth -> reconstruction", "completeness"),
         ("F-score @1% of diagonal (higher is better)", "fscore"),
         ("normal consistency (higher is better)", "normal_consistency"),
+        ("surface area / true area (2 = a second sheet)", "area_ratio"),
         ("surface components", "components"),
         ("seconds per step", "seconds_per_step"),
     ]
@@ -254,6 +306,7 @@ def run(args: argparse.Namespace) -> dict:
     print()
     print(f"meshes:      {out / 'meshes' / 'baseline.ply'}, {out / 'meshes' / 'sp.ply'} (ground truth: {scene.gt_mesh})")
     print(f"renders:     {renders}  (rows: ground truth, baseline, SP)")
+    print(f"SDF slices:  {slices}  (sign of each field on a cross-section, true outline dashed)")
     print(f"convergence: {plot}")
     print(f"scene:       {scene.root}  (try: ns-train sp-neus-hashgrid ... blender-data --data {scene.blender})")
     print(f"results:     {out / 'results.json'}  ({elapsed / 60:.1f} min)")

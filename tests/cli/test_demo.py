@@ -18,7 +18,7 @@ def test_demo_writes_a_results_table_meshes_renders_and_a_plot(tmp_path, capsys)
         assert len(results["curves"][name]["loss"]) == 12
     assert (out / "meshes" / "baseline.ply").stat().st_size > 0
     assert (out / "meshes" / "sp.ply").stat().st_size > 0
-    for png in ("renders.png", "convergence.png"):
+    for png in ("renders.png", "slices.png", "convergence.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "scene" / "blender" / "transforms_train.json").is_file()
 
