@@ -40,3 +40,29 @@ def _tiny_config(name: str, scene: Path, out: Path, *, layout: str = "blender", 
         setattr(config.pipeline.model.sp, key, value)
     configure_run(config, scene / layout, steps=steps, output_dir=out, layout=layout, rays_per_batch=32)
     return config
+
+
+def run_recording(config, stop_after=None):
+    """Train with the real trainer, recording each iteration's loss and metrics."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    record = []
+    original = trainer.train_iteration
+
+    def recording(step):
+        loss, loss_dict, metrics = original(step)
+        record.append((float(loss), {k: float(v) for k, v in loss_dict.items()}, metrics))
+        return loss, loss_dict, metrics
+
+    trainer.train_iteration = recording
+    if stop_after is not None:
+
+        def stop(step):
+            trainer.stop_training = True
+
+        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(stop_after,)))
+    trainer.train()
+    return trainer, record

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ns_tiny import run_recording  # noqa: F401  (re-exported for the radiance tests)
+
 from sp_plugins.nerfstudio.runs import configure_run, method_config
 
 
@@ -33,29 +35,3 @@ def tiny_radiance_config(name, scene, out, *, steps=3, rays=64, layout="blender"
         setattr(config.pipeline.model.sp, key, value)
     configure_run(config, scene / layout, steps=steps, output_dir=out, layout=layout, rays_per_batch=rays)
     return config
-
-
-def run_recording(config, stop_after=None):
-    """Train with the real trainer, recording each iteration's loss and metrics."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    record = []
-    original = trainer.train_iteration
-
-    def recording(step):
-        loss, loss_dict, metrics = original(step)
-        record.append((float(loss), {k: float(v) for k, v in loss_dict.items()}, metrics))
-        return loss, loss_dict, metrics
-
-    trainer.train_iteration = recording
-    if stop_after is not None:
-
-        def stop(step):
-            trainer.stop_training = True
-
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(stop_after,)))
-    trainer.train()
-    return trainer, record

@@ -6,29 +6,11 @@ import math
 
 import pytest
 import torch
-from ns_tiny import SDF_METHODS, _tiny_config  # type: ignore[import-not-found]
+from ns_tiny import SDF_METHODS, _tiny_config, run_recording  # type: ignore[import-not-found]
 
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.neus import NeuralangeloLiteModel, SPNeuSModel
 from sp_plugins.nerfstudio.runs import train
-
-
-def _train_recording(config):
-    """Run the real trainer loop, recording every iteration's loss."""
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    losses = []
-    original = trainer.train_iteration
-
-    def recording(step):
-        loss, loss_dict, metrics = original(step)
-        losses.append((float(loss), {k: float(v) for k, v in loss_dict.items()}, metrics))
-        return loss, loss_dict, metrics
-
-    trainer.train_iteration = recording
-    trainer.train()
-    return trainer, losses
 
 
 def test_registry_lists_our_methods_with_descriptions():
@@ -69,7 +51,7 @@ def test_sp_flags_parse_through_ns_train_cli(tiny_scene):
 )
 def test_method_trains_a_few_iterations(name, layout, tiny_scene, tiny_config, tmp_path):
     config = tiny_config(name, tiny_scene, tmp_path, layout=layout, steps=3, alpha0=0.05, end=1.0)
-    trainer, losses = _train_recording(config)
+    trainer, losses = run_recording(config)
     assert len(losses) == 3
     for loss, parts, _ in losses:
         assert math.isfinite(loss) and all(math.isfinite(v) for v in parts.values())
