@@ -7,6 +7,7 @@ from typing import List, Optional
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 
 from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.nerfstudio.errors import InputError
 
 ALPHA_GRID_GROUP = "sp_alpha_grid"
 """Name of the optimizer param group holding a learnable alpha grid."""
@@ -53,7 +54,7 @@ def sp_callbacks(sp: StochasticPreconditioner, attributes: TrainingCallbackAttri
         try:
             sp.set_step(int(getattr(trainer, "_start_step", 0)), total)
         except ValueError as err:  # name the flags a user typed, not the library's arguments
-            raise ValueError(
+            raise InputError(
                 f"--pipeline.model.sp.end {sp.config.end:g} does not fit --max-num-iterations {total} ({err}); "
                 "give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= --max-num-iterations"
             ) from None

@@ -5,7 +5,8 @@
   without monocular priors).
 - :class:`CheckedDataManager` (and :class:`SurfaceDataManager`) check the data before training:
   the folder and its layout, image sizes against the cameras, and that every camera looks into
-  the scene box. Each failure is a ``ValueError`` naming the file and what was expected.
+  the scene box. Each failure is an :class:`InputError` (a ``ValueError``) naming the file and
+  what was expected; under ``ns-train`` it prints as one line.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParser
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.datasets.sdf_dataset import SDFDataset
 
+from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.views import ViewSelection, select_views
+
+install_input_error_hook()
 
 
 class SurfaceDataset(SDFDataset):
@@ -36,7 +40,7 @@ class SurfaceDataset(SDFDataset):
             meta.setdefault(key, None)
         meta.setdefault("include_mono_prior", False)
         if meta["include_mono_prior"] and not meta["depth_filenames"]:
-            raise ValueError(
+            raise InputError(
                 "include_mono_prior=True but the data has no mono_depth_path / mono_normal_path entries; "
                 "add them to meta_data.json or drop --include-mono-prior"
             )
@@ -63,12 +67,12 @@ def _layout_hint(data: Path) -> str:
 
 def _load_json(path: Path, expected: str) -> dict:
     if not path.is_file():
-        raise ValueError(f"{path}: file not found; expected {expected}{_layout_hint(path.parent)}")
+        raise InputError(f"{path}: file not found; expected {expected}{_layout_hint(path.parent)}")
     try:
         with open(path, encoding="utf-8") as f:
             return json.load(f)
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err}); expected {expected}") from None
+        raise InputError(f"{path}: not valid JSON ({err}); expected {expected}") from None
 
 
 def _check_sdfstudio(data: Path) -> None:
@@ -76,17 +80,17 @@ def _check_sdfstudio(data: Path) -> None:
     meta = _load_json(data / "meta_data.json", expected)
     for key in ("height", "width", "frames", "scene_box"):
         if key not in meta:
-            raise ValueError(f"{data / 'meta_data.json'}: missing key {key!r}; expected {expected}")
+            raise InputError(f"{data / 'meta_data.json'}: missing key {key!r}; expected {expected}")
     if "aabb" not in meta["scene_box"]:
-        raise ValueError(f"{data / 'meta_data.json'}: scene_box has no 'aabb' ([[xmin, ymin, zmin], [xmax, ymax, zmax]])")
+        raise InputError(f"{data / 'meta_data.json'}: scene_box has no 'aabb' ([[xmin, ymin, zmin], [xmax, ymax, zmax]])")
     if not meta["frames"]:
-        raise ValueError(f"{data / 'meta_data.json'}: 'frames' is empty; expected at least one image")
+        raise InputError(f"{data / 'meta_data.json'}: 'frames' is empty; expected at least one image")
     for i, frame in enumerate(meta["frames"]):
         for key in ("rgb_path", "intrinsics", "camtoworld"):
             if key not in frame:
-                raise ValueError(f"{data / 'meta_data.json'}: frame {i} has no {key!r}")
+                raise InputError(f"{data / 'meta_data.json'}: frame {i} has no {key!r}")
         if not (data / frame["rgb_path"]).is_file():
-            raise ValueError(f"{data / frame['rgb_path']}: image not found (frame {i} of meta_data.json)")
+            raise InputError(f"{data / frame['rgb_path']}: image not found (frame {i} of meta_data.json)")
 
 
 def _check_blender(data: Path, splits: Sequence[str]) -> None:
@@ -96,19 +100,19 @@ def _check_blender(data: Path, splits: Sequence[str]) -> None:
         meta = _load_json(data / name, expected)
         for key in ("camera_angle_x", "frames"):
             if key not in meta:
-                raise ValueError(f"{data / name}: missing key {key!r}; expected {expected}")
+                raise InputError(f"{data / name}: missing key {key!r}; expected {expected}")
         if not meta["frames"]:
-            raise ValueError(f"{data / name}: 'frames' is empty; expected at least one image")
+            raise InputError(f"{data / name}: 'frames' is empty; expected at least one image")
         for i, frame in enumerate(meta["frames"]):
             image = data / (frame["file_path"].replace("./", "") + ".png")
             if not image.is_file():
-                raise ValueError(f"{image}: image not found (frame {i} of {name}; file_path + '.png')")
+                raise InputError(f"{image}: image not found (frame {i} of {name}; file_path + '.png')")
 
 
 def check_data_layout(dataparser: object, data: Optional[Path], test_split: str = "val") -> None:
     """The folder exists and holds the files the chosen dataparser will read."""
     if data is None:
-        raise ValueError("no data folder given; pass --data DIR")
+        raise InputError("no data folder given; pass --data DIR")
     data = Path(data)
     if isinstance(dataparser, SDFStudioDataParserConfig):
         layout = "SDFStudio layout (meta_data.json + images)"
@@ -117,7 +121,7 @@ def check_data_layout(dataparser: object, data: Optional[Path], test_split: str 
     else:
         layout = f"layout read by {type(dataparser).__name__}"
     if not data.is_dir():
-        raise ValueError(f"{data}: data folder not found; pass --data DIR pointing at a scene in the {layout}")
+        raise InputError(f"{data}: data folder not found; pass --data DIR pointing at a scene in the {layout}")
     if isinstance(dataparser, SDFStudioDataParserConfig):
         _check_sdfstudio(data)
     elif isinstance(dataparser, BlenderDataParserConfig):
@@ -137,7 +141,7 @@ def check_image_sizes(outputs: DataparserOutputs, source: str = "its camera") ->
             w, h = im.size
         want_w, want_h = int(cams.width[i]), int(cams.height[i])
         if (w, h) != (want_w, want_h):
-            raise ValueError(
+            raise InputError(
                 f"{path}: image is {w}x{h} pixels, expected {want_w}x{want_h} like {source}; "
                 "all images of a scene must have the size their cameras were calibrated for"
             )
@@ -164,7 +168,7 @@ def check_cameras_look_into_box(outputs: DataparserOutputs, source: str = "the s
     if not bool(hits.all()):
         bad = [i for i in range(len(hits)) if not bool(hits[i])]
         i = bad[0]
-        raise ValueError(
+        raise InputError(
             f"{outputs.image_filenames[i]}: its camera (at {[round(v, 3) for v in origins[i].tolist()]}) looks past "
             f"{source} {[[round(v, 3) for v in row] for row in aabb.tolist()]}; {len(bad)} of {len(hits)} cameras do. "
             "Expected a box that contains the object all cameras look at: fix the box (or the poses' units/frame)"

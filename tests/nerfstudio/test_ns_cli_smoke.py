@@ -39,3 +39,30 @@ def test_ns_train_cli_trains_sp_neus_hashgrid_on_blender_data(tiny_scene, tmp_pa
 
     if not lpips_available():  # offline: one clear line, no download attempt, no crash
         assert (proc.stdout + proc.stderr).count("LPIPS skipped") == 1
+
+
+@pytest.mark.skipif(not os.path.exists(NS_TRAIN), reason="ns-train is not installed")
+def test_ns_train_reports_a_missing_data_folder_in_one_line(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    missing = tmp_path / "no-such-scene"
+    cmd = [NS_TRAIN, "sp-relu-field", "--machine.device-type", "cpu", "--vis", "tensorboard",
+           "--output-dir", str(tmp_path / "out"), "blender-data", "--data", str(missing)]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("ns-train: error: ") and str(missing) in last and "--data" in last
+
+
+def test_input_error_hook_prints_one_line_and_leaves_other_errors_alone(capsys, monkeypatch):
+    from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
+
+    seen = []
+    monkeypatch.setattr(sys, "excepthook", lambda *exc: seen.append(exc[0]))
+    install_input_error_hook()
+    install_input_error_hook()  # idempotent: one wrapper
+    with pytest.raises(SystemExit) as exit_info:
+        sys.excepthook(InputError, InputError("bad --data"), None)
+    assert exit_info.value.code == 2 and capsys.readouterr().err.strip().endswith("error: bad --data")
+    sys.excepthook(KeyError, KeyError("x"), None)
+    assert seen == [KeyError]
