@@ -28,11 +28,12 @@ def check_boundary_kind(kind: str) -> None:
         )
 
 
-def as_bounds(bounds: BoundsLike, dim: int, like: Tensor) -> tuple[Tensor, Tensor]:
+def as_bounds(bounds: BoundsLike, dim: int, like: Tensor, check: bool = True) -> tuple[Tensor, Tensor]:
     """Normalise ``bounds`` to two ``[dim]`` tensors on ``like``'s device and dtype.
 
     Accepts ``(lo, hi)`` scalars, ``(lo[dim], hi[dim])`` or a ``[2, dim]`` tensor (nerfstudio's
-    ``SceneBox.aabb`` layout).
+    ``SceneBox.aabb`` layout). ``check=False`` skips the empty-box test (a host sync on a GPU) for
+    bounds that were checked once at set-up.
     """
     if isinstance(bounds, Tensor) and bounds.dim() == 2:
         lo, hi = bounds[0], bounds[1]
@@ -40,7 +41,7 @@ def as_bounds(bounds: BoundsLike, dim: int, like: Tensor) -> tuple[Tensor, Tenso
         lo, hi = bounds
     lo = torch.as_tensor(lo, device=like.device, dtype=like.dtype).expand(dim)
     hi = torch.as_tensor(hi, device=like.device, dtype=like.dtype).expand(dim)
-    if not bool(torch.all(hi > lo)):
+    if check and not bool(torch.all(hi > lo)):
         raise ValueError(
             f"bounds: the box is empty (lo={lo.tolist()}, hi={hi.tolist()}); every lo must be < hi"
         )
@@ -69,7 +70,9 @@ class _Reflect(torch.autograd.Function):
     backward pass keeps only the flat indices whose derivative is -1."""
 
     @staticmethod
-    def forward(ctx, y: Tensor, origin: Optional[Tensor], lo: Tensor, hi: Tensor) -> Tensor:
+    def forward(ctx, y: Tensor, origin: Optional[Tensor], lo: Tensor, hi: Tensor, sparse: bool) -> Tensor:
+        if not sparse:
+            return _Reflect._dense(ctx, y, origin, lo, hi)
         out = y.detach().clone(memory_format=torch.contiguous_format)
         flat = out.view(-1)
         dim = y.shape[-1]
@@ -94,25 +97,47 @@ class _Reflect(torch.autograd.Function):
         return out
 
     @staticmethod
+    def _dense(ctx, y: Tensor, origin: Optional[Tensor], lo: Tensor, hi: Tensor) -> Tensor:
+        """Every coordinate folded, a sign mask kept: no data-dependent shapes, no host sync."""
+        width = hi - lo
+        folded, flip = _fold((y.detach() - lo) / width)
+        out = folded.mul_(width).add_(lo)
+        if origin is not None:
+            keep = (origin.detach() - (lo + hi) * 0.5).abs() <= width * 0.5
+            out = torch.where(keep, out, y.detach())
+            flip &= keep
+        ctx.dense = True
+        ctx.save_for_backward(flip)
+        return out
+
+    @staticmethod
     def backward(ctx, grad: Tensor):
+        if getattr(ctx, "dense", False):
+            (flip,) = ctx.saved_tensors
+            return torch.where(flip, -grad, grad), None, None, None, None
         (flipped,) = ctx.saved_tensors
         if flipped.numel():
             grad = grad.clone(memory_format=torch.contiguous_format)
             grad.view(-1)[flipped] *= -1.0
-        return grad, None, None, None
+        return grad, None, None, None, None
 
 
 def reflect(
-    y: Float[Tensor, "*batch dim"], lo: Tensor, hi: Tensor, origin: Optional[Float[Tensor, "*batch dim"]] = None
+    y: Float[Tensor, "*batch dim"],
+    lo: Tensor,
+    hi: Tensor,
+    origin: Optional[Float[Tensor, "*batch dim"]] = None,
+    sparse: Optional[bool] = None,
 ) -> Float[Tensor, "*batch dim"]:
     """Fold ``y`` into ``[lo, hi]`` by repeated mirroring (a triangle wave of period 2 * (hi - lo)).
 
     With ``origin`` (the unperturbed positions), only coordinates whose origin lies inside the box
     are folded: a sample the host placed outside the box stays outside, for the host to treat as
-    empty space."""
+    empty space. ``sparse`` folds only the coordinates that left the box (fastest on the CPU, but
+    it syncs with the host); the default uses it on the CPU and a dense, sync-free fold elsewhere."""
     lo = torch.as_tensor(lo, dtype=y.dtype, device=y.device)
     hi = torch.as_tensor(hi, dtype=y.dtype, device=y.device)
-    return _Reflect.apply(y, origin, lo, hi)
+    return _Reflect.apply(y, origin, lo, hi, y.device.type == "cpu" if sparse is None else sparse)
 
 
 def apply_boundary(

@@ -66,7 +66,7 @@ def perturb(
     if validate:
         check_alpha(alpha)
         check_positions(x)
-    box = as_bounds(bounds, x.shape[-1], x) if bounds is not None else None
+    box = as_bounds(bounds, x.shape[-1], x, check=validate) if bounds is not None else None
     shape = (num_samples, *x.shape) if num_samples > 1 else x.shape
     eps = sample_noise(shape, noise, generator=generator, device=x.device, dtype=x.dtype)
     if isinstance(alpha, Tensor):

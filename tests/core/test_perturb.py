@@ -65,14 +65,15 @@ def test_reflect_is_a_mirror_near_the_faces():
     assert torch.allclose(reflect(x, lo, hi), torch.tensor([0.25, 0.75, 0.5, 0.5, 0.3]))
 
 
-def test_reflect_matches_an_unfolded_reference_in_a_non_cubic_box_with_its_derivative():
+@pytest.mark.parametrize("sparse", [True, False], ids=["sparse-fold", "dense-fold"])
+def test_reflect_matches_an_unfolded_reference_in_a_non_cubic_box_with_its_derivative(sparse):
     """The fold only touches escaped coordinates: check it against the triangle-wave formula on
     every coordinate, many reflections deep, with some origins outside the box."""
     lo, hi = torch.tensor([-1.0, -2.0, 0.0], dtype=torch.float64), torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
     width = hi - lo
     origin = torch.rand(5000, 3, generator=gen(11), dtype=torch.float64) * width * 1.2 + lo - 0.1 * width
     y = (origin + 3.0 * torch.randn(5000, 3, generator=gen(12), dtype=torch.float64)).requires_grad_()
-    out = reflect(y, lo, hi, origin)
+    out = reflect(y, lo, hi, origin, sparse=sparse)
     u = (y.detach() - lo) / width
     wave = (u - 2 * torch.floor((u + 1) / 2)).abs()  # triangle wave, period 2, values in [0, 1]
     inside = (origin >= lo) & (origin <= hi)
