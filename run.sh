@@ -16,7 +16,20 @@ case "$(uname -m)" in
   *)      torch_spec="${SP_TORCH_SPEC:-torch==2.9.1 torchvision==0.24.1}" ;;
 esac
 
+system_libs() {
+  # open3d (nerfstudio's `ns-export pointcloud`) loads libusb-1.0, which minimal Debian images lack.
+  if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then return; fi
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "[sp-plugins] installing libusb-1.0-0 (needed by open3d for ns-export pointcloud)"
+    { apt-get install -y -qq libusb-1.0-0 || { apt-get update -qq && apt-get install -y -qq libusb-1.0-0; }; } >/dev/null 2>&1 \
+      || echo "[sp-plugins] warning: could not install libusb-1.0-0; ns-export pointcloud will not work" >&2
+  else
+    echo "[sp-plugins] note: libusb-1.0 is missing; ns-export pointcloud (open3d) needs it: sudo apt-get install libusb-1.0-0" >&2
+  fi
+}
+
 setup() {
+  system_libs
   if [ ! -x "$venv/bin/python" ]; then
     echo "[sp-plugins] creating a virtual environment in $venv"
     mkdir -p "$(dirname "$venv")"
