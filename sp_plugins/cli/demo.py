@@ -41,7 +41,7 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     ap.add_argument("--alpha0", type=float, default=0.03, help="SP's alpha in the [-1, 1] frame (default 0.03)")
     ap.add_argument("--sp-end", type=float, default=0.2, help="SP stops at this fraction of training (default 0.2)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: one per core that other processes leave idle)")
     ap.add_argument("--overwrite", action="store_true", help="replace the results of an earlier demo in --out")
     return ap.parse_args(argv)
 
@@ -199,11 +199,12 @@ def run(args: argparse.Namespace) -> dict:
 
     from sp_plugins.data import load_mesh, make_scene
     from sp_plugins.geometry import load_oriented_points, save_mesh
+    from sp_plugins.cli.threads import pick_threads
     from sp_plugins.tasks.common import prepare_output_dir
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
     # every argument is checked before --out is created, so a typo leaves nothing behind
+    if args.threads is not None and args.threads < 1:
+        raise UserInputError(f"--threads must be at least 1, got {args.threads}")
     try:
         configs = _paired_configs(args)
     except ValueError as err:
@@ -228,6 +229,7 @@ def run(args: argparse.Namespace) -> dict:
         raise UserInputError(f"--mesh {args.mesh}: {err}") from None
     data = load_oriented_points(scene.gt_mesh, n_points=200_000, seed=args.seed)
 
+    pick_threads(args.threads, prog="sp-demo")  # measured now, while this process is idle
     print(f"[sp-demo] 2/4 fitting a hash-grid SDF to its point cloud, baseline and SP side by side ({steps} steps each)")
     trainers = {name: cfg.setup(data) for name, cfg in configs.items()}
     curves = {name: {"loss": [], "eval_step": [], "chamfer": [], "clean_chamfer": []} for name in trainers}

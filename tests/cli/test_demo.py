@@ -36,6 +36,7 @@ def test_demo_refuses_to_overwrite_earlier_results(tmp_path, capsys):
     (["--steps", "3"], "--steps"),
     (["--mesh", "/nonexistent.ply"], "--mesh /nonexistent.ply: mesh '/nonexistent.ply' is neither an existing file"),
     (["--mesh", "EMPTY"], "has no triangle faces"),
+    (["--threads", "0"], "--threads must be at least 1"),
 ])
 def test_demo_bad_input_is_one_clear_line(tmp_path, capsys, args, word):
     if "EMPTY" in args:
