@@ -18,7 +18,8 @@ esac
 
 system_libs() {
   # open3d (nerfstudio's `ns-export pointcloud`) loads libusb-1.0, which minimal Debian images lack.
-  if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then return; fi
+  # (grep without -q: with pipefail, -q's early exit fails ldconfig with SIGPIPE)
+  if ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then return; fi
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     echo "[sp-plugins] installing libusb-1.0-0 (needed by open3d for ns-export pointcloud)"
     { apt-get install -y -qq libusb-1.0-0 || { apt-get update -qq && apt-get install -y -qq libusb-1.0-0; }; } >/dev/null 2>&1 \
