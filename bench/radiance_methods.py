@@ -549,14 +549,14 @@ def relu_table(results: List[dict]) -> str:
 
 
 def mip_table(results: List[dict]) -> str:
-    lines = ["| tag | scene | views | steps | run | test PSNR | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| tag | scene | seed | views | steps | run | test PSNR | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         b = r["budget"]
         for name in r["runs"]:
             m = r[name]
             ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
-            lines.append(f"| {r['tag']} | {r['scene']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
+            lines.append(f"| {r['tag']} | {r['scene']} | {r['seed']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
                          f"{m['background_opacity']:.4f} | {m['median_step_s']:.3f} | {ratio} |")
     return "\n".join(lines)
 
