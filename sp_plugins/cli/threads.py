@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 
 def usable_cores() -> int:
@@ -18,13 +19,18 @@ def free_cores(window: float = 0.3) -> int:
 
     Why: a torch op waits for its slowest thread, so a thread on a core another process keeps busy
     makes every op wait for a time slice. On the 2-core CI machine, with a 1-thread job beside it,
-    the demo's step took 0.23 s with 2 threads and 0.11 s with 1.
+    the demo's step took 0.23 s with 2 threads and 0.11 s with 1. This process's own CPU time is
+    left out: OpenMP workers spin for a while after the last parallel op.
     """
     import psutil
 
     cores = usable_cores()
-    busy = psutil.cpu_percent(interval=window) / 100.0 * (psutil.cpu_count() or cores)
-    return max(1, min(cores, round(cores - busy)))
+    me = psutil.Process()
+    me.cpu_percent(None), psutil.cpu_percent(None)  # start both counters
+    time.sleep(window)
+    total = psutil.cpu_percent(None) / 100.0 * (psutil.cpu_count() or cores)
+    others = max(0.0, total - me.cpu_percent(None) / 100.0)
+    return max(1, min(cores, round(cores - others)))
 
 
 def pick_threads(requested: int | None, log=print, prog: str = "sp-plugins") -> int:

@@ -12,12 +12,23 @@ def restore_threads():
     torch.set_num_threads(before)
 
 
-@pytest.mark.parametrize("percent, free", [(0.0, 4), (24.0, 3), (50.0, 2), (75.0, 1), (100.0, 1)])
-def test_free_cores_leaves_out_the_cores_other_processes_keep_busy(monkeypatch, percent, free):
+class FakeProcess:
+    def __init__(self, percent):
+        self.percent = percent
+
+    def cpu_percent(self, interval=None):
+        return self.percent
+
+
+@pytest.mark.parametrize("total, own, free", [(0.0, 0.0, 4), (24.0, 0.0, 3), (50.0, 0.0, 2), (75.0, 0.0, 1),
+                                               (100.0, 0.0, 1), (50.0, 200.0, 4), (75.0, 100.0, 2)])
+def test_free_cores_leaves_out_the_cores_other_processes_keep_busy(monkeypatch, total, own, free):
+    """total: percent of all 4 cores; own: this process's percent of one core (spinning OpenMP workers)."""
     monkeypatch.setattr(threads, "usable_cores", lambda: 4)
     monkeypatch.setattr(psutil, "cpu_count", lambda *a, **k: 4)
-    monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, **k: percent)
-    assert threads.free_cores() == free
+    monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, **k: total)
+    monkeypatch.setattr(psutil, "Process", lambda *a: FakeProcess(own))
+    assert threads.free_cores(window=0.0) == free
 
 
 def test_pick_threads_uses_the_free_cores_and_says_so(monkeypatch, restore_threads):
