@@ -36,7 +36,7 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="sp-demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mesh", default="spot", help="a mesh file, or 'spot' (bundled) / a primitive name (default: spot)")
     ap.add_argument("--out", default="sp-demo", help="output folder (default: ./sp-demo)")
-    ap.add_argument("--budget", choices=sorted(BUDGETS), default="default", help="quick (300 steps, ~1 min), default (2000 steps, ~5 min on 2 idle cores), long (4000 steps)")
+    ap.add_argument("--budget", choices=sorted(BUDGETS), default="default", help="quick (300 steps, 1-2.5 min), default (2000 steps, 4-10 min on 2 idle cores), long (4000 steps)")
     ap.add_argument("--steps", type=int, default=None, help="override the budget's number of steps")
     ap.add_argument("--alpha0", type=float, default=0.03, help="SP's alpha in the [-1, 1] frame (default 0.03)")
     ap.add_argument("--sp-end", type=float, default=0.2, help="SP stops at this fraction of training (default 0.2)")
