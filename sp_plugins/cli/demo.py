@@ -41,7 +41,7 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     ap.add_argument("--alpha0", type=float, default=0.03, help="SP's alpha in the [-1, 1] frame (default 0.03)")
     ap.add_argument("--sp-end", type=float, default=0.2, help="SP stops at this fraction of training (default 0.2)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: one per core that other processes leave idle)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's own, capped at the cores other processes leave idle)")
     ap.add_argument("--overwrite", action="store_true", help="replace the results of an earlier demo in --out")
     return ap.parse_args(argv)
 
@@ -197,9 +197,9 @@ def run(args: argparse.Namespace) -> dict:
     import torch
     from tqdm.auto import tqdm
 
+    from sp_plugins.cli.threads import pick_threads
     from sp_plugins.data import load_mesh, make_scene
     from sp_plugins.geometry import load_oriented_points, save_mesh
-    from sp_plugins.cli.threads import pick_threads
     from sp_plugins.tasks.common import prepare_output_dir
 
     # every argument is checked before --out is created, so a typo leaves nothing behind

@@ -34,7 +34,7 @@ def free_cores(window: float = 0.3) -> int:
 
 
 def pick_threads(requested: int | None, log=print, prog: str = "sp-plugins") -> int:
-    """Set torch's intra-op threads: ``requested`` when given, else one per free core."""
+    """Set torch's intra-op threads: ``requested`` when given, else torch's default capped at the free cores."""
     import torch
 
     if requested is not None:
@@ -42,10 +42,11 @@ def pick_threads(requested: int | None, log=print, prog: str = "sp-plugins") -> 
             raise ValueError(f"--threads must be at least 1, got {requested}")
         torch.set_num_threads(requested)
         return requested
-    cores = usable_cores()
-    threads = free_cores()
-    if threads < cores:
-        log(f"[{prog}] {cores - threads} of {cores} cores are busy with other processes: "
+    default = torch.get_num_threads()  # torch's own choice: one per physical core
+    cores, free = usable_cores(), free_cores()
+    threads = min(default, free)
+    if threads < default:
+        log(f"[{prog}] {cores - free} of {cores} cores are busy with other processes: "
             f"using {threads} torch thread{'s' * (threads > 1)} (--threads N overrides)")
     torch.set_num_threads(threads)
     return threads

@@ -34,6 +34,7 @@ def test_free_cores_leaves_out_the_cores_other_processes_keep_busy(monkeypatch, 
 def test_pick_threads_uses_the_free_cores_and_says_so(monkeypatch, restore_threads):
     monkeypatch.setattr(threads, "usable_cores", lambda: 2)
     monkeypatch.setattr(threads, "free_cores", lambda window=0.3: 1)
+    torch.set_num_threads(2)
     said = []
     assert threads.pick_threads(None, log=said.append, prog="sp-demo") == 1
     assert torch.get_num_threads() == 1
@@ -45,3 +46,11 @@ def test_pick_threads_obeys_an_explicit_count_without_measuring(monkeypatch, res
     assert threads.pick_threads(2, log=pytest.fail) == 2 and torch.get_num_threads() == 2
     with pytest.raises(ValueError, match="--threads must be at least 1"):
         threads.pick_threads(0)
+
+
+def test_pick_threads_never_exceeds_torchs_default(monkeypatch, restore_threads):
+    """On an idle machine with hyperthreads, free cores outnumber torch's one-per-physical-core default."""
+    monkeypatch.setattr(threads, "usable_cores", lambda: 8)
+    monkeypatch.setattr(threads, "free_cores", lambda window=0.3: 8)
+    torch.set_num_threads(4)
+    assert threads.pick_threads(None, log=pytest.fail) == 4 and torch.get_num_threads() == 4
