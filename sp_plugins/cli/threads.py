@@ -18,7 +18,7 @@ def free_cores(window: float = 0.3) -> int:
     """Cores that other processes leave idle, measured over ``window`` seconds (at least 1).
 
     Why: a torch op waits for its slowest thread, so a thread on a core another process keeps busy
-    makes every op wait for a time slice. On the 2-core CI machine, with a 1-thread job beside it,
+    makes every op wait for a time slice. On our 2-core EPYC VM, with a 1-thread job beside it,
     the demo's step took 0.23 s with 2 threads and 0.11 s with 1. This process's own CPU time is
     left out: OpenMP workers spin for a while after the last parallel op.
     """
