@@ -3,11 +3,12 @@
 #   ./run.sh demo [sp-demo options]   set everything up, then train baseline vs SP on a bundled scene
 #   ./run.sh test [pytest options]    set everything up, then run the test suite
 #   ./run.sh setup                    only create / update the virtual environment
-# The virtual environment lives in $SP_VENV (default ~/.cache/sp-plugins/venv); it is created
-# once and reused: later runs reinstall only when pyproject.toml or the checkout path changes.
+# The virtual environment lives in $SP_VENV (default: .venv inside this checkout, one per checkout,
+# so a second clone or CI never re-points another checkout's environment); it is created once and
+# reused: later runs reinstall only when pyproject.toml or the checkout path changes.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-venv="${SP_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/sp-plugins/venv}"
+venv="${SP_VENV:-$here/.venv}"
 python="${PYTHON:-python3}"
 
 case "$(uname -m)" in
