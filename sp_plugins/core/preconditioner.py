@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Callable, Optional
+from typing import Callable, Optional, TypeVar
 
 import torch
 from jaxtyping import Float
@@ -17,6 +17,8 @@ from sp_plugins.core.schedule import AlphaSchedule
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 
 class StochasticPreconditioner(nn.Module):
     """Perturbs positions while training and while alpha > 0; otherwise returns its input.
@@ -24,6 +26,10 @@ class StochasticPreconditioner(nn.Module):
     Step it with :meth:`set_step` (a nerfstudio training callback does so every iteration).
     Its ``state_dict`` holds the step and total, so a resumed run continues at the same alpha,
     plus the alpha grid's weights when there is one.
+
+    A training step never synchronises with an accelerator: the step, total and alpha live as
+    Python numbers (the buffers only mirror them for checkpoints and are read back on load).
+    With ``seed`` set, each distributed rank draws its own noise (``seed + rank``).
 
     Args:
         config: the shared :class:`SPConfig`.
@@ -59,13 +65,21 @@ class StochasticPreconditioner(nn.Module):
             self._bounds = True
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         self.register_buffer("total_steps", torch.tensor(-1 if total_steps is None else int(total_steps)))
+        self._step = 0
+        self._total = -1 if total_steps is None else int(total_steps)
         self._schedule: Optional[AlphaSchedule] = None
         self._schedule_key: Optional[tuple] = None
         self._alpha = 0.0
         self._generators: dict = {}
+        # alpha0 in scene units, known without the schedule (whose fractional end needs the total)
+        self._alpha0 = config.alpha0 * (self.scene_diagonal if self.scene_diagonal is not None else 1.0)
         self.alpha_grid: Optional[AlphaGrid] = None
         if config.alpha_grid:
-            init = config.alpha_grid_init if config.alpha_grid_init is not None else self.schedule.alpha0
+            init = config.alpha_grid_init if config.alpha_grid_init is not None else self._alpha0
+            if not init > 0:
+                raise ValueError(
+                    "alpha_grid=True needs a positive initial alpha: set alpha_grid_init or an alpha0 > 0"
+                )
             self.alpha_grid = AlphaGrid(dim, config.alpha_grid_resolution, init, bounds if bounds is not None else (-1.0, 1.0))
         if total_steps is not None:
             self.set_step(0, total_steps)
@@ -73,7 +87,7 @@ class StochasticPreconditioner(nn.Module):
     # -- schedule ---------------------------------------------------------------------------
     @property
     def schedule(self) -> AlphaSchedule:
-        total = int(self.total_steps)
+        total = self._total
         key = (total,)
         if self._schedule is None or self._schedule_key != key:
             c = self.config
@@ -90,10 +104,12 @@ class StochasticPreconditioner(nn.Module):
 
     def set_step(self, step: int, total_steps: Optional[int] = None) -> float:
         """Move to ``step`` (of ``total_steps``) and return the alpha in force there."""
-        if total_steps is not None and int(self.total_steps) != total_steps:
-            self.total_steps.fill_(int(total_steps))
-        self.step.fill_(int(step))
-        self._alpha = self.schedule(int(step)) if self.config.enabled else 0.0
+        if total_steps is not None and self._total != int(total_steps):
+            self._total = int(total_steps)
+            self.total_steps.fill_(self._total)
+        self._step = int(step)
+        self.step.fill_(self._step)  # an asynchronous fill: no host sync on an accelerator
+        self._alpha = self.schedule(self._step) if self.config.enabled else 0.0
         return self._alpha
 
     @property
@@ -107,8 +123,10 @@ class StochasticPreconditioner(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        if int(self.total_steps) >= 0 or self.config.schedule == "constant":
-            self.set_step(int(self.step))
+        self._total = int(self.total_steps)  # a sync, but only when a checkpoint loads
+        self._step = int(self.step)
+        if self._total >= 0 or self.config.schedule == "constant":
+            self.set_step(self._step)
 
     # -- perturbation -----------------------------------------------------------------------
     def _generator(self, device: torch.device) -> Optional[torch.Generator]:
@@ -117,7 +135,7 @@ class StochasticPreconditioner(nn.Module):
         key = str(device)
         if key not in self._generators:
             g = torch.Generator(device=device)
-            g.manual_seed(self.config.seed)
+            g.manual_seed(self.config.seed + distributed_rank())
             self._generators[key] = g
         return self._generators[key]
 
@@ -126,7 +144,7 @@ class StochasticPreconditioner(nn.Module):
         decay (so a grid run still ends as an ordinary field)."""
         if self.alpha_grid is None:
             return self._alpha
-        decay = self._alpha / self.schedule.alpha0 if self.schedule.alpha0 > 0 else 0.0
+        decay = self._alpha / self._alpha0 if self._alpha0 > 0 else 0.0
         return self.alpha_grid(x.detach()) * decay
 
     def _kwargs(self, x: Tensor) -> dict:
@@ -156,6 +174,47 @@ class StochasticPreconditioner(nn.Module):
             return fn(self(x))
         return perturbed_mean(fn, x, self.alpha_at(x), self.config.num_samples, **self._kwargs(x))
 
+    def mean_over_draws(self, run_once: Callable[[], T]) -> T:
+        """``run_once()`` averaged over ``num_samples`` calls while active (each call draws new
+        noise through this module), else a single call. ``run_once`` returns a tensor, or a dict
+        / tuple of tensors (a field's outputs); non-tensor entries are taken from the first call.
+        This is how a host hook honours ``num_samples`` without knowing what the field returns."""
+        k = self.config.num_samples if self.active else 1
+        first = run_once()
+        if k == 1:
+            return first
+        total = first
+        for _ in range(k - 1):
+            total = _add_outputs(total, run_once())
+        return _scale_outputs(total, 1.0 / k)
+
     def extra_repr(self) -> str:
         c = self.config
-        return f"enabled={c.enabled}, alpha={self._alpha:.4g}, step={int(self.step)}/{int(self.total_steps)}, noise={c.noise}, boundary={c.boundary}"
+        return f"enabled={c.enabled}, alpha={self._alpha:.4g}, step={self._step}/{self._total}, noise={c.noise}, boundary={c.boundary}"
+
+
+
+def distributed_rank() -> int:
+    """This process's rank in a torch.distributed job (0 outside one)."""
+    dist = torch.distributed
+    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+
+
+def _add_outputs(a, b):
+    if isinstance(a, Tensor):
+        return a + b if a.is_floating_point() else a
+    if isinstance(a, dict):
+        return {key: _add_outputs(value, b[key]) for key, value in a.items()}
+    if isinstance(a, (tuple, list)):
+        return type(a)(_add_outputs(u, v) for u, v in zip(a, b))
+    return a
+
+
+def _scale_outputs(a, factor: float):
+    if isinstance(a, Tensor):
+        return a * factor if a.is_floating_point() else a
+    if isinstance(a, dict):
+        return {key: _scale_outputs(value, factor) for key, value in a.items()}
+    if isinstance(a, (tuple, list)):
+        return type(a)(_scale_outputs(u, factor) for u in a)
+    return a

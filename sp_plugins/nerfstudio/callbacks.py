@@ -13,6 +13,15 @@ ALPHA_GRID_GROUP = "sp_alpha_grid"
 """Name of the optimizer param group holding a learnable alpha grid."""
 
 
+def alpha_grid_optimizer(sp_config) -> dict:
+    """The optimizer entry for a learnable alpha grid (``--pipeline.model.sp.alpha-grid True``).
+    Every method config carries it: nerfstudio needs an entry per parameter group, and an entry
+    without a group (alpha grid off) is never used."""
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+
+    return {"optimizer": AdamOptimizerConfig(lr=sp_config.alpha_grid_lr, eps=1e-15), "scheduler": None}
+
+
 def trainer_total_steps(attributes: TrainingCallbackAttributes) -> Optional[int]:
     """Length of one training run as the trainer sees it (``max_num_iterations``)."""
     trainer = attributes.trainer

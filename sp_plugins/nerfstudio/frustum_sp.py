@@ -61,11 +61,15 @@ def attach_frustum_sp(field: nn.Module, sp: StochasticPreconditioner) -> None:
         samples = _ray_samples(args, kwargs)
         if samples is None or not (field.training and sp.active):
             return plain(*args, **kwargs)
-        previous = set_perturbed_offsets(samples, sp)
-        try:
-            return plain(*args, **kwargs)
-        finally:
-            samples.frustums.offsets = previous
+
+        def one_draw():
+            previous = set_perturbed_offsets(samples, sp)
+            try:
+                return plain(*args, **kwargs)
+            finally:
+                samples.frustums.offsets = previous
+
+        return sp.mean_over_draws(one_draw)  # sp.num_samples draws, averaged
 
     field.forward = forward  # type: ignore[method-assign]
 

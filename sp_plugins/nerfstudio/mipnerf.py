@@ -9,9 +9,10 @@ are set, hence a field subclass.
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from nerfstudio.utils.math import Gaussians
 from torch import Tensor
@@ -36,6 +37,13 @@ class SPNeRFField(NeRFField):
         blobs = ray_samples.frustums.get_gaussian_blob()
         mean = sp(blobs.mean.reshape(-1, 3)).view(blobs.mean.shape)
         return Gaussians(mean=mean, cov=blobs.cov)
+
+    def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
+        """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
+        plain = super().forward
+        if self._sp is None or not self.training:
+            return plain(ray_samples, compute_normals=compute_normals)
+        return self._sp.mean_over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         sp = self._sp

@@ -140,8 +140,8 @@ class NeuralangeloLiteModel(SPNeuSModel):
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         metrics = super().get_metrics_dict(outputs, batch)
         if self.training:
-            metrics["active_levels"] = int(self.field.active_levels)
-            metrics["fd_step"] = float(self.field.fd_step)
+            metrics["active_levels"] = self.field.encoding.active_levels  # Python mirrors: no GPU sync per step
+            metrics["fd_step"] = self.field._fd_step
         return metrics
 
 

@@ -4,7 +4,8 @@
   of 16k rays x 512 samples): ``relu-field`` (4-stage coarse-to-fine), ``relu-field-flat`` and
   ``sp-relu-field``. The grid here has 257 vertices per axis so every upsampling is exact.
 - ``sp-mipnerf``: nerfstudio's mipnerf settings (RAdam 5e-4, 1024 rays, 128 + 128 samples) with
-  SP on the Gaussian means (alpha0 0.04, exponential to 0 by step 2500).
+  SP on the Gaussian means (alpha0 0.04, exponential to 0 by step 2500 of the preset's 7500,
+  a third of training when a run is shortened).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host plus
   SP through frustum offsets.
 
@@ -29,6 +30,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.data import CheckedDataManagerConfig
 from sp_plugins.nerfstudio.radiance_models import (
     SPMipNerfModelConfig,
@@ -48,8 +50,18 @@ class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     """torch.optim.Adam's fused implementation; None lets torch choose."""
 
 
-RELU_FIELD_SP = SPConfig(alpha0=0.003, end=8000, schedule="exponential", boundary="reflect")
 RELU_FIELD_STEPS = 28_000
+RELU_FIELD_SP = SPConfig(alpha0=0.003, end=8000 / RELU_FIELD_STEPS, schedule="exponential", boundary="reflect")
+"""The paper's 8000 of 28000 steps, as a fraction so a shortened run keeps the ratio."""
+MIPNERF_STEPS = 7_500
+"""sp-mipnerf's preset length: SP ends at the paper's step 2500, a third of training (the paper's
+"by 1/3 of training at the latest"); nerfstudio's own mipnerf preset has no length (1M steps)."""
+
+
+def _with_sp_optimizer(config: TrainerConfig, description: str) -> MethodSpecification:
+    """The method spec, with the optimizer entry a learnable alpha grid needs."""
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    return MethodSpecification(config=config, description=description)
 
 
 def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> MethodSpecification:
@@ -77,7 +89,7 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
         vis="viewer",
     )
-    return MethodSpecification(config=config, description=description)
+    return _with_sp_optimizer(config, description)
 
 
 def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecification:
@@ -90,13 +102,14 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
     model.sp = dataclasses.replace(model.sp, enabled=sp)
     config = TrainerConfig(
         method_name=name,
+        max_num_iterations=MIPNERF_STEPS,
         pipeline=VanillaPipelineConfig(
             datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=1024),
             model=model,
         ),
         optimizers={"fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None}},
     )
-    return MethodSpecification(config=config, description=description)
+    return _with_sp_optimizer(config, description)
 
 
 def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
@@ -111,7 +124,7 @@ def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
             "temporal_distortion": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
         },
     )
-    return MethodSpecification(config=config, description=description)
+    return _with_sp_optimizer(config, description)
 
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
@@ -143,7 +156,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )
-    return MethodSpecification(config=config, description=description)
+    return _with_sp_optimizer(config, description)
 
 
 def tensorf_method(name: str, description: str) -> MethodSpecification:
@@ -176,4 +189,4 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )
-    return MethodSpecification(config=config, description=description)
+    return _with_sp_optimizer(config, description)

@@ -30,9 +30,11 @@ from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
 log = logging.getLogger(__name__)
 
-MIPNERF_SP = SPConfig(alpha0=0.04, end=2500, schedule="exponential", boundary="none")
-"""The paper's sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500. NeRF MLPs are
-defined everywhere, so there is no box to reflect into."""
+MIPNERF_SP = SPConfig(alpha0=0.04, end=1 / 3, schedule="exponential", boundary="none")
+"""The paper's sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500, which is a third of
+the sp-mipnerf preset's 7500 steps (a fraction, so shortened runs keep the ratio; pass
+``--pipeline.model.sp.end 2500`` for the absolute step). NeRF MLPs are defined everywhere, so
+there is no box to reflect into."""
 
 POSITION_FIELD_SP = SPConfig(alpha0=0.02, end=0.2, schedule="exponential", boundary="none")
 """Not from the paper (it does not run these hosts): about 0.5-1% of a Blender scene's box diagonal,

@@ -124,6 +124,13 @@ class ReLUField(Field):
         out = F.grid_sample(self.grid, u.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
         return out.view(self.grid.shape[1], -1).t()
 
+    def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
+        """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
+        plain = super().forward
+        if self._sp is None or not self.training:
+            return plain(ray_samples, compute_normals=compute_normals)
+        return self._sp.mean_over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
+
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         shape = ray_samples.frustums.shape
         x = ray_samples.frustums.get_positions().reshape(-1, 3)

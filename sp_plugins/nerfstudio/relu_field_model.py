@@ -32,6 +32,7 @@ from nerfstudio.utils import colormaps
 from torch.nn import Parameter
 
 from sp_plugins.nerfstudio.callbacks import trainer_total_steps
+from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.relu_field import ColorMode, ReLUField, color_channels, upsample_grid
 
@@ -177,6 +178,14 @@ class ReLUFieldBaseModel(Model):
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = list(super().get_training_callbacks(training_callback_attributes))
         total = trainer_total_steps(training_callback_attributes)
+        world_size = int(getattr(training_callback_attributes.trainer, "world_size", 1) or 1)
+        if self.config.hierarchy_stages > 1 and world_size > 1:
+            # each stage swaps the grid for a new Parameter, which DDP's gradient all-reduce never sees
+            raise InputError(
+                f"--pipeline.model.hierarchy-stages {self.config.hierarchy_stages} cannot train on {world_size} devices "
+                "(each stage replaces the grid parameter, which DistributedDataParallel would not synchronise); "
+                "train the hierarchy on one device (--machine.num-devices 1) or use relu-field-flat / sp-relu-field"
+            )
         if self.config.hierarchy_stages > 1 and total is not None:
             optimizers = training_callback_attributes.optimizers
 

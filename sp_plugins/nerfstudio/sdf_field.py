@@ -91,8 +91,9 @@ class SPSDFField(SDFField):
         # Coarse-to-fine state lives in buffers so a checkpoint restores it (eval, export, resume).
         self.register_buffer("active_levels", torch.tensor(n_levels, dtype=torch.long))
         self.register_buffer("fd_step", torch.tensor(self.level_cell_size(n_levels - 1) if n_levels else 0.0))
+        self._fd_step = float(self.fd_step)  # Python mirror: reading the buffer per step would sync a GPU
         if config.fd_step is not None:
-            self.fd_step.fill_(config.fd_step)
+            self.set_fd_step(config.fd_step)
 
     def initialize_geo_layers(self) -> None:
         """Swap in our encoding before the MLP is sized on it."""
@@ -132,10 +133,12 @@ class SPSDFField(SDFField):
         self.encoding.set_active_levels(int(n))
 
     def set_fd_step(self, step: float) -> None:
-        self.fd_step.fill_(float(step))
+        self._fd_step = float(step)
+        self.fd_step.fill_(self._fd_step)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self._fd_step = float(self.fd_step)
         if self.config.use_grid_feature:
             self.encoding.set_active_levels(int(self.active_levels))
 
@@ -152,7 +155,7 @@ class SPSDFField(SDFField):
             hidden = self.forward_geonetwork(q)
             sdf, geo = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
             grad, lap = finite_differences(
-                self.sdf_of, q, float(self.fd_step), self.config.stencil, centre_values=sdf[:, 0] if self.training else None
+                self.sdf_of, q, self._fd_step, self.config.stencil, centre_values=sdf[:, 0] if self.training else None
             )
             return q, sdf, geo, grad, lap
         with torch.enable_grad():
@@ -176,8 +179,19 @@ class SPSDFField(SDFField):
     def get_outputs(
         self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None, return_alphas: bool = False
     ) -> Dict[FieldHeadNames, Tensor]:
+        """One perturbed query per sample; ``sp.num_samples`` > 1 averages that many draws (SDF,
+        gradient, colour, Laplacian; normals re-normalised from the mean gradient)."""
         if ray_samples.camera_indices is None:
             raise AttributeError("Camera indices are not provided.")
+        if self._sp is None or not (self.training and self._sp.active) or self._sp.config.num_samples == 1:
+            return self.outputs_of_one_draw(ray_samples, return_alphas)
+        outputs = self._sp.mean_over_draws(lambda: self.outputs_of_one_draw(ray_samples, False))
+        outputs[FieldHeadNames.NORMALS] = F.normalize(outputs[FieldHeadNames.GRADIENT], p=2, dim=-1)
+        if return_alphas:
+            outputs[FieldHeadNames.ALPHA] = self.get_alpha(ray_samples, outputs[FieldHeadNames.SDF], outputs[FieldHeadNames.GRADIENT])
+        return outputs
+
+    def outputs_of_one_draw(self, ray_samples: RaySamples, return_alphas: bool) -> Dict[FieldHeadNames, Tensor]:
         shape = ray_samples.frustums.directions.shape[:-1]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         directions = ray_samples.frustums.directions.reshape(-1, 3)

@@ -113,3 +113,74 @@ def test_setup_errors_are_explicit():
     with pytest.raises(ValueError, match="empty"):
         SPConfig().setup(total_steps=10, bounds=(1.0, -1.0))
     assert isinstance(SPConfig(boundary="none").setup(total_steps=10), StochasticPreconditioner)
+
+
+def test_alpha_grid_builds_before_the_total_is_known():
+    # a fractional end cannot resolve without the total; the grid's initial alpha must not need it
+    sp = SPConfig(alpha0=0.02, end=0.2, alpha_grid=True, alpha_grid_resolution=4).setup(bounds=(-1.0, 1.0))
+    assert torch.allclose(sp.alpha_grid.values(), torch.tensor(0.02), atol=1e-6)
+    rel = SPConfig(alpha0=0.01, end=0.2, alpha_grid=True, alpha_grid_resolution=4, relative_to_diagonal=True)
+    assert torch.allclose(rel.setup(bounds=(-1.0, 1.0), scene_diagonal=3.0).alpha_grid.values(), torch.tensor(0.03), atol=1e-6)
+    with pytest.raises(ValueError, match="alpha_grid_init"):
+        SPConfig(alpha0=0.0, end=0.2, alpha_grid=True).setup(bounds=(-1.0, 1.0))
+
+
+def test_training_step_never_reads_a_buffer(monkeypatch):
+    """Reading a buffer's value (int(), float(), .item()) syncs a GPU: a step must use Python mirrors."""
+    from sp_plugins.core.boundary import reflect
+
+    # boundary "clamp": the CPU's sparse reflect reads back on purpose (cheap there); accelerators
+    # use the dense fold, checked on its own below
+    sp = make(alpha0=0.05, alpha_grid=True, alpha_grid_resolution=4, seed=3, boundary="clamp")
+    sp.train()
+    sp.set_step(10)
+    x = torch.rand(64, 3)
+    lo, hi = torch.full((3,), -1.0), torch.ones(3)
+
+    def forbidden(self, *args, **kwargs):
+        raise AssertionError("a tensor was read back to the host during a training step")
+
+    for name in ("__int__", "__float__", "item", "__bool__", "tolist"):
+        monkeypatch.setattr(torch.Tensor, name, forbidden)
+    sp.set_step(11)
+    y = sp(x)
+    z = sp.mean_over_draws(lambda: sp(x))
+    folded = reflect(x * 3.0, lo, hi, origin=x, sparse=False)
+    monkeypatch.undo()
+    assert folded.abs().max() <= 1.0
+    assert y.shape == x.shape and z.shape == x.shape and int(sp.step) == 11
+
+
+def test_mean_over_draws_averages_num_samples_draws_of_dicts_and_tuples():
+    sp = make(alpha0=0.5, boundary="none", num_samples=4, seed=0)
+    sp.train()
+    calls = []
+
+    def once():
+        calls.append(1)
+        q = sp(torch.zeros(2000, 3))
+        return {"q": q, "index": torch.arange(3)}, (q.square(),)
+
+    (out, (sq,)) = sp.mean_over_draws(once)
+    assert len(calls) == 4
+    assert torch.equal(out["index"], torch.arange(3))  # integer entries pass through
+    # each entry is a mean of 4 draws of N(0, 0.5^2): variance 0.25 / 4
+    assert out["q"].var().item() == pytest.approx(0.25 / 4, rel=0.1)
+    assert sq.mean().item() == pytest.approx(0.25, rel=0.1)
+    sp.eval()
+    calls.clear()
+    sp.mean_over_draws(once)
+    assert len(calls) == 1  # evaluation: one plain call
+
+
+def test_seeded_noise_differs_per_distributed_rank(monkeypatch):
+    import sp_plugins.core.preconditioner as pre
+
+    x = torch.zeros(16, 3)
+    draws = []
+    for rank in (0, 0, 1):
+        monkeypatch.setattr(pre, "distributed_rank", lambda rank=rank: rank)
+        sp = make(alpha0=0.1, boundary="none", seed=7)
+        sp.train()
+        draws.append(sp(x))
+    assert torch.equal(draws[0], draws[1]) and not torch.equal(draws[0], draws[2])
