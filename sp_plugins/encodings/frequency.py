@@ -51,9 +51,16 @@ class FrequencyEncoding(nn.Module):
         self.num_frequencies = num_frequencies
         self.include_input = include_input
         self.n_output_dims = n_input_dims * (2 * num_frequencies + int(include_input))
+        self.min_freq_exp, self.max_freq_exp, self.scale = float(min_freq_exp), float(max_freq_exp), float(scale)
         exps = torch.linspace(min_freq_exp, max_freq_exp, num_frequencies, dtype=torch.float64)
-        # plain floats, made in the input's dtype and device per call (MPS has no float64 buffers)
         self.angular_frequencies = tuple(float(v) for v in scale * 2.0**exps)
+
+    def frequencies(self, like: Tensor) -> Float[Tensor, "k"]:
+        """The angular frequencies in ``like``'s dtype, made on its device from Python numbers:
+        no host-to-device copy (``torch.tensor(list, device=cuda)`` would synchronise the host
+        with the GPU at every call), and no float64 buffer (MPS has none)."""
+        exps = torch.linspace(self.min_freq_exp, self.max_freq_exp, self.num_frequencies, dtype=like.dtype, device=like.device)
+        return torch.exp2(exps) * self.scale
 
     def get_out_dim(self) -> int:
         return self.n_output_dims
@@ -65,7 +72,7 @@ class FrequencyEncoding(nn.Module):
         diagonal is used) return the expected encoding under ``N(x, variance)``."""
         if x.shape[-1] != self.n_input_dims:
             raise ValueError(f"positions have {x.shape[-1]} coordinates; this encoding expects {self.n_input_dims}")
-        w = torch.tensor(self.angular_frequencies, dtype=x.dtype, device=x.device)
+        w = self.frequencies(x)
         phase = (w[:, None] * x[..., None, :]).flatten(-2)  # [*batch, K * D], frequency-major
         features = torch.cat([torch.sin(phase), torch.cos(phase)], dim=-1)
         if variance is not None:

@@ -1,8 +1,32 @@
-"""Multiresolution hash grid (Instant-NGP): tiny-cuda-nn when it runs, pure torch otherwise.
+"""Multiresolution hash grid (Instant-NGP): tiny-cuda-nn where it runs, pure torch elsewhere.
 
 ``HashGrid(...)`` takes the options of tcnn's ``HashGrid`` encoding and a ``backend``:
 ``"tcnn"`` (needs ``tinycudann`` and a CUDA device), ``"torch"`` (anywhere: CPU, CUDA, MPS), or
-``"auto"`` (tcnn when it imports and CUDA is available, else torch; the choice is logged once).
+``"auto"``: tcnn where the module *is*, when ``tinycudann`` imports and the parameters are on a
+CUDA device, the torch backend otherwise. The choice follows the module: it is made when the
+grid is built (on the CPU, unless built under a CUDA default device) and again after every
+``.to(...)`` / ``.cuda()`` / ``.cpu()``, which hands the values over between the two (so a fit or
+``ns-train --machine.device-type cpu`` on a GPU machine runs the torch backend). Each choice is
+logged once per device type. Build the optimizer after moving the module: a hand-over replaces
+the Parameter object.
+
+Checkpoints are portable between the backends: the torch backend stores ``table`` as
+``[rows, features]``, tcnn ``tcnn_encoding.params`` as one flat float32 vector, and loading
+either into either maps one onto the other (nerfstudio's tcnn ``HashEncoding`` uses the same
+``tcnn_encoding.params`` key). The layout, read from tiny-cuda-nn's source
+(``include/tiny-cuda-nn/encodings/grid.h``: ``GridEncodingTemplated``'s constructor and
+``grid_index``; ``bindings/torch/tinycudann/modules.py`` and ``bindings.cpp`` for the dtype):
+
+- levels back to back, coarsest first; a level has ``params_in_level = resolution**dims``
+  entries rounded up to a multiple of 8, capped at ``2**log2_hashmap_size`` for hash grids; the
+  offsets are the running sums, and ``n_params = total entries * n_features_per_level``;
+- entry ``i`` of a level holds its features contiguously: value ``(offset + i) * F + f``, i.e.
+  feature fastest, which is ``table.reshape(-1)`` for a ``[rows, F]`` table;
+- the torch ``params`` Parameter is float32 (``initial_params`` makes a float32 tensor); the
+  forward casts it to the module's parameter precision (half on most GPUs) per call.
+
+:mod:`sp_plugins.encodings.tcnn_layout` is an independent, slow reading of that layout, used
+as tcnn's stand-in in the tests.
 
 The torch backend reproduces tcnn's semantics so that the two are interchangeable:
 
@@ -14,8 +38,7 @@ The torch backend reproduces tcnn's semantics so that the two are interchangeabl
   wraps around exactly as in tcnn), finer levels by tcnn's hash: XOR of ``coord_i * prime_i`` with
   primes ``(1, 2654435761, 805459861)``, modulo the table size;
 - Linear interpolation weights ``t``, Smoothstep weights ``t*t*(3-2t)`` (continuous derivative);
-- the table is ``[entries, features_per_level]`` with levels back to back, coarsest first, each
-  level padded to a multiple of 8 rows: ``table.reshape(-1)`` is tcnn's ``params`` vector;
+- the table is ``[entries, features_per_level]`` in tcnn's layout (above);
 - initialisation uniform in ``[-1e-4, 1e-4]`` as in tcnn.
 
 Precision: the torch backend computes in the input's dtype (float32 or float64, so gradcheck
@@ -33,14 +56,14 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any, Dict, Literal, Mapping, Optional
+from typing import Any, Dict, Literal, Mapping, Optional, Union
 
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
 from sp_plugins.encodings.grid_levels import GRID_TYPES, GridType, grid_levels, per_level_scale_from_max_resolution
-from sp_plugins.encodings.hashgrid_torch import hashgrid_encode
+from sp_plugins.encodings.hashgrid_torch import hashgrid_encode, level_constants
 
 logger = logging.getLogger(__name__)
 
@@ -49,38 +72,64 @@ BACKENDS: tuple[str, ...] = ("auto", "tcnn", "torch")
 Interpolation = Literal["Linear", "Smoothstep"]
 INTERPOLATIONS: tuple[str, ...] = ("Linear", "Smoothstep")
 
+TCNN_DEVICE_TYPES: tuple[str, ...] = ("cuda",)
+"""Device types tiny-cuda-nn's kernels run on."""
+
 _logged_choices: set = set()
+
+
+def _import_tcnn():
+    """The ``tinycudann`` module, or None when it does not import (not installed, no CUDA: its
+    import raises ``EnvironmentError`` without a GPU)."""
+    try:
+        import tinycudann
+    except (ImportError, OSError, RuntimeError):
+        return None
+    return tinycudann
 
 
 def tcnn_available() -> bool:
     """True when ``tinycudann`` imports and a CUDA device is available."""
-    if not torch.cuda.is_available():
-        return False
-    try:
-        import tinycudann  # noqa: F401
-    except (ImportError, OSError, RuntimeError):
-        return False
-    return True
+    return torch.cuda.is_available() and _import_tcnn() is not None
 
 
-def resolve_backend(backend: str) -> str:
-    """Map ``auto`` to ``tcnn`` or ``torch``; reject an unusable explicit ``tcnn``."""
+def tcnn_usable(device: Union[str, torch.device], dtype: torch.dtype = torch.float32) -> bool:
+    """Whether tiny-cuda-nn can hold a grid on ``device``: a CUDA device, ``tinycudann`` imports,
+    and the table is float32 (tcnn's torch bindings keep ``params`` in float32)."""
+    device = torch.device(device)
+    return device.type in TCNN_DEVICE_TYPES and dtype == torch.float32 and _import_tcnn() is not None
+
+
+def resolve_backend(backend: str, device: Union[str, torch.device] = "cpu", dtype: torch.dtype = torch.float32) -> str:
+    """The backend a grid of ``dtype`` on ``device`` runs: ``auto`` is ``tcnn`` where
+    :func:`tcnn_usable`, else ``torch`` (logged once per choice and device type); an explicit
+    ``tcnn`` that cannot run there is refused."""
     if backend not in BACKENDS:
         raise ValueError(f"backend={backend!r} is not a backend; allowed values: {', '.join(BACKENDS)}")
     if backend == "torch":
         return "torch"
-    available = tcnn_available()
+    device = torch.device(device)
+    usable = tcnn_usable(device, dtype)
     if backend == "tcnn":
-        if not available:
+        if not usable:
             raise ValueError(
-                "backend='tcnn' needs the tinycudann package and a CUDA device; install it "
-                "(pip install 'sp-plugins[tcnn]') or use backend='auto' / 'torch'"
+                f"backend='tcnn' cannot hold a {dtype} grid on {device}: it needs the tinycudann package, a CUDA "
+                "device and a float32 table; install it (pip install 'sp-plugins[tcnn]'), move the module to CUDA, "
+                "or use backend='auto' / 'torch'"
             )
         return "tcnn"
-    choice = "tcnn" if available else "torch"
-    if choice not in _logged_choices:
-        _logged_choices.add(choice)
-        reason = "tinycudann and CUDA available" if available else "tinycudann or CUDA unavailable"
+    choice = "tcnn" if usable else "torch"
+    key = (choice, device.type)
+    if key not in _logged_choices:
+        _logged_choices.add(key)
+        if usable:
+            reason = f"tinycudann imports and the module is on {device.type}"
+        elif device.type not in TCNN_DEVICE_TYPES:
+            reason = f"the module is on {device.type}; tiny-cuda-nn runs on CUDA only"
+        elif dtype != torch.float32:
+            reason = f"the table is {dtype}; tiny-cuda-nn keeps float32 parameters"
+        else:
+            reason = "tinycudann does not import"
         logger.info("HashGrid backend 'auto' -> '%s' (%s)", choice, reason)
     return choice
 
@@ -163,18 +212,110 @@ class HashGrid(nn.Module):
                 f"grid_type={grid_type!r}); use grid_type='Hash', fewer levels or a lower resolution"
             )
         self.active_levels = num_levels
-        self.backend = resolve_backend(backend)
-
-        if self.backend == "tcnn":
-            import tinycudann
-
-            self.tcnn_encoding = tinycudann.Encoding(n_input_dims=n_input_dims, encoding_config=self.tcnn_config())
-            self.table = None
+        self.n_table_rows = self.levels[-1].offset + self.levels[-1].size
+        if backend not in BACKENDS:
+            raise ValueError(f"backend={backend!r} is not a backend; allowed values: {', '.join(BACKENDS)}")
+        self.requested_backend = backend
+        self.backend = "torch"
+        self.tcnn_encoding = None
+        table = torch.empty(self.n_table_rows, features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
+        self.table = nn.Parameter(table)
+        self._make_constants()
+        if backend == "tcnn":  # tcnn keeps its parameters on the current CUDA device from the start
+            resolve_backend("tcnn", "cuda", dtype)
+            self._use_tcnn(torch.device("cuda"))
         else:
-            self.tcnn_encoding = None
-            entries = self.levels[-1].offset + self.levels[-1].size
-            table = torch.empty(entries, features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
-            self.table = nn.Parameter(table)
+            self._sync_backend()
+
+    # -- where the parameters live --------------------------------------------------------------
+    def _make_constants(self) -> None:
+        """Per-level constants as non-persistent buffers on the parameters' device (remade after
+        every move or cast, so ``.half()`` cannot round the level scales)."""
+        device = self.table.device if self.table is not None else self.tcnn_encoding.params.device
+        for name, value in level_constants(self.levels, self.n_input_dims, device)._asdict().items():
+            self.register_buffer(f"_const_{name}", value, persistent=False)
+
+    def _constants(self):
+        from sp_plugins.encodings.hashgrid_torch import LevelConstants
+
+        return LevelConstants(*(getattr(self, f"_const_{name}") for name in LevelConstants._fields))
+
+    def _parameter(self) -> Tensor:
+        return self.table if self.table is not None else self.tcnn_encoding.params
+
+    def _sync_backend(self) -> None:
+        """Put the parameters in the backend that runs where they are now (``auto``), or check
+        that the requested one can (``tcnn``). Moving between backends keeps the values; it
+        replaces the Parameter object, so build optimizers after moving the module (as
+        nerfstudio and the fitting tasks do)."""
+        param = self._parameter()
+        if self.requested_backend == "torch":
+            return
+        if self.requested_backend == "tcnn":
+            if not tcnn_usable(param.device):
+                raise ValueError(
+                    f"HashGrid(backend='tcnn') cannot run on {param.device}: tiny-cuda-nn runs on CUDA devices only; "
+                    "use backend='auto' to switch to the torch backend off the GPU"
+                )
+            return
+        dtype = torch.float32 if self.backend == "tcnn" else param.dtype  # tcnn's params stay float32
+        choice = resolve_backend("auto", param.device, dtype)
+        if choice == "tcnn" and self.backend == "torch":
+            self._use_tcnn()
+        elif choice == "torch" and self.backend == "tcnn":
+            self._use_torch()
+
+    def _use_tcnn(self, device: Optional[torch.device] = None) -> None:
+        """Hand the table to a ``tinycudann.Encoding`` on ``device`` (default: the table's); its flat
+        ``params`` are ``table.reshape(-1)``."""
+        tcnn = _import_tcnn()
+        table = self.table
+        encoding = tcnn.Encoding(n_input_dims=self.n_input_dims, encoding_config=self.tcnn_config())
+        if encoding.params.numel() != table.numel():
+            raise RuntimeError(
+                f"tinycudann made {encoding.params.numel()} grid parameters where tcnn's documented layout gives "
+                f"{table.numel()} ({self.tcnn_config()}): this tiny-cuda-nn version lays the grid out differently"
+            )
+        encoding = encoding.to(table.device if device is None else device)
+        with torch.no_grad():
+            encoding.params.copy_(table.detach().reshape(-1))
+        self.table = None
+        self.tcnn_encoding = encoding
+        self.backend = "tcnn"
+        self._make_constants()
+
+    def _use_torch(self) -> None:
+        params = self.tcnn_encoding.params
+        self.tcnn_encoding = None
+        self.table = nn.Parameter(params.detach().reshape(self.n_table_rows, self.features_per_level).clone())
+        self.backend = "torch"
+        self._make_constants()
+
+    def _apply(self, fn, recurse: bool = True):
+        module = super()._apply(fn, recurse)
+        self._sync_backend()
+        self._make_constants()
+        return module
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
+        """Checkpoints move between backends: the torch backend's ``table`` [rows, features] and
+        tcnn's flat ``tcnn_encoding.params`` hold the same values in the same order (see the
+        module docstring), so either loads into either."""
+        table_key, tcnn_key = prefix + "table", prefix + "tcnn_encoding.params"
+        n_values = self.n_table_rows * self.features_per_level
+        source = tcnn_key if self.backend == "torch" else table_key
+        target = table_key if self.backend == "torch" else tcnn_key
+        if source in state_dict and target not in state_dict:
+            value = state_dict.pop(source)
+            if value.numel() != n_values:
+                error_msgs.append(
+                    f"HashGrid {prefix or '(root)'}: the checkpoint's {source!r} holds {value.numel()} grid values, this grid "
+                    f"{n_values} ({self.num_levels} levels x {self.features_per_level} features, 2^{self.log2_hashmap_size} rows, "
+                    f"resolutions {self.levels[0].resolution}..{self.levels[-1].resolution}): the grids differ"
+                )
+                return
+            state_dict[target] = value.reshape(self.n_table_rows, self.features_per_level) if self.backend == "torch" else value.reshape(-1)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
 
     # ----------------------------------------------------------------------------------------
     @classmethod
@@ -245,9 +386,8 @@ class HashGrid(nn.Module):
         if self.tcnn_encoding is not None:
             out = self.tcnn_encoding(flat).to(x.dtype)
             if n_active < self.num_levels:
-                mask = torch.zeros(self.n_output_dims, dtype=out.dtype, device=out.device)
-                mask[: n_active * self.features_per_level] = 1
-                out = out * mask
+                kept = n_active * self.features_per_level
+                out = torch.cat([out[:, :kept], out.new_zeros(out.shape[0], self.n_output_dims - kept)], dim=-1)
             return out.reshape(*batch, self.n_output_dims)
         # positions need float32 at least: x * 2047 in half precision would snap to a coarse grid
         compute_dtype = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
@@ -262,6 +402,7 @@ class HashGrid(nn.Module):
                 self.levels[:n_active],
                 2**self.log2_hashmap_size,
                 smoothstep=self.interpolation == "Smoothstep",
+                constants=self._constants().head(n_active),
             )
             if n_active < self.num_levels:
                 pad = out.new_zeros(out.shape[0], (self.num_levels - n_active) * self.features_per_level)

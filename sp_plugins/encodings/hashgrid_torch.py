@@ -36,7 +36,7 @@ listed in ``bench/RESULTS.md``):
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -67,8 +67,47 @@ def _corner_combos(per_dim: Tensor, op, out: Tensor) -> Tensor:
     return out
 
 
+class LevelConstants(NamedTuple):
+    """Per-level constants of a lookup, made once on the grid's device (:func:`level_constants`),
+    so a forward pass builds no tensor from Python values: ``torch.tensor(list, device=cuda)`` is
+    a host-to-device copy that synchronises the host with the GPU on every call."""
+
+    scales: Tensor  # [L] float32: tcnn's float32 scales (exact in float64 too)
+    offsets: Tensor  # [L] int32: first row of each level
+    strides: Tensor  # [Ld, D] int64: res**d of the dense levels
+    sizes: Tensor  # [Ld] int64: rows of the dense levels
+    primes: Tensor  # [D, 1] int64: tcnn's hash primes
+    delta: Tensor  # [2, 1] int64: the two corners along an axis (0, 1)
+    sign: Tensor  # [2, 1] float32: (-1, 1), weights (1 - t, t) = (1, 0) + sign * t
+
+    def head(self, n_levels: int) -> "LevelConstants":
+        """The constants of the ``n_levels`` coarsest levels (views, no copy)."""
+        n_dense = self.sizes.shape[0]
+        return self._replace(
+            scales=self.scales[:n_levels], offsets=self.offsets[:n_levels],
+            strides=self.strides[: min(n_dense, n_levels)], sizes=self.sizes[: min(n_dense, n_levels)],
+        )
+
+
+def level_constants(levels: Sequence[GridLevel], n_dims: int, device=None) -> LevelConstants:
+    """The :class:`LevelConstants` of ``levels`` on ``device``."""
+    dense = [lv for lv in levels if not lv.hashed]
+    return LevelConstants(
+        scales=torch.tensor([lv.scale for lv in levels], dtype=torch.float32, device=device),
+        offsets=torch.tensor([lv.offset for lv in levels], dtype=torch.int32, device=device),
+        strides=torch.tensor([[lv.resolution**d for d in range(n_dims)] for lv in dense], dtype=torch.int64, device=device).view(len(dense), n_dims),
+        sizes=torch.tensor([lv.size for lv in dense], dtype=torch.int64, device=device),
+        primes=torch.tensor(HASH_PRIMES[:n_dims], dtype=torch.int64, device=device)[:, None],
+        delta=torch.tensor([0, 1], dtype=torch.int64, device=device)[:, None],
+        sign=torch.tensor([-1.0, 1.0], dtype=torch.float32, device=device)[:, None],
+    )
+
+
 def corner_indices(
-    cell: Int[Tensor, "levels dims n"], levels: Sequence[GridLevel], hashmap_size: int
+    cell: Int[Tensor, "levels dims n"],
+    levels: Sequence[GridLevel],
+    hashmap_size: int,
+    constants: Optional[LevelConstants] = None,
 ) -> Int[Tensor, "levels corners n"]:
     """Rows *within each level* (int32) of the ``2**dims`` corners of every cell.
 
@@ -76,16 +115,16 @@ def corner_indices(
     cheap when threads are contended (every op pays a thread barrier)."""
     n_levels, n_dims, n = cell.shape
     device = cell.device
+    if constants is None:
+        constants = level_constants(levels, n_dims, device)
     rows = torch.empty(n_levels, 2**n_dims, n, dtype=torch.int32, device=device)
     n_dense = sum(not lv.hashed for lv in levels)
     if any(lv.hashed for lv in levels[:n_dense]):
         raise ValueError("dense levels must precede hashed levels")  # resolutions grow with the level
-    delta = torch.tensor([0, 1], device=device)[:, None]  # the two corners along an axis
+    delta = constants.delta  # the two corners along an axis
     if n_dense:
         # tcnn: uint32 sum of coord * res^d, modulo the level's rows (wraps at the far face)
-        dense = levels[:n_dense]
-        strides = torch.tensor([[lv.resolution**d for d in range(n_dims)] for lv in dense], device=device)
-        sizes = torch.tensor([lv.size for lv in dense], device=device)
+        strides, sizes = constants.strides[:n_dense], constants.sizes[:n_dense]
         terms = (cell[:n_dense, :, None] + delta) * strides[:, :, None, None]  # [Ld, D, 2, N]
         flat = _corner_combos(terms, torch.add, torch.empty(n_dense, 2**n_dims, n, dtype=torch.int64, device=device))
         torch.remainder(flat & _UINT32_MASK, sizes[:, None, None], out=flat)
@@ -93,20 +132,25 @@ def corner_indices(
     if n_dense < n_levels:
         # (c + 1) * p = c * p + p, and masking commutes with + and ^ on the low bits: int32 after one mask
         mask = hashmap_size - 1
-        primes = torch.tensor(HASH_PRIMES[:n_dims], device=device)[:, None]
+        primes = constants.primes
         low = (cell[n_dense:] * primes) & mask  # [Lh, D, N]
         terms = ((low[:, :, None] + (primes & mask)[:, :, None] * delta) & mask).to(torch.int32)  # [Lh, D, 2, N]
         _corner_combos(terms, torch.bitwise_xor, rows[n_dense:])
     return rows
 
 
-def corner_weights(t: Float[Tensor, "levels dims n"], smoothstep: bool) -> Float[Tensor, "levels corners n"]:
+def corner_weights(
+    t: Float[Tensor, "levels dims n"], smoothstep: bool, sign: Optional[Tensor] = None
+) -> Float[Tensor, "levels corners n"]:
     """Multilinear weights of the ``2**D`` corners from the local coordinates (autograd-differentiable;
-    the axes are split with ``unbind``, whose backward stacks instead of zero-filling)."""
+    the axes are split with ``unbind``, whose backward stacks instead of zero-filling). ``sign``:
+    the ``[2, 1]`` constant (-1, 1) (:class:`LevelConstants`), made here when not given."""
     if smoothstep:
         t = t * t * (3.0 - 2.0 * t)
     # [L, D, 2, N] = (1 - t, t) per axis in one op (a stack along dim 2 is a slow strided copy)
-    sign = torch.tensor([-1.0, 1.0], dtype=t.dtype, device=t.device)[:, None]
+    if sign is None:
+        sign = torch.tensor([-1.0, 1.0], device=t.device)[:, None]
+    sign = sign.to(t.dtype)
     pairs = torch.addcmul((sign < 0).to(t.dtype), t[:, :, None], sign).unbind(1)  # D x [L, 2, N]
     acc = pairs[0]
     for pair in pairs[1:]:
@@ -251,15 +295,21 @@ def hashgrid_encode(
     levels: Sequence[GridLevel],
     hashmap_size: int,
     smoothstep: bool = False,
+    constants: Optional[LevelConstants] = None,
 ) -> Float[Tensor, "n levels_times_features"]:
-    """Interpolated features of ``levels`` at ``x`` (expected in [0, 1]), concatenated level by level."""
+    """Interpolated features of ``levels`` at ``x`` (expected in [0, 1]), concatenated level by level.
+
+    ``constants``: :func:`level_constants` of ``levels`` on ``x``'s device (HashGrid keeps them as
+    buffers); without them they are made here, which costs a host-to-device copy per call on a GPU."""
     n = x.shape[0]
-    scales = torch.tensor([lv.scale for lv in levels], dtype=x.dtype, device=x.device)
+    if constants is None:
+        constants = level_constants(levels, x.shape[1], x.device)
+    scales = constants.scales.to(x.dtype)  # float32 values: exact in float64 as well
     pos = torch.addcmul(torch.full_like(scales, 0.5)[:, None, None], x.t()[None], scales[:, None, None])  # [L, D, N]
     with torch.no_grad():
         cell = torch.floor(pos)
-        rows = corner_indices(cell.to(torch.int64), levels, hashmap_size)
-        rows += torch.tensor([lv.offset for lv in levels], dtype=torch.int32, device=x.device)[:, None, None]
-    weights = corner_weights(pos - cell, smoothstep)  # [L, 2^D, N]
+        rows = corner_indices(cell.to(torch.int64), levels, hashmap_size, constants)
+        rows += constants.offsets[:, None, None]
+    weights = corner_weights(pos - cell, smoothstep, constants.sign)  # [L, 2^D, N]
     out = _Interp.apply(table, weights, rows)  # [N, L, F]
     return out.reshape(n, -1)
