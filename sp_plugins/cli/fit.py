@@ -54,7 +54,10 @@ class _Output:
     no_sp: tyro.conf.FlagCreatePairsOff[bool] = False
     """Train the baseline: no stochastic preconditioning (same as --sp.no-enabled)."""
     quiet: tyro.conf.FlagCreatePairsOff[bool] = False
-    """No progress bar."""
+    """No progress output."""
+    device: str = "auto"
+    """Where to train: auto (CUDA when available, else the CPU), cpu, cuda, cuda:N or mps. The hash
+    grid runs tiny-cuda-nn on CUDA when it is installed, its torch backend elsewhere."""
 
 
 @dataclass(kw_only=True)
@@ -94,7 +97,7 @@ class SDFCommand(SDFFitConfig, _Output):
     """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
 
 
-_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "gt", "estimate_normals"}
+_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "device", "gt", "estimate_normals"}
 
 
 def _task_config(cmd, cls):
@@ -176,26 +179,28 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, PointCloudSDFConfig)
-    from sp_plugins.tasks.common import prepare_output_dir
+    from sp_plugins.tasks.common import prepare_output_dir, resolve_device, stage
 
+    device = resolve_device(cmd.device)
     data = load_oriented_points(cmd.input, config.n_points, config.seed, cmd.estimate_normals)
     gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)  # after the inputs: a bad file leaves no empty --out
-    trainer = config.setup(data)
+    trainer = config.setup(data, device=device)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)
     seconds = time.perf_counter() - start
     if gt is not None:
-        mesh, metrics = trainer.evaluate(gt)
+        mesh, metrics = trainer.evaluate(gt, progress=not cmd.quiet)
     else:
-        mesh, info = trainer.mesh()
+        mesh, info = trainer.mesh(progress=not cmd.quiet)
         metrics = dict(info, chamfer=None, normal_consistency=None, fscore=None,
                        note="no ground-truth mesh: pass --gt MESH for chamfer, normal consistency and F-score")
     _warn_if_empty(mesh)
-    save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
+    with stage(f"writing {out / 'mesh.ply'}", not cmd.quiet):
+        save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
-        sp=_sp_summary(config.sp), normals=data.source, input=str(cmd.input),
+        device=str(device), sp=_sp_summary(config.sp), normals=data.source, input=str(cmd.input),
         gt=str(cmd.gt) if cmd.gt is not None else (str(cmd.input) if gt is not None else None),
         final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
@@ -210,16 +215,17 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
 
 def run_image(cmd: ImageCommand) -> dict:
-    from sp_plugins.tasks.common import prepare_output_dir
+    from sp_plugins.tasks.common import prepare_output_dir, resolve_device
     from sp_plugins.tasks.image import load_image, save_image
 
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
     config = _task_config(cmd, ImageFitConfig)
+    device = resolve_device(cmd.device)
     image = load_image(cmd.input)
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
     if not config.adaptive_alpha:
         (out / "alpha_map.png").unlink(missing_ok=True)  # an earlier --adaptive-alpha run's map would mislead
-    trainer = config.setup(image)
+    trainer = config.setup(image, device=device)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)
     seconds = time.perf_counter() - start
@@ -228,9 +234,11 @@ def run_image(cmd: ImageCommand) -> dict:
     from sp_plugins.tasks.image import psnr
 
     metrics = dict(
-        psnr=psnr(fitted, image), steps=trainer.step_index, seconds=seconds,
-        seconds_per_step=trainer.timer.total / max(trainer.step_index, 1), sp=_sp_summary(config.sp),
-        adaptive_alpha=config.adaptive_alpha, width=trainer.width, height=trainer.height,
+        psnr=psnr(fitted, image), steps=trainer.step_index, seconds=seconds, device=str(device),
+        seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
+        sp=dict(_sp_summary(config.sp), alpha_grid=trainer.sp.alpha_grid is not None),  # the image's map is --adaptive-alpha
+        adaptive_alpha=config.adaptive_alpha, importance_sampling=config.importance_sampling,
+        level_masking=config.level_masking, phase2_step=trainer.phase2_step, width=trainer.width, height=trainer.height,
         input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
     if trainer.sp.alpha_grid is not None:
@@ -246,22 +254,23 @@ def run_image(cmd: ImageCommand) -> dict:
 
 def run_sdf(cmd: SDFCommand) -> dict:
     from sp_plugins.geometry import load_mesh, save_mesh
-    from sp_plugins.tasks.common import prepare_output_dir
+    from sp_plugins.tasks.common import prepare_output_dir, resolve_device
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
+    device = resolve_device(cmd.device)
     gt = load_mesh(cmd.input)
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
-    trainer = config.setup(gt)
+    trainer = config.setup(gt, device=device)
     start = time.perf_counter()
     trainer.fit(progress=not cmd.quiet)
     seconds = time.perf_counter() - start
-    mesh, metrics = trainer.evaluate()
+    mesh, metrics = trainer.evaluate(progress=not cmd.quiet)
     _warn_if_empty(mesh)
     save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
-        sp=_sp_summary(config.sp), input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
+        device=str(device), sp=_sp_summary(config.sp), input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
     _write_json(out / "metrics.json", metrics)
     _loss_plot(trainer, out / "loss.png", ("loss",))

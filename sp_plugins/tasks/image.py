@@ -5,6 +5,20 @@ queried at perturbed positions and compared with the colour of the unperturbed p
 learns the blurred image while alpha > 0. With ``adaptive_alpha`` alpha is an
 :class:`~sp_plugins.AlphaGrid` at 1/16 of the image size trained with its own Adam (the
 paper's alpha-map figure): it stays large where the image is smooth and shrinks on detail.
+
+The paper's "alpha-map guided adaptive techniques" run in two phases. Phase 1 is SP with the
+learnable map, while the SP schedule is on. Phase 2 starts at the first step where the schedule
+reaches 0: SP is off, the map is frozen and read as a level-of-detail estimate, and it guides
+
+- ``importance_sampling``: training pixels are drawn with probability proportional to
+  ``1 / alpha`` (mixed with a uniform share), so detailed regions get more samples. The loss is
+  not re-weighted: shifting the fit's effort to the detail is the point;
+- ``level_masking``: each query may use only some hash-grid levels, all of them where alpha is
+  at the map's low quantile, ``level_mask_min_levels`` at its high quantile, log-linear between
+  (:mod:`sp_plugins.encodings.level_mask`), so smooth regions leave the fine levels' table rows
+  to the detail. The mask is part of the fitted field (render and PSNR use it too).
+
+``lr_decay`` / ``lr_decay_at`` give Instant-NGP's image schedule (x0.6 at 2/3 of training).
 """
 
 from __future__ import annotations
@@ -58,6 +72,20 @@ class ImageFitConfig:
     """Image pixels per alpha-map cell along each axis."""
     alpha_map_lr: float = 1e-2
     """Adam learning rate of the alpha map (the paper: 0.01)."""
+    importance_sampling: bool = False
+    """Phase 2 (after SP ends): draw pixels with probability ~ 1/alpha (needs --adaptive-alpha)."""
+    importance_uniform: float = 0.5
+    """Share of the phase-2 pixel distribution that stays uniform (flat regions keep being fit)."""
+    level_masking: bool = False
+    """Phase 2: fewer hash-grid levels where alpha is high (needs --adaptive-alpha and a hash grid)."""
+    level_mask_min_levels: float = 8.0
+    """Levels usable at the alpha map's high quantile (all levels at its low quantile)."""
+    level_mask_quantiles: Tuple[float, float] = (0.05, 0.95)
+    """Quantiles of the alpha map taken as its low and high ends for the level mask."""
+    lr_decay: float = 1.0
+    """Multiply the field's learning rate by this at ``lr_decay_at`` (Instant-NGP: 0.6)."""
+    lr_decay_at: float = 2.0 / 3.0
+    """Fraction of training at which ``lr_decay`` applies."""
     encoding: EncodingConfig = field(default_factory=_image_encoding)
     sp: SPConfig = field(default_factory=_image_sp)
 
@@ -68,6 +96,25 @@ class ImageFitConfig:
             raise ValueError(f"alpha_map_downscale={self.alpha_map_downscale}: must be >= 1")
         if self.encoding.kind == "triplane":
             raise ValueError("encoding kind='triplane' is 3D only; use hashgrid, fourier or finer for images")
+        for name in ("importance_sampling", "level_masking"):
+            if getattr(self, name) and not self.adaptive_alpha:
+                flag = name.replace("_", "-")
+                raise ValueError(f"--{flag} uses the learned alpha map: add --adaptive-alpha (or drop --{flag})")
+        if self.level_masking and self.encoding.kind != "hashgrid":
+            raise ValueError(f"--level-masking masks hash-grid levels: use --encoding.kind hashgrid (got {self.encoding.kind!r})")
+        if self.level_masking and not 0 < self.level_mask_min_levels <= self.encoding.levels:
+            raise ValueError(
+                f"level_mask_min_levels={self.level_mask_min_levels}: must be in (0, encoding.levels={self.encoding.levels}]"
+            )
+        lo, hi = self.level_mask_quantiles
+        if not 0.0 <= lo < hi <= 1.0:
+            raise ValueError(f"level_mask_quantiles={self.level_mask_quantiles}: need 0 <= low < high <= 1")
+        if not 0.0 <= self.importance_uniform <= 1.0:
+            raise ValueError(f"importance_uniform={self.importance_uniform}: must be in [0, 1]")
+        if not (self.lr_decay > 0 and 0.0 < self.lr_decay_at <= 1.0):
+            raise ValueError(f"lr_decay={self.lr_decay}, lr_decay_at={self.lr_decay_at}: need lr_decay > 0 and 0 < lr_decay_at <= 1")
+        if self.sp.alpha_grid:
+            raise ValueError("alpha_grid: --sp.alpha-grid is the 3D methods' alpha grid; for an image use --adaptive-alpha")
         self.encoding.validate()
         self.sp.validate()
 
@@ -111,6 +158,20 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
+def importance_weights(alpha: Float[Tensor, "n"], uniform_share: float) -> Float[Tensor, "n"]:
+    """Pixel probabilities: ``(1 - u) * (1/alpha) / sum(1/alpha) + u / n`` (low alpha, fine
+    detail: drawn more often)."""
+    inv = 1.0 / alpha.clamp_min(1e-12)
+    return (1.0 - uniform_share) * inv / inv.sum() + uniform_share / len(alpha)
+
+
+def draw_pixels(cdf: Float[Tensor, "n"], batch: int, generator: torch.Generator) -> Tensor:
+    """``batch`` indices drawn with replacement from the distribution whose CDF is ``cdf``
+    (inverse-CDF sampling: cheaper than ``torch.multinomial`` over a whole image)."""
+    u = torch.rand(batch, generator=generator, device=cdf.device, dtype=cdf.dtype) * cdf[-1]
+    return torch.searchsorted(cdf, u, right=True).clamp_max(len(cdf) - 1)
+
+
 def pixel_centres(h: int, w: int) -> Float[Tensor, "hw 2"]:
     """``(x, y)`` of every pixel centre in [0, 1]^2, row-major."""
     ys = (torch.arange(h, dtype=torch.float32) + 0.5) / h
@@ -139,6 +200,10 @@ class ImageFitTrainer:
                 config.encoding, dim=2, out_dim=3, hidden=config.hidden, activation="relu",
                 include_input=False, bounds=(0.0, 1.0),
             ).to(self.device)
+        if config.level_masking:
+            from sp_plugins.encodings.level_mask import PerPointLevelMask
+
+            self.field.encoding = PerPointLevelMask(self.field.encoding)  # inactive until phase 2
         sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
         self.sp = sp_config.setup(total_steps=config.steps, bounds=(0.0, 1.0), dim=2).to(self.device)
         self.sp.train()
@@ -150,12 +215,51 @@ class ImageFitTrainer:
             # The schedule still scales the map (alpha_at), so the fit ends as a plain field.
             self.sp.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0)).to(self.device)
             groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": config.alpha_map_lr})
-        self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+            end = self.sp.schedule.end_step
+            if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps):
+                raise ValueError(
+                    "--importance-sampling / --level-masking start when SP ends, but the SP schedule "
+                    f"({sp_config.schedule}, end={sp_config.end}) never ends before step {config.steps}: give --sp.end < 1"
+                )
+        # fused: about 5-10x faster on a CPU for a 2^17+ table (bench/hashgrid_speed.py)
+        self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.step_index = 0
         self.history: dict[str, list[float]] = defaultdict(list)
         self.timer = StepTimer()
+        self.phase2_step: Optional[int] = None
+        """First step of phase 2 (the map guides the fit), once it has started."""
+        self._pixel_cdf: Optional[Tensor] = None
+        self.level_mask_alpha_range: Optional[Tuple[float, float]] = None
+
+    # -- phase 2 ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def pixel_alpha(self) -> Float[Tensor, "hw"]:
+        """The learned (unscaled) alpha map at every pixel centre."""
+        return self.sp.alpha_grid(self.positions)[:, 0]
+
+    def levels_at(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n"]:
+        """Usable hash-grid levels at ``x`` in phase 2 (inverse to the map's alpha there)."""
+        from sp_plugins.encodings.level_mask import levels_from_alpha
+
+        lo, hi = self.level_mask_alpha_range
+        c = self.config
+        return levels_from_alpha(self.sp.alpha_grid(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
+
+    @torch.no_grad()
+    def start_phase2(self) -> None:
+        """Freeze the alpha map and switch on the techniques it guides."""
+        c = self.config
+        self.phase2_step = self.step_index
+        self.sp.alpha_grid.requires_grad_(False)
+        if c.importance_sampling:
+            self._pixel_cdf = torch.cumsum(importance_weights(self.pixel_alpha(), c.importance_uniform).double(), 0)
+        if c.level_masking:
+            q = torch.tensor(c.level_mask_quantiles, dtype=torch.float32, device=self.device)
+            lo, hi = torch.quantile(self.sp.alpha_grid.values().reshape(-1), q).tolist()
+            self.level_mask_alpha_range = (lo, max(hi, lo * (1 + 1e-6)))
+            self.field.encoding.levels_fn = self.levels_at
 
     def rgb(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n 3"]:
         return torch.sigmoid(self.field(x))
@@ -164,8 +268,14 @@ class ImageFitTrainer:
         c = self.config
         with self.timer:
             alpha = self.sp.set_step(self.step_index, c.steps)
+            if self.step_index == round(c.lr_decay_at * c.steps) and c.lr_decay != 1.0:
+                self.optimizer.param_groups[0]["lr"] *= c.lr_decay
+            if c.adaptive_alpha and self.phase2_step is None and alpha == 0.0 and self.step_index > 0:
+                self.start_phase2()
             n = len(self.positions)
-            if c.batch >= n:
+            if self._pixel_cdf is not None:
+                idx = draw_pixels(self._pixel_cdf, c.batch, self.generator)
+            elif c.batch >= n:
                 idx = torch.arange(n, device=self.device)
             else:
                 idx = torch.randint(n, (c.batch,), generator=self.generator, device=self.device)
