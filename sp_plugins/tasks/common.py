@@ -1,12 +1,66 @@
-"""Pieces shared by the fitting tasks: output folders, loss curves, step timing."""
+"""Pieces shared by the fitting tasks: devices, output folders, loss curves, step timing,
+progress lines for the slow steps after training."""
 
 from __future__ import annotations
 
+import contextlib
+import sys
 import time
 from pathlib import Path
-from typing import Iterable, Mapping, Optional, Sequence, Union
+from typing import Callable, Iterable, Iterator, Mapping, Optional, Sequence, Union
 
 import torch
+
+
+DEVICE_CHOICES = "auto, cpu, cuda, cuda:N or mps"
+
+
+def resolve_device(name: Union[str, torch.device, None] = "auto") -> torch.device:
+    """The torch device for ``--device NAME``: ``auto`` (or None) is CUDA when available, else the
+    CPU. An unknown name or a device this machine does not have is a ``ValueError`` naming the flag."""
+    if name is None or str(name) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"--device {name}: not a device; use {DEVICE_CHOICES}") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {name}: CUDA is not available on this machine; use --device cpu (or auto)")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                             f"cuda:0 to cuda:{torch.cuda.device_count() - 1}")
+    elif device.type == "mps":
+        if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+            raise ValueError(f"--device {name}: Apple's MPS is not available on this machine; use --device cpu (or auto)")
+    elif device.type != "cpu":
+        raise ValueError(f"--device {name}: the fitting tasks run on {DEVICE_CHOICES}")
+    return device
+
+
+@contextlib.contextmanager
+def stage(what: str, enabled: bool = True, prefix: str = "sp-fit") -> Iterator[None]:
+    """Say what a slow step is doing, and how long it took (stderr, one line each)."""
+    start = time.perf_counter()
+    if enabled:
+        print(f"{prefix}: {what} ...", file=sys.stderr, flush=True)
+    yield
+    if enabled:
+        print(f"{prefix}: {what}: done in {time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
+
+
+def counting_bar(fn: Callable, total: int, desc: str, enabled: bool = True):
+    """``fn`` with a tqdm bar that counts the points it has been called on, and the bar (close it)."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit="pt", unit_scale=True, disable=not enabled, leave=False)
+
+    def wrapped(x):
+        out = fn(x)
+        bar.update(len(x))
+        return out
+
+    return wrapped, bar
 
 
 def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite: bool) -> Path:

@@ -38,7 +38,7 @@ from sp_plugins.geometry import (
     mesh_from_grid,
     mesh_metrics,
 )
-from sp_plugins.tasks.common import StepTimer, run_to_end
+from sp_plugins.tasks.common import StepTimer, counting_bar, run_to_end, stage
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -230,14 +230,21 @@ class PointCloudSDFTrainer:
         self.field.eval()
         return self.field(x).squeeze(-1)
 
-    def mesh(self, resolution: Optional[int] = None, refine: Optional[int] = None) -> Tuple[trimesh.Trimesh, dict]:
+    def mesh(
+        self, resolution: Optional[int] = None, refine: Optional[int] = None, progress: bool = False
+    ) -> Tuple[trimesh.Trimesh, dict]:
         """Zero level set in the frame, and field diagnostics: ``negative_fraction`` of the grid
-        (a sound SDF of an object is mostly positive) and the number of components."""
+        (a sound SDF of an object is mostly positive) and the number of components. ``progress``
+        shows what it is doing (it takes a while at high resolutions)."""
         res = resolution or self.config.mesh_resolution
         ref = self.config.refine if refine is None else refine
-        with torch.no_grad():
-            volume = evaluate_grid(self.sdf, (-1.0, 1.0), res, device=self.device)
-        mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=ref, device=self.device)
+        with stage(f"meshing: the field on a {res}^3 grid", progress):
+            sdf, bar = counting_bar(self.sdf, res**3, "grid points", progress)
+            with torch.no_grad():
+                volume = evaluate_grid(sdf, (-1.0, 1.0), res, device=self.device)
+            bar.close()
+        with stage(f"meshing: marching cubes, {ref} bisection steps per vertex", progress):
+            mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=ref, device=self.device)
         info = {"negative_fraction": float((volume < 0).mean()), "resolution": res, "refine": ref}
         return mesh, info
 
@@ -249,17 +256,20 @@ class PointCloudSDFTrainer:
         refine: Optional[int] = None,
         metric_points: Optional[int] = None,
         gt_in_frame: bool = False,
+        progress: bool = False,
     ) -> Tuple[trimesh.Trimesh, dict]:
         """Mesh (in the frame) and metrics against ``gt_mesh`` (input coordinates unless
         ``gt_in_frame``): raw, and after keeping the largest component (``clean_*``)."""
         c = self.config
         gt = gt_mesh if gt_in_frame else self.frame.mesh_to_frame(gt_mesh)
-        mesh, info = self.mesh(resolution, refine)
+        mesh, info = self.mesh(resolution, refine, progress)
         n = metric_points or c.metric_points
-        m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-        clean = largest_component(mesh)
-        mc = mesh_metrics(clean, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-        components = len(mesh.split(only_watertight=False)) if len(mesh.faces) else 0
+        with stage(f"measuring: Chamfer, normal consistency and F-score on {n} points per mesh", progress):
+            m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+        with stage("measuring: the same for the largest component", progress):
+            clean = largest_component(mesh)
+            mc = mesh_metrics(clean, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+            components = len(mesh.split(only_watertight=False)) if len(mesh.faces) else 0
         metrics = dict(m, **{f"clean_{k}": v for k, v in mc.items() if k not in ("unit", "n_points", "fscore_threshold")})
         metrics.update(info, components=components, step=self.step_index)
         return mesh, metrics

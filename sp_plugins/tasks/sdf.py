@@ -23,7 +23,7 @@ from torch import Tensor
 
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, evaluate_grid, largest_component, mesh_from_grid, mesh_metrics, sample_surface
-from sp_plugins.tasks.common import StepTimer, run_to_end
+from sp_plugins.tasks.common import StepTimer, counting_bar, run_to_end, stage
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -163,17 +163,22 @@ class SDFFitTrainer:
         return self.field(x).squeeze(-1)
 
     def evaluate(self, gt_mesh: Optional[trimesh.Trimesh] = None, *, resolution: Optional[int] = None,
-                 metric_points: Optional[int] = None) -> Tuple[trimesh.Trimesh, dict]:
-        """Mesh in the frame and metrics against the (input) mesh, raw and ``clean_*``."""
+                 metric_points: Optional[int] = None, progress: bool = False) -> Tuple[trimesh.Trimesh, dict]:
+        """Mesh in the frame and metrics against the (input) mesh, raw and ``clean_*``; ``progress``
+        says what it is doing."""
         c = self.config
         gt = self.mesh_in_frame if gt_mesh is None else self.frame.mesh_to_frame(gt_mesh)
         res = resolution or c.mesh_resolution
-        with torch.no_grad():
-            volume = evaluate_grid(self.sdf, (-1.0, 1.0), res, device=self.device)
-        mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=c.refine, device=self.device)
+        with stage(f"meshing: the field on a {res}^3 grid, marching cubes, {c.refine} bisection steps", progress):
+            sdf, bar = counting_bar(self.sdf, res**3, "grid points", progress)
+            with torch.no_grad():
+                volume = evaluate_grid(sdf, (-1.0, 1.0), res, device=self.device)
+            bar.close()
+            mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=c.refine, device=self.device)
         n = metric_points or c.metric_points
-        m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-        mc = mesh_metrics(largest_component(mesh), gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+        with stage(f"measuring: Chamfer and F-score on {n} points per mesh, raw and largest component", progress):
+            m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+            mc = mesh_metrics(largest_component(mesh), gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
         metrics = dict(m, **{f"clean_{k}": v for k, v in mc.items() if k not in ("unit", "n_points", "fscore_threshold")})
         metrics.update(negative_fraction=float((volume < 0).mean()), resolution=res, refine=c.refine, step=self.step_index)
         # Also how well the field fits distances on held-in samples near the surface.

@@ -179,3 +179,12 @@ def test_console_script_is_registered(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--help"])
     assert exc.value.code == 0 and "pointcloud" in capsys.readouterr().out
+
+
+def test_quiet_fit_prints_no_stage_lines(tmp_path, mesh_path, capsys):
+    out = tmp_path / "run"
+    base = ["pointcloud", str(mesh_path), "--out", str(out), "--steps", "2", "--n-points", "2000",
+            "--surface-batch", "64", "--space-batch", "64", "--device", "cpu"] + TINY_SDF
+    assert main(base) == 0
+    assert "meshing" not in capsys.readouterr().err
+    assert read_json(out / "metrics.json")["device"] == "cpu"
