@@ -34,6 +34,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, sp_callbacks
+from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
 
@@ -45,9 +46,23 @@ class SPModelConfig:
     """Stochastic preconditioning: perturb query positions while training, alpha annealed to 0."""
 
 
+def refuse_inert_options(config: SPConfig) -> None:
+    """With SP off (a baseline), options that only act through SP would be silently ignored:
+    refuse them, naming the flag."""
+    if config.enabled:
+        return
+    inert = [flag for flag, on in (("alpha-grid True", config.alpha_grid), (f"num-samples {config.num_samples}", config.num_samples > 1)) if on]
+    if inert:
+        raise InputError(
+            f"--pipeline.model.sp.{inert[0]} has no effect with SP off (--pipeline.model.sp.enabled False, the "
+            "baseline); pass --pipeline.model.sp.enabled True or train the sp- variant of this method"
+        )
+
+
 def build_preconditioner(config: SPConfig, aabb: torch.Tensor) -> StochasticPreconditioner:
     """A preconditioner over the scene box ``aabb`` ``[2, 3]``; the total steps come later from
     the trainer."""
+    refuse_inert_options(config)
     aabb = aabb.detach().float().cpu()
     diagonal = float(torch.linalg.norm(aabb[1] - aabb[0]))
     return config.setup(scene_diagonal=diagonal, bounds=aabb, dim=3)

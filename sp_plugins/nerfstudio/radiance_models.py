@@ -24,6 +24,7 @@ from nerfstudio.models.tensorf import TensoRFModel, TensoRFModelConfig
 from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 
 from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.frustum_sp import attach_frustum_sp
 from sp_plugins.nerfstudio.mipnerf import as_sp_nerf_field
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
@@ -97,7 +98,8 @@ class SPNeRFModel(SPModel, NeRFModel):
 
 def _check_box_boundary(sp: SPConfig, bounded: bool, method: str) -> None:
     """A bounded field zeroes density outside its box: SP should reflect there, and must not
-    reflect in a contracted (unbounded) scene."""
+    reflect in a contracted (unbounded) scene. A mismatch is the user's flag: :class:`InputError`,
+    one line under ``ns-train``."""
     if not sp.enabled:
         return
     if bounded and sp.boundary == "none":
@@ -107,7 +109,7 @@ def _check_box_boundary(sp: SPConfig, bounded: bool, method: str) -> None:
             method,
         )
     if not bounded and sp.boundary != "none":
-        raise ValueError(
+        raise InputError(
             f"{method}: --pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but scene contraction is on; "
             "pass --pipeline.model.sp.boundary none (or --pipeline.model.disable-scene-contraction True)"
         )
@@ -126,7 +128,16 @@ class SPNerfactoModel(SPModel, NerfactoModel):
 
     def populate_modules(self) -> None:
         _check_box_boundary(self.config.sp, self.config.disable_scene_contraction, "sp-nerfacto")
+        from sp_plugins.nerfstudio import hash_encoding
+
+        # Where tcnn cannot run: nerfstudio's torch modules (no slow-path warnings), then our hash grids
+        device = self.kwargs.get("device")
+        ours = hash_encoding.use_sp_hash_grids(device)
+        if ours:
+            self.config = dataclasses.replace(self.config, implementation="torch")
         super().populate_modules()
+        if ours:
+            hash_encoding.setup_host_modules(self, "sp-nerfacto", device)
 
     def attach_sp(self) -> None:
         attach_frustum_sp(self.field, self.sp)
@@ -145,6 +156,12 @@ class SPTensoRFModel(SPModel, TensoRFModel):
 
     def populate_modules(self) -> None:
         _check_box_boundary(self.config.sp, True, "sp-tensorf")
+        if self.config.sp.alpha_grid:
+            # nerfstudio 1.1.5's TensorVMEncoding detaches its sample coordinates
+            raise InputError(
+                "--pipeline.model.sp.alpha-grid True cannot learn on sp-tensorf: nerfstudio's TensoRF encoding detaches "
+                "its sample positions, so no gradient reaches the alpha grid; use a global alpha (the default)"
+            )
         super().populate_modules()
 
     def attach_sp(self) -> None:
