@@ -4,6 +4,8 @@
 
 - :func:`extract_mesh`: marching cubes (scikit-image) of ``sdf_fn`` on a chunked grid, with
   optional bisection refinement of the vertices.
+- :func:`sparse_extract_mesh`: the same at high resolution, coarse to fine and only near the
+  surface (brick-wise scikit-image marching cubes), for fields that are expensive to query.
 - :func:`mesh_metrics`: Chamfer (with accuracy / completeness split), normal consistency,
   F-score on area-uniform samples (scipy cKDTree), relative to the ground truth's diagonal.
 - :func:`largest_component`: pymeshlab clean-up.
@@ -13,6 +15,7 @@
 from sp_plugins.geometry.cleanup import largest_component
 from sp_plugins.geometry.io import Frame, OrientedPoints, estimate_normals, load_mesh, load_oriented_points, save_mesh
 from sp_plugins.geometry.marching_cubes import evaluate_grid, extract_mesh, mesh_from_grid, refine_vertices
+from sp_plugins.geometry.sparse_marching_cubes import sparse_extract_mesh
 from sp_plugins.geometry.metrics import directed_distances, mesh_metrics, sample_surface
 
 __all__ = [
@@ -30,4 +33,5 @@ __all__ = [
     "refine_vertices",
     "sample_surface",
     "save_mesh",
+    "sparse_extract_mesh",
 ]

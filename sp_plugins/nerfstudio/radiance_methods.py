@@ -24,7 +24,6 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
-from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -39,6 +38,7 @@ from sp_plugins.nerfstudio.radiance_models import (
     SPTensoRFModelConfig,
 )
 from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
+from sp_plugins.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig
 
 
 @dataclass
@@ -128,7 +128,7 @@ def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
 
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
-    decay = ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000)
+    decay = FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000)
     config = TrainerConfig(
         method_name=name,
         steps_per_eval_batch=500,
@@ -150,7 +150,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
             "fields": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
             "camera_opt": {
                 "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
             },
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
@@ -175,15 +175,15 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
         optimizers={
             "fields": {
                 "optimizer": AdamOptimizerConfig(lr=0.001),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=30000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=30000),
             },
             "encodings": {
                 "optimizer": AdamOptimizerConfig(lr=0.02),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=30000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=30000),
             },
             "camera_opt": {
                 "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
+                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
             },
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),

@@ -21,7 +21,6 @@ from typing import Optional
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from nerfstudio.engine.schedulers import CosineDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -31,6 +30,7 @@ from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP
 from sp_plugins.nerfstudio.data import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
+from sp_plugins.nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
@@ -41,7 +41,7 @@ NEURALANGELO_SP = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_g
 def _optimizer(lr: float, steps: int, warm_up_end: int) -> dict:
     return {
         "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
-        "scheduler": CosineDecaySchedulerConfig(warm_up_end=warm_up_end, learning_rate_alpha=0.05, max_steps=steps),
+        "scheduler": FloatCosineDecaySchedulerConfig(warm_up_end=warm_up_end, learning_rate_alpha=0.05, max_steps=steps),
     }
 
 
