@@ -2,7 +2,8 @@
 # One entry point for newcomers and CI.
 #   ./run.sh demo [sp-demo options]   set everything up, then train baseline vs SP on a bundled scene
 #   ./run.sh test [pytest options]    set everything up, then run the test suite
-#   ./run.sh setup                    only create / update the virtual environment
+#   ./run.sh setup                    only create / update the virtual environments
+#   ./run.sh setup-sdfstudio          only create / update the sdfstudio environment (see below)
 # The virtual environment lives in $SP_VENV (default: .venv inside this checkout, one per checkout,
 # so a second clone or CI never re-points another checkout's environment); it is created once and
 # reused: later runs reinstall only when pyproject.toml or the checkout path changes.
@@ -45,16 +46,98 @@ setup() {
     "$venv/bin/python" -m pip install -q --upgrade pip
     # shellcheck disable=SC2086
     "$venv/bin/python" -m pip install -q $torch_spec
-    "$venv/bin/python" -m pip install -q -e "$here[dev]"
+    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,dev]"
     echo "$want" > "$stamp"
   fi
+}
+
+# sdfstudio (a second host) installs as a package named `nerfstudio`, so it gets its own environment:
+# $SP_SDFSTUDIO_VENV (default .venv-sdfstudio inside this checkout), built from $SP_SDFSTUDIO_SRC (a source
+# tree or a .tar.gz of one; default ../shared/hosts/sdfstudio-370902a.tar.gz beside the checkout). Without a
+# source it says how to get one and skips. The stamp is written only after every step succeeded, so a failed
+# build is never taken for a working one (the tests skip the host until the stamp exists).
+sdf_venv="${SP_SDFSTUDIO_VENV:-$here/.venv-sdfstudio}"
+sdf_src="${SP_SDFSTUDIO_SRC:-$here/../shared/hosts/sdfstudio-370902a.tar.gz}"
+sdf_stamp="$sdf_venv/.sp-sdfstudio-stamp"
+
+setup_sdfstudio() {
+  if [ ! -e "$sdf_src" ]; then
+    echo "[sp-plugins] sdfstudio: no source at $sdf_src; skipping its environment and tests." >&2
+    echo "[sp-plugins]   get one: git clone https://github.com/autonomousvision/sdfstudio && SP_SDFSTUDIO_SRC=\$PWD/sdfstudio ./run.sh setup-sdfstudio" >&2
+    return 0
+  fi
+  local src_id want
+  if [ -d "$sdf_src" ]; then
+    src_id="$(cd "$sdf_src" && { git rev-parse HEAD 2>/dev/null || find . -name '*.py' -newer pyproject.toml | wc -l; })"
+  else
+    src_id="$(sha256sum "$sdf_src" | cut -d' ' -f1)"
+  fi
+  want="$(sha256sum "$here/pyproject.toml" | cut -d' ' -f1) $torch_spec $here $(cd "$(dirname "$sdf_src")" && pwd)/$(basename "$sdf_src") $src_id"
+  if [ "$(cat "$sdf_stamp" 2>/dev/null || true)" = "$want" ]; then return 0; fi
+  echo "[sp-plugins] sdfstudio: building its environment in $sdf_venv (first time: about 3-5 minutes)"
+  rm -f "$sdf_stamp"
+  [ -x "$sdf_venv/bin/python" ] || "$python" -m venv "$sdf_venv"
+  local log="$sdf_venv/setup.log"
+  if ! {
+    "$sdf_venv/bin/python" -m pip install -q --upgrade pip &&
+    # shellcheck disable=SC2086
+    "$sdf_venv/bin/python" -m pip install -q $torch_spec &&
+    "$sdf_venv/bin/python" -m pip install -q --no-deps "$sdf_src" &&
+    "$sdf_venv/bin/python" -m pip install -q -e "$here[sdfstudio,dev]" &&
+    "$sdf_venv/bin/python" -c "import sp_plugins.sdfstudio.host as h; h.require_sdfstudio()" &&
+    # opt-in hook: sdfstudio's own ns-train / ns-eval / ns-extract-mesh see our patches and methods
+    "$sdf_venv/bin/python" -m sp_plugins.sdfstudio.hook install
+  } >"$log" 2>&1; then
+    tail -n 20 "$log" >&2
+    echo "[sp-plugins] sdfstudio: building its environment failed (log: $log); it stays unusable until a build succeeds" >&2
+    return 1
+  fi
+  echo "$want" > "$sdf_stamp"
+}
+
+# ./run.sh test [pytest options] [paths]: the main suite in $venv and, when an sdfstudio source is
+# available, tests/sdfstudio in the sdfstudio environment (the main run never collects them: see
+# tests/sdfstudio/conftest.py). Paths go to the run they belong to; options go to both. The exit
+# status is the worse of the two (pytest's 5, "no tests collected", counts only if both had none).
+run_tests() {
+  cd "$here"
+  local opts=() main_paths=() sdf_paths=() a
+  for a in "$@"; do
+    if [ "${a#-}" = "$a" ] && [ -e "${a%%::*}" ]; then
+      case "$(realpath -m "${a%%::*}")" in
+        "$here/tests/sdfstudio"*) sdf_paths+=("$a") ;;
+        *) main_paths+=("$a") ;;
+      esac
+    else
+      opts+=("$a")
+    fi
+  done
+  local main_rc=5 sdf_rc=5
+  if [ ${#main_paths[@]} -gt 0 ] || [ ${#sdf_paths[@]} -eq 0 ]; then
+    setup
+    main_rc=0; "$venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
+  fi
+  if [ ${#sdf_paths[@]} -gt 0 ] || [ ${#main_paths[@]} -eq 0 ]; then
+    setup_sdfstudio
+    if [ -f "$sdf_stamp" ]; then
+      echo "[sp-plugins] sdfstudio tests, in $sdf_venv"
+      [ ${#sdf_paths[@]} -gt 0 ] || sdf_paths=(tests/sdfstudio)
+      sdf_rc=0; "$sdf_venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} "${sdf_paths[@]}" || sdf_rc=$?
+    fi
+  fi
+  if [ "$main_rc" = 5 ] && [ "$sdf_rc" = 5 ]; then return 5; fi
+  [ "$main_rc" = 5 ] && main_rc=0
+  [ "$sdf_rc" = 5 ] && sdf_rc=0
+  if [ "$main_rc" != 0 ]; then return "$main_rc"; fi
+  return "$sdf_rc"
 }
 
 cmd="${1:-demo}"
 [ $# -gt 0 ] && shift
 case "$cmd" in
-  setup) setup ;;
+  setup) setup; setup_sdfstudio ;;
+  setup-sdfstudio) setup_sdfstudio ;;
   demo)  setup; exec "$venv/bin/sp-demo" "$@" ;;
-  test)  setup; cd "$here"; exec "$venv/bin/python" -m pytest -q "$@" ;;
+  test)  run_tests "$@" ;;
   *) echo "usage: $0 {demo|test|setup} [options]" >&2; exit 2 ;;
 esac

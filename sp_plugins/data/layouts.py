@@ -19,7 +19,10 @@ SDFStudio layout (read by nerfstudio's ``sdfstudio-data``), the keys of sdfstudi
 
     top level: camera_model "OPENCV", height, width, has_mono_prior false, has_foreground_mask
     true, pairs null, worldtogt (4x4: dataset -> original mesh coordinates), scene_box {aabb,
-    near, far, radius, collider_type "box"}
+    near, far, radius, collider_type "near_far"}: every camera ray, also a corner pixel's that
+    misses the box, gets the interval [near, far], which holds the whole box for every camera
+    (sdfstudio's "box" collider gives a missing ray far = near + 1e-6, and neus-facto's
+    interlevel loss then divides by zero)
     per frame: rgb_path, camtoworld (4x4 OpenCV c2w), intrinsics (4x4), foreground_mask
 """
 
@@ -120,7 +123,7 @@ def write_sdfstudio(
                 "near": float(near),
                 "far": float(far),
                 "radius": 1.0,
-                "collider_type": "box",
+                "collider_type": "near_far",
             },
             "frames": sdfstudio_frames(root, split, c2w, images, K),
         }

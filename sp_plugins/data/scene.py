@@ -169,6 +169,8 @@ def make_scene(
 
     gt_mesh = out_dir / GT_MESH_FILE
     normalised.export(gt_mesh)
+    # every camera is camera_distance from the origin: [near, far] holds the whole box (half-diagonal
+    # sqrt(3)) along every ray, so the SDFStudio layout's near_far collider never cuts the object
     near, far = max(camera_distance - math.sqrt(3.0), 0.05), camera_distance + math.sqrt(3.0)
     paths = {"blender": None, "sdfstudio": None}
     if "blender" in layouts:

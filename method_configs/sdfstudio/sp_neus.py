@@ -1,0 +1,9 @@
+"""sp-neus: sdfstudio's NeuS with stochastic preconditioning."""
+
+from sp_plugins.sdfstudio.neus import SPNeuSModelConfig
+from sp_plugins.sdfstudio.sdf_methods import NEUS_SP, sp_method
+
+sp_neus = sp_method(
+    "neus", SPNeuSModelConfig, NEUS_SP,
+    "sdfstudio NeuS + stochastic preconditioning (alpha0 0.013, to 0 over the first 20%).",
+)

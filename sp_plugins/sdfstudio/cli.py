@@ -1,0 +1,107 @@
+"""Console entry points for sdfstudio.
+
+- ``sp-sdfstudio-train``: sdfstudio's ``ns-train`` with our methods: applies the compatibility
+  patches, adds the methods of our entry-point group, rebuilds sdfstudio's tyro union, then runs
+  sdfstudio's own train ``main``. Same arguments as ``ns-train``.
+- ``sp-sdfstudio-extract-mesh``: mesh of a trained checkpoint at any resolution (sdfstudio's
+  ``ns-extract-mesh`` accepts only multiples of 512 for SDFs: minutes and GBs on a CPU). It loads
+  the checkpoint with sdfstudio's ``eval_setup`` (the same loading as ns-eval) and runs our marching
+  cubes on the plain field's SDF.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Tuple
+
+
+def _error(prog: str, message: str) -> "NoReturn":  # noqa: F821
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _prepare(prog: str) -> None:
+    from sp_plugins.sdfstudio.host import require_sdfstudio
+
+    try:
+        require_sdfstudio()
+    except ImportError as err:
+        _error(prog, str(err))
+    from sp_plugins.patches.sdfstudio_import_hook import install_all
+
+    install_all()
+
+
+def train(argv: Optional[list] = None) -> None:
+    """``sp-sdfstudio-train METHOD [ns-train options]``."""
+    prog = "sp-sdfstudio-train"
+    _prepare(prog)
+    import torch
+    import tyro
+
+    import scripts.train as host_train
+    from nerfstudio.configs.config_utils import convert_markup_to_ansi
+
+    from sp_plugins.sdfstudio.registration import add_methods
+
+    add_methods(host_train)
+    tyro.extras.set_accent_color("bright_yellow")
+    config = tyro.cli(
+        host_train.AnnotatedBaseConfigUnion, args=argv, prog=prog, description=convert_markup_to_ansi(host_train.__doc__)
+    )
+    if config.machine.num_gpus > 0 and not torch.cuda.is_available():
+        _error(prog, f"--machine.num-gpus {config.machine.num_gpus} but no CUDA device is available; pass --machine.num-gpus 0")
+    host_train.main(config)
+
+
+@dataclass
+class ExtractMesh:
+    """Load an sdfstudio checkpoint and write the zero level set of its SDF as a mesh."""
+
+    load_config: Path
+    """config.yml of the training run."""
+    output_path: Path = Path("mesh.ply")
+    """Where the mesh goes (.ply, .obj, .stl ...)."""
+    resolution: int = 256
+    """Grid points per axis."""
+    bounding_box_min: Tuple[float, float, float] = (-1.0, -1.0, -1.0)
+    bounding_box_max: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    refine: int = 0
+    """Bisection steps per vertex along its grid edge (0: plain marching cubes)."""
+
+
+def extract_mesh(argv: Optional[list] = None) -> None:
+    """``sp-sdfstudio-extract-mesh --load-config RUN/config.yml [--resolution 128] [--output-path m.ply]``."""
+    prog = "sp-sdfstudio-extract-mesh"
+    _prepare(prog)
+    import torch
+    import tyro
+
+    from sp_plugins.geometry.marching_cubes import extract_mesh as marching_cubes
+
+    args = tyro.cli(ExtractMesh, args=argv, prog=prog)
+    if not args.load_config.is_file():
+        _error(prog, f"--load-config {args.load_config}: no such file; give the config.yml of a training run")
+    if args.resolution < 2:
+        _error(prog, f"--resolution {args.resolution}: need at least 2 grid points per axis")
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _ = eval_setup(args.load_config)
+    field = pipeline.model.field
+    field.eval()
+    device = next(field.parameters()).device
+
+    def sdf(x: torch.Tensor) -> torch.Tensor:
+        return field.forward_geonetwork(x)[:, 0]
+
+    with torch.no_grad():
+        mesh = marching_cubes(
+            sdf, (args.bounding_box_min, args.bounding_box_max), args.resolution, refine=args.refine, device=device
+        )
+    if len(mesh.faces) == 0:
+        _error(prog, "the SDF has no zero crossing inside the box; check --bounding-box-min/max or train longer")
+    args.output_path.parent.mkdir(parents=True, exist_ok=True)
+    mesh.export(args.output_path)
+    print(f"{prog}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces -> {args.output_path}")

@@ -1,0 +1,109 @@
+"""sdfstudio's ``SDFField`` with the stochastic-preconditioning hook (sdfstudio commit 370902a).
+
+Where SP enters (while training and alpha > 0; otherwise the plain field):
+
+- ``SDFField.get_outputs`` (the query every loss reads) maps the sample positions through the
+  field's ``spatial_distortion`` (the scene contraction) and then does everything at the
+  result: SDF, geometry feature, the autograd gradient *with respect to that tensor*, the
+  6-point numerical stencil around it (``gradient(..., skip_spatial_distortion=True)``), colour
+  and ``points_norm``. :class:`SPSDFField` makes that mapping ``sp(contraction(x))``
+  (:class:`PerturbedContraction`): every sample is perturbed once, the normal is the field's
+  own slope where it was queried, and all six stencil points share that one offset, without
+  copying or wrapping sdfstudio's ``get_outputs``.
+- The perturbation lives in the contracted frame, reflected into the contraction's range
+  ``[-2, 2]^3`` (the hash grid's domain); inside the unit box the contraction is the identity,
+  so ``alpha`` is in scene units there.
+- ``get_sdf`` (NeuS up-sampling, under no_grad) and ``get_density`` (VolSDF's sampler) only place
+  samples: they see the plain field by default, as in our nerfstudio adapter (one perturbed draw
+  would jitter the placement without blurring it in expectation). ``perturb_sampler_queries``
+  turns them on. Proposal networks (neus-facto, bakedangelo) are samplers too and are not
+  perturbed.
+- Evaluation, rendering and mesh extraction (``forward_geonetwork`` called directly) always see
+  the plain field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Type
+
+import torch
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
+from torch import Tensor, nn
+
+from sp_plugins.core import StochasticPreconditioner
+
+CONTRACTED_BOUNDS = (-2.0, 2.0)
+"""Range of sdfstudio's scene contraction, mapped onto the hash grid's [0, 1] by SDFField."""
+
+
+@dataclass
+class SPSDFFieldConfig(SDFFieldConfig):
+    """``SDFFieldConfig`` plus a fixed finite-difference step and the SP sampler switch."""
+
+    _target: Type = field(default_factory=lambda: SPSDFField)
+    fd_step: Optional[float] = None
+    """Numerical-gradient step in contracted units, fixed for the whole run (SP runs, which
+    drop Neuralangelo's shrinking schedule). None keeps sdfstudio's behaviour."""
+    perturb_sampler_queries: bool = False
+    """Let the NeuS up-sampler's ``get_sdf`` and VolSDF's ``get_density`` see the perturbed field."""
+
+
+class PerturbedContraction(nn.Module):
+    """``sp(inner(x))``: the field's spatial distortion followed by the perturbation.
+
+    Holds no state of its own (``inner`` is sdfstudio's stateless ``SceneContraction``), so the
+    field's checkpoint keys are sdfstudio's."""
+
+    def __init__(self, inner: Optional[nn.Module]) -> None:
+        super().__init__()
+        self.inner = inner
+        self._sp: Optional[StochasticPreconditioner] = None
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = x if self.inner is None else self.inner(x)
+        return x if self._sp is None else self._sp(x)
+
+
+class SPSDFField(SDFField):
+    """``SDFField`` whose training queries go through a :class:`StochasticPreconditioner`."""
+
+    config: SPSDFFieldConfig
+
+    def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
+        super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
+        self.spatial_distortion = PerturbedContraction(spatial_distortion)
+        if config.fd_step is not None:
+            self.set_numerical_gradients_delta(config.fd_step)
+
+    # -- SP controls ----------------------------------------------------------------------------
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        """Perturb queries through ``sp`` (owned and checkpointed by the model, not the field)."""
+        object.__setattr__(self.spatial_distortion, "_sp", sp)
+
+    @property
+    def sp(self) -> Optional[StochasticPreconditioner]:
+        return self.spatial_distortion._sp
+
+    def perturb(self, x: Tensor) -> Tensor:
+        return x if self.sp is None else self.sp(x)
+
+    def set_numerical_gradients_delta(self, delta: float) -> None:
+        """Host callbacks shrink the step; a fixed ``fd_step`` wins."""
+        fixed = getattr(self.config, "fd_step", None)
+        super().set_numerical_gradients_delta(delta if fixed is None else fixed)
+
+    # -- sampler queries ---------------------------------------------------------------------------
+    def _sampler_positions(self, ray_samples: RaySamples) -> Tensor:
+        x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
+        return self.perturb(x) if self.config.perturb_sampler_queries else x
+
+    def get_sdf(self, ray_samples: RaySamples) -> Tensor:
+        hidden = self.forward_geonetwork(self._sampler_positions(ray_samples))
+        return hidden[:, :1].view(*ray_samples.frustums.shape, 1)
+
+    def get_density(self, ray_samples: RaySamples):
+        hidden = self.forward_geonetwork(self._sampler_positions(ray_samples)).view(*ray_samples.frustums.shape, -1)
+        sdf, geo_feature = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
+        return self.laplace_density(sdf), geo_feature

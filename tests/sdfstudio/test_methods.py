@@ -1,0 +1,58 @@
+"""Our sdfstudio methods: found through our entry-point group, added to ns-train's union, and
+equal to sdfstudio's own method configs except for the SP classes and settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from sdf_tiny import run
+
+pytestmark = pytest.mark.usefixtures("patched")
+
+BASES = {"neus": (0.013, 0.2), "neus-facto": (0.013, 0.2), "neuralangelo": (0.03, 0.3), "bakedangelo": (0.03, 0.3)}
+SP_ONLY = {"_target", "sp", "sdf_field", "enable_progressive_hash_encoding", "enable_numerical_gradients_schedule"}
+
+
+def test_entry_point_group_lists_the_four_methods():
+    from sp_plugins.sdfstudio.registration import discover
+
+    assert sorted(discover()) == sorted(f"sp-{base}" for base in BASES)
+
+
+@pytest.mark.parametrize("base", sorted(BASES))
+def test_sp_config_is_the_host_config_plus_sp(base):
+    import nerfstudio.configs.method_configs as host
+
+    ours, theirs = host.method_configs[f"sp-{base}"], host.method_configs[base]
+    assert ours.trainer == theirs.trainer and ours.pipeline.datamanager == theirs.pipeline.datamanager
+    assert set(theirs.optimizers) <= set(ours.optimizers) and "sp_alpha_grid" in ours.optimizers
+    model, host_model = ours.pipeline.model, theirs.pipeline.model
+    assert isinstance(model, type(host_model)) and type(model) is not type(host_model)
+    for f in dataclasses.fields(host_model):
+        if f.name not in SP_ONLY:
+            assert getattr(model, f.name) == getattr(host_model, f.name), f.name
+    for f in dataclasses.fields(host_model.sdf_field):
+        if f.name not in ("_target",):
+            assert getattr(model.sdf_field, f.name) == getattr(host_model.sdf_field, f.name), f.name
+    alpha0, end = BASES[base]
+    assert (model.sp.enabled, model.sp.alpha0, model.sp.end, model.sp.schedule) == (True, alpha0, end, "exponential")
+
+
+@pytest.mark.parametrize("base, fd", [("neuralangelo", 2.0), ("bakedangelo", 1.0)])
+def test_sp_replaces_neuralangelo_coarse_to_fine(base, fd):
+    import nerfstudio.configs.method_configs as host
+
+    model, host_model = host.method_configs[f"sp-{base}"].pipeline.model, host.method_configs[base].pipeline.model
+    assert host_model.enable_progressive_hash_encoding and host_model.enable_numerical_gradients_schedule
+    assert not model.enable_progressive_hash_encoding and not model.enable_numerical_gradients_schedule
+    assert math.isclose(model.sdf_field.fd_step, fd / host_model.sdf_field.max_res)
+    assert model.sp.alpha_grid_init == 0.03 and model.sp.alpha_grid_lr == 1e-3
+
+
+def test_ns_train_lists_our_methods_and_sp_flags(tmp_path):
+    """sdfstudio's own ns-train, with the opt-in hook installed by ./run.sh setup-sdfstudio."""
+    out = run(["ns-train", "sp-neus-facto", "--help"], cwd=tmp_path).stdout
+    assert "--pipeline.model.sp.alpha0" in out and "0.013" in out

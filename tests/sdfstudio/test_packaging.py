@@ -1,0 +1,30 @@
+"""``pip install sp-plugins`` beside sdfstudio must leave sdfstudio's ``nerfstudio`` in place."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from sdf_tiny import env
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def planned_installs(tmp_path: Path, target: str) -> dict:
+    """What ``pip install TARGET`` would install into this (sdfstudio) venv: pip's own resolver
+    in ``--dry-run`` mode, against the packages installed here."""
+    report = tmp_path / "report.json"
+    cmd = [sys.executable, "-m", "pip", "install", "--dry-run", "--quiet", "--report", str(report), target]
+    proc = subprocess.run(cmd, env=env(), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    items = json.loads(report.read_text())["install"]
+    return {item["metadata"]["name"].lower(): item["metadata"]["version"] for item in items}
+
+
+def test_base_install_keeps_sdfstudio_and_the_nerfstudio_extra_would_not(tmp_path):
+    base = planned_installs(tmp_path, str(ROOT))
+    assert "sp-plugins" in base and "nerfstudio" not in base
+    with_host = planned_installs(tmp_path, f"{ROOT}[nerfstudio]")  # the test can fail: this one replaces it
+    assert with_host.get("nerfstudio", "").startswith("1.")

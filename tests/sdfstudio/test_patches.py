@@ -1,0 +1,151 @@
+"""The sdfstudio compatibility patches (commit 370902a): each still needed by the host, each doing
+its job, none reaching outside sdfstudio's modules."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import inspect
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from sdf_tiny import env
+
+pytestmark = pytest.mark.usefixtures("patched")
+
+
+def unpatched_python(code: str) -> subprocess.CompletedProcess:
+    """Python in this venv without our hook (so: sdfstudio as shipped)."""
+    e = env()
+    e["SP_SDFSTUDIO_HOOK"] = "0"
+    return subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True, timeout=120)
+
+
+def test_host_still_needs_the_patches_and_imports_with_them():
+    """Fails loudly when sdfstudio changes: as shipped it cannot be imported on this Python/torch."""
+    proc = unpatched_python("import nerfstudio.configs.base_config")
+    assert proc.returncode != 0 and "mutable default" in proc.stderr, proc.stderr[-500:]
+    proc = unpatched_python("import torch._six")
+    assert proc.returncode != 0 and "torch._six" in proc.stderr
+
+
+def test_mutable_defaults_become_fresh_copies_only_in_sdfstudio_modules():
+    from nerfstudio.fields.sdf_field import SDFFieldConfig
+    from nerfstudio.models.base_surface_model import SurfaceModelConfig
+
+    a, b = SurfaceModelConfig(), SurfaceModelConfig()
+    assert isinstance(a.sdf_field, SDFFieldConfig) and a.sdf_field == b.sdf_field and a.sdf_field is not b.sdf_field
+    with pytest.raises(ValueError, match="mutable default"):  # our own classes keep Python's rule
+
+        @dataclasses.dataclass
+        class Outer:
+            inner: SDFFieldConfig = SDFFieldConfig()
+
+
+def test_torch_six_stand_in():
+    from nerfstudio.data.utils import nerfstudio_collate
+
+    assert nerfstudio_collate.string_classes == (str,)
+
+
+def test_lpips_never_downloads(tmp_path, monkeypatch):
+    import nerfstudio.models.base_surface_model as bsm
+
+    from sp_plugins.patches.sdfstudio_lpips import MissingLPIPS
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("LPIPS tried to download")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", no_network)
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
+    metric = bsm.LearnedPerceptualImagePatchSimilarity()
+    assert isinstance(metric, MissingLPIPS) and torch.isnan(metric(torch.zeros(1), torch.zeros(1)))
+    assert bsm.LearnedPerceptualImagePatchSimilarity.real.__name__ == "LearnedPerceptualImagePatchSimilarity"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU meaning of CUDA-only calls")
+def test_cuda_only_calls_run_on_the_cpu():
+    import scripts.extract_mesh as extract_mesh
+    import scripts.train as train
+    from nerfstudio.utils import marching_cubes, writer
+
+    from sp_plugins.patches.sdfstudio_cuda import cpu_meaning
+
+    # the host still makes these calls (fails loudly when sdfstudio changes)
+    assert "torch.cuda.synchronize()" in inspect.getsource(writer.TimeWriter.__enter__.__wrapped__)
+    assert "torch.cuda.set_device" in inspect.getsource(train.train_loop.__wrapped__)
+    assert ".cuda()" in inspect.getsource(marching_cubes.get_surface_sliding.__wrapped__)
+    assert extract_mesh.get_surface_sliding is marching_cubes.get_surface_sliding
+    with pytest.raises((RuntimeError, AssertionError)):  # unpatched: no CUDA here
+        writer.TimeWriter.__enter__.__wrapped__(writer.TimeWriter(None, "x", write=False))
+    with writer.TimeWriter(None, "x", write=False) as timer:
+        pass
+    assert timer.duration >= 0
+    saved = torch.Tensor.cuda, torch.cuda.synchronize
+    with cpu_meaning():
+        t = torch.ones(2)
+        assert t.cuda() is t
+    assert (torch.Tensor.cuda, torch.cuda.synchronize) == saved
+
+
+def test_tcnn_stand_in_is_given_to_sdfstudio_only():
+    import nerfstudio.fields.density_fields as density_fields
+    import nerfstudio.fields.sdf_field as sdf_field
+
+    from sp_plugins.patches import sdfstudio_tcnn
+
+    assert importlib.util.find_spec("tinycudann") is None, "these checks are for a machine without tiny-cuda-nn"
+    assert sdf_field.tcnn is sdfstudio_tcnn and density_fields.tcnn is sdfstudio_tcnn
+    assert "tinycudann" not in sys.modules  # never registered under tcnn's name
+
+    class WithRealTcnn:
+        tcnn = object()
+
+    real = WithRealTcnn.tcnn
+    sdfstudio_tcnn._give_stand_in(WithRealTcnn)
+    assert WithRealTcnn.tcnn is real
+
+
+def test_tcnn_stand_in_modules():
+    from nerfstudio.utils.math import components_from_spherical_harmonics
+
+    from sp_plugins.encodings import HashGrid
+    from sp_plugins.patches import sdfstudio_tcnn as tcnn
+
+    grid_config = {"otype": "HashGrid", "n_levels": 4, "n_features_per_level": 2, "log2_hashmap_size": 10,
+                   "base_resolution": 4, "per_level_scale": 1.5, "interpolation": "Linear"}
+    enc = tcnn.Encoding(3, grid_config)
+    assert isinstance(enc, HashGrid) and enc.n_output_dims == 8 and enc.backend == "torch"
+    x = torch.rand(7, 3, requires_grad=True)
+    assert enc(x).shape == (7, 8)
+
+    net = tcnn.NetworkWithInputEncoding(3, 1, grid_config, {"otype": "FullyFusedMLP", "activation": "ReLU",
+                                                            "output_activation": "None", "n_neurons": 16, "n_hidden_layers": 1})
+    net(x).sum().backward()
+    assert x.grad is not None and all(p.grad is not None for p in net.parameters())
+    assert [tuple(p.shape) for p in net.network.parameters()] == [(16, 8), (1, 16)]  # no biases, as in tcnn
+
+    sh = tcnn.Encoding(3, {"otype": "SphericalHarmonics", "degree": 4})
+    d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    torch.testing.assert_close(sh((d + 1) / 2), components_from_spherical_harmonics(4, d))
+    freq = tcnn.Encoding(3, {"otype": "Frequency", "n_frequencies": 2})
+    assert freq(torch.rand(5, 3)).shape == (5, freq.n_output_dims) == (5, 12)
+    head = tcnn.Network(4, 3, {"activation": "ReLU", "output_activation": "Sigmoid", "n_neurons": 8, "n_hidden_layers": 2})
+    y = head(torch.randn(6, 4))
+    assert y.shape == (6, 3) and ((0 < y) & (y < 1)).all()
+    with pytest.raises(NotImplementedError, match="OneBlob"):
+        tcnn.Encoding(3, {"otype": "OneBlob"})
+
+
+def test_only_sdfstudio_modules_go_through_the_patching_loader():
+    import nerfstudio.fields.sdf_field as sdf_field
+    import scripts.train as train
+
+    from sp_plugins.patches.sdfstudio_import_hook import _PatchingLoader
+
+    assert isinstance(sdf_field.__spec__.loader, _PatchingLoader) and isinstance(train.__spec__.loader, _PatchingLoader)
+    assert not isinstance(torch.__spec__.loader, _PatchingLoader)
+    assert "class SDFField" in inspect.getsource(sdf_field)  # the wrapped loader still serves sources
