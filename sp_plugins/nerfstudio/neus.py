@@ -5,16 +5,34 @@
   annealing of NeuS ends at a fraction of training instead of a fixed 50k steps, so short runs
   anneal too.
 - :class:`NeuralangeloLiteModel`: the same with a hash grid, numerical gradients, an eikonal and a
-  curvature loss, and Neuralangelo's coarse-to-fine scheme (grid levels switched on one by one,
-  the finite-difference step shrinking with the finest active level, the curvature weight
-  shrinking with it). ``coarse_to_fine=False`` uses all levels and the finest step from step 0
-  (what the SP variant does).
+  curvature loss, and Neuralangelo's coarse-to-fine scheme (:func:`coarse_to_fine_schedule`).
+  ``coarse_to_fine=False`` uses all levels and the finest step from step 0 (what the SP variant
+  does), with the curvature weight Neuralangelo reaches once all levels are on.
+
+Neuralangelo's schedule (its paper, Sec. 3.2-3.3, and NVlabs/neuralangelo's trainer), and ours:
+
+- warm-up: for the first ``c2f_warmup`` steps (Neuralangelo: its learning-rate warm-up, 5000 of
+  500k) the curvature weight ramps linearly from 0 and no level is added;
+- then one level is added every ``(c2f_end - c2f_warmup) / (levels - c2f_init_levels)`` steps
+  (Neuralangelo: every 5000 steps from 4 levels, so all 16 are on at 65k = ``c2f_end`` 0.13);
+- the numerical-gradient step is ``1 / resolution`` of the finest active level, in scene units
+  (grid over [-2, 2]: a quarter of that level's cell), from the coarsest level on; the 4-point
+  stencil divides it by sqrt(3) so its tetrahedron vertices lie at that distance, as Neuralangelo's;
+- after warm-up the curvature weight is ``curvature_loss_mult / growth ** (active - init)``
+  (``growth`` = the grid's per-level scale).
+
+Differences kept, and why: during warm-up Neuralangelo's code computes ``init + (step - warm-up) //
+interval`` with integer division, which gives ``init - 1`` levels (3, not the configured 4) until
+warm-up ends; we keep the configured ``c2f_init_levels`` (the floor of a negative number is an
+artefact, not a documented choice). Warm-up and level interval are fractions of training, so
+short runs follow the same shape; Neuralangelo's steps are absolute.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Type
+from typing import Dict, List, NamedTuple, Optional, Type
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -73,21 +91,50 @@ class NeuralangeloLiteModelConfig(SPNeuSModelConfig):
     )
     eikonal_loss_mult: float = 0.1
     curvature_loss_mult: float = 5e-4
-    """Weight of the mean |Laplacian| at the coarse-to-fine start; scaled by step / start step."""
-    curvature_warmup: float = 0.01
-    """Linear warm-up of the curvature weight: a fraction of training or a step count."""
+    """Weight of the mean |Laplacian| at the end of warm-up; divided by the grid's growth factor
+    for every level added after it (Neuralangelo)."""
+    c2f_warmup: float = 0.01
+    """Warm-up (Neuralangelo: 5000 of 500k steps): the curvature weight ramps up linearly and no
+    level is added until here. A fraction of training (<= 1) or a step count."""
     coarse_to_fine: bool = True
     """Switch grid levels on progressively and shrink the finite-difference step with them."""
     c2f_init_levels: int = 4
-    """Active grid levels at step 0."""
-    c2f_end: float = 0.12
-    """All levels are active from here on: a fraction of training (Neuralangelo: 60k of 500k) or a step."""
+    """Active grid levels until the end of warm-up (Neuralangelo: 4)."""
+    c2f_end: float = 0.13
+    """All levels are active from here on (Neuralangelo: 5000 + 12 x 5000 = 65k of 500k): a
+    fraction of training or a step count; levels are added evenly between warm-up and here."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.c2f_init_levels <= self.sdf_field.num_levels:
             raise ValueError(f"c2f_init_levels={self.c2f_init_levels}: must be in [1, num_levels={self.sdf_field.num_levels}]")
         if not (self.sdf_field.use_grid_feature and self.sdf_field.numerical_gradients):
             raise ValueError("neuralangelo-lite needs sdf_field.use_grid_feature=True and numerical_gradients=True")
+
+
+class CoarseToFine(NamedTuple):
+    """Neuralangelo's schedule at one step."""
+
+    active_levels: int
+    added_levels: int
+    """Levels added since warm-up ended (the exponent of the curvature weight's decay)."""
+    warmup: float
+    """Curvature warm-up factor in [0, 1]."""
+
+
+def coarse_to_fine_schedule(step: int, warmup_steps: int, end_steps: int, init_levels: int, num_levels: int) -> CoarseToFine:
+    """Levels and warm-up at ``step``: ``init_levels`` until ``warmup_steps``, then evenly more
+    until all ``num_levels`` are on at ``end_steps``; the warm-up factor ramps 0 -> 1 over
+    ``warmup_steps``."""
+    if end_steps <= warmup_steps and init_levels < num_levels:
+        raise ValueError(
+            f"c2f_end ({end_steps} steps) must come after c2f_warmup ({warmup_steps} steps): levels are added between them"
+        )
+    warm = min(1.0, step / warmup_steps) if warmup_steps > 0 else 1.0
+    if step < warmup_steps or init_levels >= num_levels:
+        return CoarseToFine(init_levels, 0, warm)
+    interval = (end_steps - warmup_steps) / (num_levels - init_levels)
+    added = min(num_levels - init_levels, int((step - warmup_steps) // interval))
+    return CoarseToFine(init_levels + added, added, warm)
 
 
 class NeuralangeloLiteModel(SPNeuSModel):
@@ -98,23 +145,31 @@ class NeuralangeloLiteModel(SPNeuSModel):
         self.curvature_mult = 0.0
         self.coarse_to_fine_at(0, None)
 
-    def coarse_to_fine_at(self, step: int, total: "int | None") -> None:
+    def level_fd_step(self, level: int) -> float:
+        """Neuralangelo's numerical-gradient step for ``level``: ``1 / resolution`` in scene
+        units, per axis for the 6-point stencil, along the tetrahedron's vertices for the 4-point one.
+        The resolution is the grid's vertices per axis (tcnn's; Neuralangelo's own list,
+        ``floor(base * growth**l) + 1``, differs by one where ``base * growth**l`` is an integer)."""
+        eps = 1.0 / self.field.encoding.levels[level].resolution
+        return eps / math.sqrt(3.0) if self.config.sdf_field.stencil == "4pt" else eps
+
+    def coarse_to_fine_at(self, step: int, total: Optional[int]) -> CoarseToFine:
         """Set active levels, finite-difference step and curvature weight for ``step``."""
         c = self.config
         levels = c.sdf_field.num_levels
-        if c.coarse_to_fine and total is not None:
-            per_level = max(1, _steps(c.c2f_end, total) // max(1, levels - c.c2f_init_levels))
-            active = min(levels, c.c2f_init_levels + step // per_level)
-        elif c.coarse_to_fine:
-            active = c.c2f_init_levels
+        if not c.coarse_to_fine:
+            warm = 1.0 if total is None else min(1.0, step / _steps(c.c2f_warmup, total))
+            state = CoarseToFine(levels, levels - c.c2f_init_levels, warm)
+        elif total is None:  # before training knows its length (a restored checkpoint sets the buffers)
+            state = CoarseToFine(c.c2f_init_levels, 0, 1.0)
         else:
-            active = levels
-        self.field.set_active_levels(active)
-        fd = c.sdf_field.fd_step if c.sdf_field.fd_step is not None else self.field.level_cell_size(active - 1)
+            state = coarse_to_fine_schedule(step, _steps(c.c2f_warmup, total), _steps(c.c2f_end, total), c.c2f_init_levels, levels)
+        self.field.set_active_levels(state.active_levels)
+        fd = c.sdf_field.fd_step if c.sdf_field.fd_step is not None else self.level_fd_step(state.active_levels - 1)
         self.field.set_fd_step(fd)
-        reference = self.field.level_cell_size(c.c2f_init_levels - 1)
-        warm = 1.0 if total is None else min(1.0, step / _steps(c.curvature_warmup, total))
-        self.curvature_mult = c.curvature_loss_mult * warm * min(1.0, fd / reference)
+        growth = self.field.encoding.per_level_scale
+        self.curvature_mult = c.curvature_loss_mult * state.warmup / growth**state.added_levels
+        return state
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
@@ -145,4 +200,11 @@ class NeuralangeloLiteModel(SPNeuSModel):
         return metrics
 
 
-__all__ = ["NeuralangeloLiteModel", "NeuralangeloLiteModelConfig", "SPNeuSModel", "SPNeuSModelConfig"]
+__all__ = [
+    "CoarseToFine",
+    "NeuralangeloLiteModel",
+    "NeuralangeloLiteModelConfig",
+    "SPNeuSModel",
+    "SPNeuSModelConfig",
+    "coarse_to_fine_schedule",
+]

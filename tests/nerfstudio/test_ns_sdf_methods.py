@@ -170,16 +170,16 @@ def _box():
 
 def test_coarse_to_fine_progresses_and_sp_variant_starts_with_all_levels(tiny_scene, tiny_config, tmp_path):
     c2f = tiny_config("neuralangelo-lite", tiny_scene, tmp_path / "a", steps=100)
-    c2f.pipeline.model.c2f_end = 0.6  # 6 levels beyond the first 2, every 10 steps
+    c2f.pipeline.model.c2f_warmup, c2f.pipeline.model.c2f_end = 0.1, 0.7  # 6 levels beyond 2, every 10 steps from 10
     model: NeuralangeloLiteModel = c2f.pipeline.model.setup(scene_box=_box(), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
     levels, steps_fd = [], []
-    for step in (0, 9, 10, 35, 60, 99):
+    for step in (0, 19, 20, 45, 70, 99):
         model.coarse_to_fine_at(step, 100)
         levels.append(int(model.field.active_levels))
         steps_fd.append(float(model.field.fd_step))
     assert levels == [2, 2, 3, 5, 8, 8]
     assert all(a > b for a, b in zip(steps_fd[1:4], steps_fd[2:5]))  # the FD step shrinks with each level
-    assert steps_fd[-1] == pytest.approx(model.field.level_cell_size(7))
+    assert steps_fd[-1] == pytest.approx(1.0 / model.field.encoding.levels[7].resolution)  # Neuralangelo: 1/res
     # masked levels are really off: the encoding's fine features are zero
     model.coarse_to_fine_at(0, 100)
     feats = model.field.encoding(torch.rand(5, 3))
@@ -189,7 +189,7 @@ def test_coarse_to_fine_progresses_and_sp_variant_starts_with_all_levels(tiny_sc
     sp_model = sp.pipeline.model.setup(scene_box=_box(), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
     sp_model.coarse_to_fine_at(0, 100)
     assert int(sp_model.field.active_levels) == 8
-    assert float(sp_model.field.fd_step) == pytest.approx(sp_model.field.level_cell_size(7))
+    assert float(sp_model.field.fd_step) == pytest.approx(1.0 / sp_model.field.encoding.levels[7].resolution)
 
 
 @pytest.mark.parametrize("alpha_grid", [False, True])
