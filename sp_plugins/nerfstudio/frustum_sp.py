@@ -2,10 +2,13 @@
 
 nerfstudio's ``Frustums`` carry an optional ``offsets`` tensor that ``get_positions()`` adds to
 every sample position (the hook its D-NeRF temporal distortion uses). While training and alpha > 0,
-the field's forward sets ``offsets`` so that ``get_positions()`` returns the perturbed position
+the field's ``forward`` sets ``offsets`` so that ``get_positions()`` returns the perturbed position
 ``sp(x)`` (reflected into the scene box when the SP boundary is ``reflect``, so that a bounded
 field's samples do not land in its zeroed outside), and restores the previous offsets afterwards, so samplers, renderers and losses that read the same ``RaySamples`` later see
 the unperturbed positions. Density and colour read the same offsets, so they see one blurred field.
+
+The fields are host subclasses (:class:`FrustumSPField` first among the bases) that the host
+model builds itself with its own arguments.
 
 The proposal networks of nerfacto and the coarse-to-fine PDF samplers are samplers: they place
 samples and are not perturbed (as for the NeuS sampler's SDF queries).
@@ -47,19 +50,25 @@ def set_perturbed_offsets(ray_samples: RaySamples, sp: StochasticPreconditioner)
     return previous
 
 
-def attach_frustum_sp(field: nn.Module, sp: StochasticPreconditioner) -> None:
-    """Perturb the positions ``field`` reads (via frustum offsets) while ``sp`` is active.
+class FrustumSPField:
+    """Mixin for a host field that reads ``get_positions()``: list it first among the bases.
 
-    nerfstudio's models call ``field.forward(...)`` directly, which bypasses module hooks, so the
-    instance's ``forward`` is wrapped (not saved in checkpoints; :func:`detach_frustum_sp` undoes it).
-    """
-    if "forward" in field.__dict__:
-        raise ValueError(f"{type(field).__name__}: SP is already attached to this field (or its forward is wrapped)")
-    plain = field.forward
+    While training and ``sp`` is active, ``forward`` sets the frustum offsets to the perturbation
+    (averaged over ``sp.num_samples`` draws) and restores them afterwards. The host model builds
+    the subclass with its own arguments (``sp_plugins.patches.nerfstudio_host_fields``), so
+    modules and checkpoints are the host's."""
 
-    def forward(*args: Any, **kwargs: Any):
+    _sp: Optional[StochasticPreconditioner] = None
+
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        """Perturb through ``sp`` (owned and checkpointed by the model, not the field)."""
+        object.__setattr__(self, "_sp", sp)
+
+    def forward(self, *args: Any, **kwargs: Any):
+        plain = super().forward  # type: ignore[misc]
+        sp = self._sp
         samples = _ray_samples(args, kwargs)
-        if samples is None or not (field.training and sp.active):
+        if sp is None or samples is None or not (self.training and sp.active):  # type: ignore[attr-defined]
             return plain(*args, **kwargs)
 
         def one_draw():
@@ -69,11 +78,9 @@ def attach_frustum_sp(field: nn.Module, sp: StochasticPreconditioner) -> None:
             finally:
                 samples.frustums.offsets = previous
 
-        return sp.mean_over_draws(one_draw)  # sp.num_samples draws, averaged
-
-    field.forward = forward  # type: ignore[method-assign]
+        return sp.mean_over_draws(one_draw)
 
 
-def detach_frustum_sp(field: nn.Module) -> None:
-    """Undo :func:`attach_frustum_sp`."""
-    field.__dict__.pop("forward", None)
+def frustum_fields(model: nn.Module) -> list:
+    """The model's fields that carry frustum SP."""
+    return [m for m in model.modules() if isinstance(m, FrustumSPField)]

@@ -4,7 +4,8 @@ MipNeRF encodes a Gaussian (mean, covariance) per sample with the integrated pos
 SP moves the mean, ``mu + alpha * eps``, and keeps the covariance, so the integrated encoding
 still low-passes the frequencies the frustum's footprint cannot resolve. ``Frustums.offsets``
 cannot carry this: nerfstudio's ``get_gaussian_blob`` raises ``NotImplementedError`` when offsets
-are set, hence a field subclass.
+are set, hence a field subclass, which the host model builds itself (see
+``sp_plugins.patches.nerfstudio_host_fields``).
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from sp_plugins.nerfstudio.frustum_sp import set_perturbed_offsets
 class SPNeRFField(NeRFField):
     """``NeRFField`` whose sample positions (or Gaussian means) are perturbed while SP is active.
 
-    Built by :func:`as_sp_nerf_field` from a field the host model constructed, so every
-    architecture setting is the host's own."""
+    The host's ``MipNerfModel`` builds it with its own arguments, so every architecture setting is
+    the host's."""
 
     _sp: Optional[StochasticPreconditioner] = None
 
@@ -60,15 +61,3 @@ class SPNeRFField(NeRFField):
             blobs = self.spatial_distortion(blobs)
         hidden = self.mlp_base(self.position_encoding(blobs.mean, covs=blobs.cov))
         return self.field_output_density(hidden), hidden
-
-
-def as_sp_nerf_field(field: NeRFField, sp: StochasticPreconditioner) -> SPNeRFField:
-    """Turn the host's ``NeRFField`` into an :class:`SPNeRFField` in place (same modules and
-    weights: the subclass only overrides ``get_density``) and hand it ``sp``."""
-    if not isinstance(field, NeRFField):
-        raise ValueError(f"expected nerfstudio's NeRFField, got {type(field).__name__}")
-    if type(field) not in (NeRFField, SPNeRFField):
-        raise ValueError(f"{type(field).__name__} is a NeRFField subclass of its own; SP cannot take it over safely")
-    field.__class__ = SPNeRFField
-    field.use_preconditioner(sp)
-    return field  # type: ignore[return-value]

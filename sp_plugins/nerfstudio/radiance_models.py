@@ -17,6 +17,8 @@ import logging
 from dataclasses import dataclass, field
 from typing import Type
 
+from nerfstudio.fields.nerfacto_field import NerfactoField
+from nerfstudio.fields.tensorf_field import TensoRFField
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from nerfstudio.models.mipnerf import MipNerfModel
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
@@ -25,8 +27,9 @@ from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.errors import InputError
-from sp_plugins.nerfstudio.frustum_sp import attach_frustum_sp
-from sp_plugins.nerfstudio.mipnerf import as_sp_nerf_field
+from sp_plugins.nerfstudio.frustum_sp import FrustumSPField
+from sp_plugins.nerfstudio.mipnerf import SPNeRFField
+from sp_plugins.patches.nerfstudio_host_fields import host_builds
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
 log = logging.getLogger(__name__)
@@ -63,12 +66,16 @@ class SPMipNerfModelConfig(SPModelConfig, VanillaModelConfig):
 class SPMipNerfModel(SPModel, MipNerfModel):
     config: SPMipNerfModelConfig
 
+    def populate_modules(self) -> None:
+        with host_builds("nerfstudio.models.mipnerf", SPNeRFField):
+            super().populate_modules()
+
     def attach_sp(self) -> None:
         c = self.config
         if (c.mlp_num_layers, c.mlp_layer_width, c.head_mlp_layer_width) != (8, 256, 128):
             # the host builds MipNeRF's 8x256 MLP unconditionally: rebuild it at the requested size
             host = self.field
-            self.field = NeRFField(
+            self.field = SPNeRFField(
                 position_encoding=host.position_encoding,
                 direction_encoding=host.direction_encoding,
                 base_mlp_num_layers=c.mlp_num_layers,
@@ -77,7 +84,7 @@ class SPMipNerfModel(SPModel, MipNerfModel):
                 skip_connections=(c.mlp_num_layers // 2,) if c.mlp_num_layers > 2 else (),
                 use_integrated_encoding=True,
             )
-        as_sp_nerf_field(self.field, self.sp)  # type: ignore[arg-type]
+        self.field.use_preconditioner(self.sp)
 
 
 @dataclass
@@ -88,12 +95,20 @@ class SPNeRFModelConfig(SPModelConfig, VanillaModelConfig):
     sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP))
 
 
+class SPPositionNeRFField(FrustumSPField, NeRFField):
+    """Vanilla NeRF's field with SP through frustum offsets."""
+
+
 class SPNeRFModel(SPModel, NeRFModel):
     config: SPNeRFModelConfig
 
+    def populate_modules(self) -> None:
+        with host_builds("nerfstudio.models.vanilla_nerf", SPPositionNeRFField):
+            super().populate_modules()
+
     def attach_sp(self) -> None:
-        attach_frustum_sp(self.field_coarse, self.sp)  # type: ignore[arg-type]
-        attach_frustum_sp(self.field_fine, self.sp)  # type: ignore[arg-type]
+        self.field_coarse.use_preconditioner(self.sp)
+        self.field_fine.use_preconditioner(self.sp)
 
 
 def _check_box_boundary(sp: SPConfig, bounded: bool, method: str) -> None:
@@ -123,6 +138,10 @@ class SPNerfactoModelConfig(SPModelConfig, NerfactoModelConfig):
     sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP))
 
 
+class SPNerfactoField(FrustumSPField, NerfactoField):
+    """Nerfacto's main field with SP through frustum offsets (the proposal networks stay plain)."""
+
+
 class SPNerfactoModel(SPModel, NerfactoModel):
     config: SPNerfactoModelConfig
 
@@ -135,12 +154,13 @@ class SPNerfactoModel(SPModel, NerfactoModel):
         ours = hash_encoding.use_sp_hash_grids(device)
         if ours:
             self.config = dataclasses.replace(self.config, implementation="torch")
-        super().populate_modules()
+        with host_builds("nerfstudio.models.nerfacto", SPNerfactoField):
+            super().populate_modules()
         if ours:
             hash_encoding.setup_host_modules(self, "sp-nerfacto", device)
 
     def attach_sp(self) -> None:
-        attach_frustum_sp(self.field, self.sp)
+        self.field.use_preconditioner(self.sp)
 
 
 @dataclass
@@ -149,6 +169,10 @@ class SPTensoRFModelConfig(SPModelConfig, TensoRFModelConfig):
 
     _target: Type = field(default_factory=lambda: SPTensoRFModel)
     sp: SPConfig = field(default_factory=lambda: dataclasses.replace(POSITION_FIELD_SP, boundary="reflect"))
+
+
+class SPTensoRFField(FrustumSPField, TensoRFField):
+    """TensoRF's field with SP through frustum offsets."""
 
 
 class SPTensoRFModel(SPModel, TensoRFModel):
@@ -162,7 +186,8 @@ class SPTensoRFModel(SPModel, TensoRFModel):
                 "--pipeline.model.sp.alpha-grid True cannot learn on sp-tensorf: nerfstudio's TensoRF encoding detaches "
                 "its sample positions, so no gradient reaches the alpha grid; use a global alpha (the default)"
             )
-        super().populate_modules()
+        with host_builds("nerfstudio.models.tensorf", SPTensoRFField):
+            super().populate_modules()
 
     def attach_sp(self) -> None:
-        attach_frustum_sp(self.field, self.sp)
+        self.field.use_preconditioner(self.sp)

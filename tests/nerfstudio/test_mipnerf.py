@@ -13,7 +13,7 @@ from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
 
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
-from sp_plugins.nerfstudio.mipnerf import SPNeRFField, as_sp_nerf_field
+from sp_plugins.nerfstudio.mipnerf import SPNeRFField
 
 BOX = SceneBox(aabb=torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]))
 
@@ -46,8 +46,8 @@ def test_the_offset_moves_the_gaussian_mean_and_keeps_the_covariance():
     torch.manual_seed(0)
     enc = NeRFEncoding(in_dim=3, num_frequencies=6, min_freq_exp=0.0, max_freq_exp=6.0, include_input=True)
     direnc = NeRFEncoding(in_dim=3, num_frequencies=2, min_freq_exp=0.0, max_freq_exp=2.0, include_input=True)
-    field = NeRFField(position_encoding=enc, direction_encoding=direnc, base_mlp_num_layers=2, base_mlp_layer_width=32,
-                      use_integrated_encoding=True)
+    field = SPNeRFField(position_encoding=enc, direction_encoding=direnc, base_mlp_num_layers=2, base_mlp_layer_width=32,
+                        use_integrated_encoding=True)
     plain_density, _ = field.get_density(frustum_samples())
 
     def sp_with_seed(alpha):
@@ -55,8 +55,7 @@ def test_the_offset_moves_the_gaussian_mean_and_keeps_the_covariance():
         sp.set_step(0, 10)
         return sp.train()
 
-    as_sp_nerf_field(field, sp_with_seed(0.05))
-    assert isinstance(field, SPNeRFField)
+    field.use_preconditioner(sp_with_seed(0.05))
     density, _ = field.get_density(frustum_samples())
     # the same computation by hand: one N(0, alpha^2) draw added to each Gaussian mean, same covariance
     blobs = frustum_samples().frustums.get_gaussian_blob()
