@@ -100,6 +100,11 @@ class ImageFitConfig:
             if getattr(self, name) and not self.adaptive_alpha:
                 flag = name.replace("_", "-")
                 raise ValueError(f"--{flag} uses the learned alpha map: add --adaptive-alpha (or drop --{flag})")
+        defaults = {f.name: f.default for f in dataclasses.fields(ImageFitConfig)}
+        for name, needs in (("importance_uniform", "importance_sampling"), ("level_mask_min_levels", "level_masking"),
+                            ("level_mask_quantiles", "level_masking")):
+            if getattr(self, name) != defaults[name] and not getattr(self, needs):
+                raise ValueError(f"--{name.replace('_', '-')} applies with --{needs.replace('_', '-')}: add it or drop the option")
         if self.level_masking and self.encoding.kind != "hashgrid":
             raise ValueError(f"--level-masking masks hash-grid levels: use --encoding.kind hashgrid (got {self.encoding.kind!r})")
         if self.level_masking and not 0 < self.level_mask_min_levels <= self.encoding.levels:

@@ -169,6 +169,8 @@ def test_lr_decay_applies_once_at_its_fraction():
         (dict(ADAPTIVE, level_masking=True, encoding=EncodingConfig(kind="fourier")), "hash-grid"),
         (dict(ADAPTIVE, importance_sampling=True, sp=SPConfig(alpha0=0.02, schedule="step", end=1.0)), "never ends"),
         (dict(sp=SPConfig(alpha_grid=True)), "--adaptive-alpha"),
+        (dict(ADAPTIVE, importance_uniform=0.2), "applies with --importance-sampling"),
+        (dict(ADAPTIVE, level_mask_min_levels=3.0), "applies with --level-masking"),
     ],
 )
 def test_adaptive_options_that_cannot_apply_are_refused(kwargs, message):
