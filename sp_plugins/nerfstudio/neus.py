@@ -163,7 +163,10 @@ class NeuralangeloLiteModel(SPNeuSModel):
         elif total is None:  # before training knows its length (a restored checkpoint sets the buffers)
             state = CoarseToFine(c.c2f_init_levels, 0, 1.0)
         else:
-            state = coarse_to_fine_schedule(step, _steps(c.c2f_warmup, total), _steps(c.c2f_end, total), c.c2f_init_levels, levels)
+            warmup_steps, end_steps = _steps(c.c2f_warmup, total), _steps(c.c2f_end, total)
+            if end_steps <= warmup_steps and (c.c2f_end <= 1) == (c.c2f_warmup <= 1) and c.c2f_end > c.c2f_warmup:
+                end_steps = warmup_steps + 1  # a run so short that rounding merged two ordered fractions
+            state = coarse_to_fine_schedule(step, warmup_steps, end_steps, c.c2f_init_levels, levels)
         self.field.set_active_levels(state.active_levels)
         fd = c.sdf_field.fd_step if c.sdf_field.fd_step is not None else self.level_fd_step(state.active_levels - 1)
         self.field.set_fd_step(fd)
