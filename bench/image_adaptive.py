@@ -185,7 +185,8 @@ def make_figure(names, args, out_dir: Path) -> None:
         for ax in axes[:, i]:
             ax.set_axis_off()
     axes[1, 0].text(-0.08, 0.5, "learned alpha (log)", transform=axes[1, 0].transAxes, rotation=90, va="center", ha="right", fontsize=9)
-    fig.suptitle(f"alpha maps after phase 1 ({args.steps // 5} of {args.steps} steps; dark = low alpha = detail)", fontsize=10)
+    fig.suptitle(f"learned alpha maps after phase 1 ({args.steps // 5} of {args.steps} steps)\n"
+                 "dark: low alpha (detail; more samples, all levels), bright: high alpha (fewer levels)", fontsize=9)
     fig.tight_layout()
     FIGURE.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(FIGURE, dpi=110)
@@ -198,7 +199,7 @@ def main() -> None:
     parser.add_argument("--images", nargs="+", default=list(IMAGES), choices=IMAGES)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     parser.add_argument("--size", type=int, default=128, help="long side of the resized photographs (pixels)")
-    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--batch", type=int, default=4096)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overwrite", action="store_true")
