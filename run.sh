@@ -46,7 +46,7 @@ setup() {
     "$venv/bin/python" -m pip install -q --upgrade pip
     # shellcheck disable=SC2086
     "$venv/bin/python" -m pip install -q $torch_spec
-    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,dev]"
+    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,sweeps,dev]"
     echo "$want" > "$stamp"
   fi
 }

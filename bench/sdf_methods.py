@@ -87,7 +87,7 @@ def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
     model.sp.seed = seed
     if hasattr(model, "c2f_init_levels"):
         model.c2f_init_levels = budget.c2f_init_levels
-    for group in ("fields", "field_background"):
+    for group in ("fields", "field_grid", "field_background"):  # field_grid: the hash-grid tables (same settings)
         opt = config.optimizers[group]
         opt["optimizer"].lr = budget.lr
         opt["scheduler"].warm_up_end = budget.warm_up_end

@@ -43,6 +43,10 @@ from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
 
 
+GRID_GROUP = "field_grid"
+"""Optimizer group of the SDF field's hash-grid tables (``--optimizers.field-grid.*``)."""
+
+
 def _steps(fraction_or_steps: float, total: int) -> int:
     """A fraction of training (<= 1) or an absolute step count (> 1) as steps."""
     return max(1, round(fraction_or_steps * total)) if fraction_or_steps <= 1 else int(fraction_or_steps)
@@ -71,6 +75,18 @@ class SPNeuSModel(SPModel, NeuSModel):
 
     def attach_sp(self) -> None:
         self.field.use_preconditioner(self.sp)
+
+    def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
+        """With a hash grid, its tables get their own optimizer group (:data:`GRID_GROUP`), so the
+        grid's and the MLPs' learning rates can differ (the paper sweeps both); the trainer configs
+        give both groups the same settings by default."""
+        groups = super().get_param_groups()
+        grid = list(self.field.encoding.parameters()) if self.config.sdf_field.use_grid_feature else []
+        if grid:
+            ids = {id(p) for p in grid}
+            groups["fields"] = [p for p in groups["fields"] if id(p) not in ids]
+            groups[GRID_GROUP] = grid
+        return groups
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         total = trainer_total_steps(training_callback_attributes)
@@ -204,6 +220,7 @@ class NeuralangeloLiteModel(SPNeuSModel):
 
 
 __all__ = [
+    "GRID_GROUP",
     "CoarseToFine",
     "NeuralangeloLiteModel",
     "NeuralangeloLiteModelConfig",

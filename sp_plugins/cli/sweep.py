@@ -1,0 +1,188 @@
+"""sp-sweep: a grid of flag values (with SP on/off as a paired axis) over any of our nerfstudio
+methods (through ``ns-train`` + ``ns-eval``) or any ``sp-fit`` task, on Ray Tune.
+
+    sp-sweep study.yaml --out runs/study                      # local Ray on the free cores
+    sp-sweep study.yaml --out runs/study --address auto       # an existing Ray cluster
+    sp-sweep --command "sp-fit pointcloud bunny.ply --steps 300" --grid lr=1e-3,1e-2 \\
+        --grid encoding.max-resolution=256,1024 --success "sound == 1" --out runs/pc
+
+Restarting the same command skips finished trials (also after a crash or Ctrl-C); a failed trial
+is recorded with its error and the sweep goes on. Results: ``results.csv``, ``results.md``
+(table, success rates, per-axis medians) and ``histogram.png`` in --out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Literal, Optional, Tuple
+
+import tyro
+
+from sp_plugins.sweeps.spec import SpecError, SweepSpec, expand, load_spec, spec_from_dict
+
+
+@dataclass
+class SweepArgs:
+    spec: tyro.conf.Positional[Optional[Path]] = None
+    """A YAML / JSON spec file (fields: command, data, grid, sp, sp_methods, seeds, sample, success,
+    metric); the flags below override its fields."""
+    command: Optional[str] = None
+    """Base command, e.g. 'sp-fit pointcloud mesh.ply --steps 300' or 'ns-train neus-hashgrid --max-num-iterations 300'."""
+    data: Optional[str] = None
+    """ns-train: the dataparser and its flags, e.g. 'blender-data --data scene/blender'."""
+    grid: Optional[List[str]] = None
+    """Axes as FLAG=V1,V2,... (flag without leading dashes), e.g. lr=1e-3,1e-2; replaces the spec's grid."""
+    sp: Optional[Literal["both", "on", "off"]] = None
+    """SP axis: both (each grid point with and without SP), on, off. Default: both."""
+    sp_methods: Optional[Tuple[str, str]] = None
+    """ns-train: a baseline and an SP method (e.g. neus-hashgrid sp-neus-hashgrid) instead of --pipeline.model.sp.enabled."""
+    seeds: Optional[List[int]] = None
+    """Seeds (default: 0)."""
+    sample: Optional[int] = None
+    """Run only this many grid points, chosen at random (a fractional grid); SP pairs stay together."""
+    success: Optional[List[str]] = None
+    """What counts as success, e.g. 'psnr >= 24' or 'sound == 1' 'fscore >= 0.9' (all must hold)."""
+    metric: Optional[str] = None
+    """Metric of the histogram and the medians (default: psnr for ns-train, chamfer for sp-fit)."""
+    out: Path = Path("outputs/sp-sweep")
+    """Folder of the sweep: trials/<key>/ per trial, results.csv / .md, histogram.png."""
+    address: Optional[str] = None
+    """Ray cluster to use ('auto' or HOST:PORT); default: start a local Ray."""
+    num_cpus: Optional[int] = None
+    """Local Ray: CPUs to use (default: the cores other processes leave idle)."""
+    num_gpus: Optional[int] = None
+    """Local Ray: GPUs to use (default: 0)."""
+    cpus_per_trial: float = 1.0
+    """CPUs each trial reserves (also its torch threads)."""
+    gpus_per_trial: float = 0.0
+    """GPUs each trial reserves (ns-train trials then train on cuda)."""
+    timeout: Optional[float] = None
+    """Seconds after which a trial's command is stopped and the trial recorded as failed."""
+    retry_failed: bool = False
+    """Run failed trials again (by default a restart skips every finished trial, failed or not)."""
+    summarize_only: bool = False
+    """Only rebuild the table, histogram and success line from the results so far."""
+    dry_run: bool = False
+    """List the trials and which of them have finished, and stop."""
+    ray_temp_dir: Optional[Path] = None
+    """Local Ray's temporary folder (removed at the end; keep it short: Ray's socket paths are limited)."""
+
+
+def _grid(entries: List[str]) -> dict:
+    grid = {}
+    for e in entries:
+        flag, sep, values = e.partition("=")
+        if not sep or not flag.strip() or not values.strip():
+            raise SpecError(f"--grid {e!r}: write FLAG=V1,V2 (e.g. lr=1e-3,1e-2)")
+        grid[flag.strip()] = [v.strip() for v in values.split(",")]
+    return grid
+
+
+def build_spec(args: SweepArgs) -> SweepSpec:
+    import shlex
+
+    raw = {}
+    if args.spec is not None:
+        spec = load_spec(args.spec)
+        raw = dataclasses.asdict(spec)
+    overrides = {
+        "command": args.command and shlex.split(args.command), "data": args.data and shlex.split(args.data),
+        "grid": args.grid and _grid(args.grid), "sp": args.sp, "sp_methods": args.sp_methods, "seeds": args.seeds,
+        "sample": args.sample, "success": args.success, "metric": args.metric,
+    }
+    raw.update({k: v for k, v in overrides.items() if v is not None})
+    if "command" not in raw:
+        raise SpecError("nothing to sweep: give a spec file or --command")
+    return spec_from_dict(raw)
+
+
+def _local_cpus(args: SweepArgs, log) -> int:
+    from sp_plugins.cli.threads import free_cores, usable_cores
+
+    if args.num_cpus is not None:
+        if args.num_cpus < 1:
+            raise SpecError(f"--num-cpus {args.num_cpus}: must be at least 1")
+        return args.num_cpus
+    free, cores = free_cores(), usable_cores()
+    if free < cores:
+        log(f"[sp-sweep] {cores - free} of {cores} cores are busy with other processes: local Ray gets {free} "
+            f"(--num-cpus N overrides)")
+    return free
+
+
+def run(args: SweepArgs, log=print) -> int:
+    from sp_plugins.sweeps.report import load_results, write_report
+    from sp_plugins.sweeps.trial import RESULT, TRIAL, _write_result
+
+    spec = build_spec(args)
+    trials = expand(spec)
+    out = args.out.resolve()
+    folder = out / "trials"
+    folder.mkdir(parents=True, exist_ok=True)
+    (out / "spec.json").write_text(json.dumps(dataclasses.asdict(spec), indent=1) + "\n")
+    results = load_results(folder, trials)
+    if args.retry_failed:
+        results = {k: r for k, r in results.items() if r.get("status") == "ok"}
+    pending = [t for t in trials if t.key not in results]
+    log(f"[sp-sweep] {len(trials)} trials: {len(trials) - len(pending)} finished already (skipped), {len(pending)} to run")
+    if args.dry_run:
+        for t in trials:
+            log(f"  {t.key}  {'done   ' if t.key in results else 'pending'}  {t.label()}")
+        return 0
+    if pending and not args.summarize_only:
+        if args.cpus_per_trial <= 0 or args.gpus_per_trial < 0:
+            raise SpecError("--cpus-per-trial must be > 0 and --gpus-per-trial >= 0")
+        num_cpus = None if args.address else _local_cpus(args, log)
+        if num_cpus is not None and args.cpus_per_trial > num_cpus:
+            raise SpecError(f"--cpus-per-trial {args.cpus_per_trial:g} is more than the {num_cpus} CPU(s) of the local Ray "
+                            "(--num-cpus): no trial could start")
+        if not args.address and args.gpus_per_trial > (args.num_gpus or 0):
+            raise SpecError(f"--gpus-per-trial {args.gpus_per_trial:g} needs --num-gpus of at least that on a local Ray")
+        payload = []
+        for t in pending:
+            d = folder / t.key
+            d.mkdir(exist_ok=True)
+            info = {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "argv": t.argv, "label": t.label(),
+                    "folder": str(d), "cwd": os.getcwd(), "data_args": len(spec.data), "timeout": args.timeout,
+                    "eval": spec.eval}
+            (d / TRIAL).write_text(json.dumps(info, indent=1) + "\n")
+            payload.append(info)
+        from sp_plugins.sweeps.ray_runner import run_on_ray
+
+        lost = run_on_ray(payload, storage=out / "ray", address=args.address, num_cpus=num_cpus, num_gpus=args.num_gpus,
+                          cpus_per_trial=args.cpus_per_trial, gpus_per_trial=args.gpus_per_trial,
+                          temp_dir=args.ray_temp_dir, log=log)
+        for item in lost:  # Ray lost the worker before the trial could write its own result
+            d = folder / item["key"]
+            if not (d / RESULT).is_file():
+                t = next(t for t in pending if t.key == item["key"])
+                _write_result(d, {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "status": "failed",
+                                  "error": item["error"], "metrics": {}})
+        results = load_results(folder, trials)
+    report = write_report(spec, trials, results, out)
+    log(f"[sp-sweep] {report['summary']}")
+    log(f"[sp-sweep] wrote {out / 'results.md'}, {out / 'results.csv'}"
+        + (f", {report['histogram']}" if report["histogram"] else ""))
+    return 0
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = tyro.cli(SweepArgs, args=argv, prog="sp-sweep", description=__doc__.split("\n\n")[0])
+    try:
+        return run(args)
+    except SpecError as err:
+        print(f"sp-sweep: error: {err}", file=sys.stderr)
+        return 2
+
+
+def entrypoint() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()
