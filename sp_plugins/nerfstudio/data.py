@@ -6,13 +6,21 @@
 - :class:`CheckedDataManager` (and :class:`SurfaceDataManager`) check the data before training:
   the folder and its layout, image sizes against the cameras, and that every camera looks into
   the scene box. Each failure is an :class:`InputError` (a ``ValueError``) naming the file and
-  what was expected; under ``ns-train`` it prints as one line.
+  what was expected; under ``ns-train`` it prints as one line. ``ns-eval`` prints one line per
+  evaluated image (nerfstudio's own bar is silent outside a terminal and moves once per image,
+  which on a CPU can be minutes).
+- :class:`SurfaceDataManager` also takes ``--pipeline.datamanager.object-box R``: the SDF models
+  the cube ``[-R, R]^3`` (the object) and the background model the rest. Real captures read
+  with ``instant-ngp-data`` come with a box of ``aabb_scale / 2`` (the fox: +-2), which holds
+  the room and the cameras too.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Type
@@ -24,6 +32,8 @@ from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConf
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.datasets.sdf_dataset import SDFDataset
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
 from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.views import ViewSelection, select_views
@@ -160,7 +170,7 @@ def ray_hits_box(origins: torch.Tensor, directions: torch.Tensor, aabb: torch.Te
 def check_cameras_look_into_box(outputs: DataparserOutputs, source: str = "the scene box") -> None:
     """Each camera's optical axis passes through the scene box, i.e. the box holds what the
     cameras look at (a box in the wrong units or frame fails here, not as a blank render)."""
-    c2w = outputs.cameras.camera_to_worlds.float()
+    c2w = outputs.cameras.camera_to_worlds.float().reshape(-1, 3, 4)  # one camera may come unbatched
     origins = c2w[:, :3, 3]
     forward = -c2w[:, :3, 2]  # nerfstudio cameras look along -z
     aabb = outputs.scene_box.aabb.float()
@@ -229,13 +239,48 @@ class CheckedDataManager(VanillaDataManager):
             check_cameras_look_into_box(outputs, self._box_source())
         return dataset
 
+    def _adjusted(self, outputs: DataparserOutputs) -> DataparserOutputs:
+        """Hook for subclasses: change the dataparser's outputs (both splits) before use."""
+        return outputs
+
     def create_train_dataset(self):
         c = self.config
-        self.train_dataparser_outputs = select_views(self.train_dataparser_outputs, c.train_views, c.train_view_selection, c.train_view_seed)
+        outputs = select_views(self.train_dataparser_outputs, c.train_views, c.train_view_selection, c.train_view_seed)
+        self.train_dataparser_outputs = self._adjusted(outputs)
         return self._checked(super().create_train_dataset())
 
     def create_eval_dataset(self):
-        return self._checked(super().create_eval_dataset())
+        outputs = self._adjusted(self.dataparser.get_dataparser_outputs(split=self.test_split))
+        dataset = self.dataset_type(dataparser_outputs=outputs, scale_factor=self.config.camera_res_scale_factor)
+        if self.test_mode == "test" and len(dataset) == 0:
+            raise InputError(
+                f"{self.config.data or getattr(self.config.dataparser, 'data', '')}: the dataparser's {self.test_split} split "
+                "holds no images, so there is nothing to evaluate; train with a split that keeps some "
+                "(e.g. instant-ngp-data --train-split-fraction 0.8)"
+            )
+        return self._checked(dataset)
+
+    def setup_eval(self):
+        super().setup_eval()
+        self.fixed_indices_eval_dataloader = ProgressEvalDataloader(
+            input_dataset=self.eval_dataset, device=self.device, num_workers=self.world_size * 4
+        )
+
+
+class ProgressEvalDataloader(FixedIndicesEvalDataloader):
+    """nerfstudio's all-images evaluation loader that prints one line per image to stderr."""
+
+    def __next__(self):
+        now = time.perf_counter()
+        if self.count > 0:
+            print(f"  image {self.count}/{len(self.image_indices)} took {now - self._started:.1f} s", file=sys.stderr, flush=True)
+        if self.count < len(self.image_indices):
+            i = self.image_indices[self.count]
+            cams = self.input_dataset.cameras
+            print(f"evaluating image {self.count + 1}/{len(self.image_indices)} ({int(cams.width[i])}x{int(cams.height[i])})",
+                  file=sys.stderr, flush=True)
+        self._started = now
+        return super().__next__()
 
 
 @dataclass
@@ -243,7 +288,26 @@ class SurfaceDataManagerConfig(CheckedDataManagerConfig):
     """Checked data manager whose dataset serves SDF models."""
 
     _target: Type = field(default_factory=lambda: SurfaceDataManager)
+    object_box: Optional[float] = None
+    """Half side R of the cube [-R, R]^3 (in the dataparser's scaled frame) where the SDF models the
+    object; rays leave it for the background model. None keeps the dataparser's box (for a real
+    capture read with instant-ngp-data that box, aabb_scale / 2, also holds the room)."""
 
 
 class SurfaceDataManager(CheckedDataManager):
+    config: SurfaceDataManagerConfig
     dataset_type = SurfaceDataset  # type: ignore[assignment]
+
+    def _adjusted(self, outputs: DataparserOutputs) -> DataparserOutputs:
+        r = self.config.object_box
+        if r is None:
+            return outputs
+        if not r > 0:
+            raise InputError(f"--pipeline.datamanager.object-box {r}: must be a positive half side (scene units)")
+        box = SceneBox(aabb=torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32))
+        return dataclasses.replace(outputs, scene_box=box)
+
+    def _box_source(self) -> str:
+        if self.config.object_box is not None:
+            return f"the object box (--pipeline.datamanager.object-box {self.config.object_box})"
+        return super()._box_source()

@@ -1,0 +1,59 @@
+"""A few views of the real fox capture (instant-ngp format, built at test time, downsampled 5x):
+train, evaluate and export through the real commands.
+
+sp-nerfacto: ``ns-train ... instant-ngp-data`` -> ``ns-eval``, ``ns-export pointcloud
+--normal-method open3d`` (nerfacto predicts no normals) and ``ns-render dataset``.
+sp-neus-hashgrid: the SDF in an object box with nerfstudio's background MLP for the room ->
+``ns-eval`` and ``sp-export-mesh`` of the object.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from fox_crop import fox_available, make_fox_crop
+from ns_commands import NERFACTO_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
+
+pytestmark = pytest.mark.skipif(not fox_available(), reason="the fox capture is not here (set SP_FOX_CAPTURE)")
+
+
+@pytest.fixture(scope="module")
+def fox(tmp_path_factory):
+    return make_fox_crop(tmp_path_factory.mktemp("fox"), views=7, factor=5)
+
+
+def _data(fox):
+    return ["instant-ngp-data", "--data", str(fox), "--train-split-fraction", "0.7"]  # 5 train, 2 eval views
+
+
+def test_sp_nerfacto_trains_evaluates_exports_and_renders(fox, tmp_path):
+    config = ns_train("sp-nerfacto", tmp_path / "run", _data(fox), *NERFACTO_FLAGS, steps=3)
+    ns_eval(config, tmp_path)
+    run([command("ns-render"), "dataset", "--load-config", str(config), "--split", "test",
+         "--output-path", str(tmp_path / "renders"), "--rendered-output-names", "rgb", "--image-format", "png"])
+    assert list((tmp_path / "renders").glob("**/*.png"))
+    try:
+        import open3d  # noqa: F401  (ns-export pointcloud needs it; missing libusb-1.0 makes it fail to import)
+    except ImportError as err:
+        pytest.skip(f"open3d does not import ({err}); see run.sh")
+    run([command("ns-export"), "pointcloud", "--load-config", str(config), "--output-dir", str(tmp_path / "cloud"),
+         "--num-points", "200", "--normal-method", "open3d", "--remove-outliers", "False", "--num-rays-per-batch", "256"])
+    cloud = trimesh.load(tmp_path / "cloud" / "point_cloud.ply")
+    assert len(cloud.vertices) > 0 and np.isfinite(cloud.vertices).all()
+
+
+def test_sp_neus_hashgrid_in_an_object_box_trains_evaluates_and_meshes_the_object(fox, tmp_path):
+    config = ns_train("sp-neus-hashgrid", tmp_path / "run", _data(fox), *SDF_FLAGS,
+                      "--pipeline.datamanager.object-box", "1.0", "--pipeline.model.background-model", "mlp")
+    text = config.read_text()
+    assert "object_box: 1.0" in text and "background_model: mlp" in text
+    ns_eval(config, tmp_path)
+    proc = run([sys.executable, "-m", "sp_plugins.cli.export_mesh", "--load-config", str(config),
+                "--output-dir", str(tmp_path / "mesh"), "--resolution", "128"])
+    mesh = trimesh.load(tmp_path / "mesh" / "mesh.ply")
+    assert len(mesh.faces) > 0 and "128^3" in proc.stdout
+    assert (np.abs(mesh.vertices) <= 1.0 + 1e-6).all()  # inside the object box, not the +-2 room box
