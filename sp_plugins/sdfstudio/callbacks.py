@@ -7,7 +7,7 @@ from typing import List, Optional
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 
-from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
 
 ALPHA_GRID_GROUP = "sp_alpha_grid"
 """Name of the optimizer param group holding a learnable alpha grid."""
@@ -43,7 +43,23 @@ def sync_alpha_grid_lr(sp: StochasticPreconditioner, attributes: TrainingCallbac
         group["initial_lr"] = sp.config.alpha_grid_lr
 
 
+def schedule_problem(config: SPConfig, total_steps: int) -> Optional[str]:
+    """None when ``config``'s schedule fits a run of ``total_steps``; else the message to show,
+    naming the flags a user typed."""
+    try:
+        AlphaSchedule.resolve(config.schedule, config.alpha0, end=config.end, total_steps=total_steps,
+                              scene_diagonal=1.0 if config.relative_to_diagonal else None, final_ratio=config.final_ratio)
+    except ValueError as err:
+        return (f"--pipeline.model.sp.end {config.end:g} does not fit --trainer.max-num-iterations {total_steps} ({err}); "
+                "give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= --trainer.max-num-iterations")
+    return None
+
+
 def sp_callbacks(sp: StochasticPreconditioner, attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
     """Everything a model with SP registers: the schedule, plus the alpha grid's learning rate."""
+    total = trainer_total_steps(attributes)
+    problem = None if total is None else schedule_problem(sp.config, total)
+    if problem:
+        raise ValueError(problem)
     sync_alpha_grid_lr(sp, attributes)
-    return [schedule_callback(sp, trainer_total_steps(attributes))]
+    return [schedule_callback(sp, total)]

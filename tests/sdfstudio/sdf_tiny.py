@@ -28,7 +28,7 @@ NEUS_SAMPLER = [
 ]
 PROPOSALS = ["--pipeline.model.num-proposal-samples-per-ray", "12", "8", "--pipeline.model.num-neus-samples-per-ray", "8"]
 TINY = {
-    "neus": COMMON + NEUS_SAMPLER,
+    "neus": COMMON + NEUS_SAMPLER + ["--pipeline.model.sdf-field.num-layers", "2"],  # 8 layers need width > input
     "neus-facto": COMMON + PROPOSALS,
     "neuralangelo": COMMON + NEUS_SAMPLER,
     "bakedangelo": COMMON + PROPOSALS + ["--pipeline.model.sdf-field.hash-features-per-level", "2"],

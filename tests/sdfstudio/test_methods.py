@@ -56,3 +56,25 @@ def test_ns_train_lists_our_methods_and_sp_flags(tmp_path):
     """sdfstudio's own ns-train, with the opt-in hook installed by ./run.sh setup-sdfstudio."""
     out = run(["ns-train", "sp-neus-facto", "--help"], cwd=tmp_path).stdout
     assert "--pipeline.model.sp.alpha0" in out and "0.013" in out
+
+
+def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):
+    import subprocess
+
+    from sdf_tiny import BIN, env, train_args
+
+    args = train_args("sp-neus-facto", "neus-facto", sdf_scene, tmp_path, 3, "--pipeline.model.sp.end", "50")
+    proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), *map(str, args)], env=env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-1000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("sp-sdfstudio-train: error: --pipeline.model.sp.end 50 does not fit --trainer.max-num-iterations 3")
+    assert "Traceback" not in proc.stderr
+
+
+def test_the_sdfstudio_adapter_never_loads_the_nerfstudio_adapter():
+    import sys
+
+    import sp_plugins.sdfstudio.cli  # noqa: F401
+    import sp_plugins.sdfstudio.neus  # noqa: F401
+
+    assert not any(name.startswith("sp_plugins.nerfstudio") for name in sys.modules)

@@ -90,10 +90,11 @@ def test_sdfstudio_ns_extract_mesh_and_ours(sp_runs, tmp_path):
 
 
 def test_sp_state_survives_a_resume(sdf_scene, tmp_path):
-    """Run A trains a learnable alpha grid fast; run B resumes with its learning rate at 0, so B's
-    grid must be exactly A's, and the step must go on from A's."""
+    """Run A trains a learnable alpha grid fast; run B resumes from A's checkpoint with the grid's
+    learning rate at 0, so B's grid must be exactly A's (not a fresh one), and the step must go on
+    from A's (sdfstudio resumes at the saved step + 1 and trains max-num-iterations more)."""
     grid = ["--pipeline.model.sp.alpha-grid", "True", "--pipeline.model.sp.alpha-grid-resolution", "4",
-            "--pipeline.model.sp.end", "50"]
+            "--pipeline.model.sp.end", "1.0"]
     a_out, b_out = tmp_path / "a", tmp_path / "b"
     run(["sp-sdfstudio-train", *train_args("sp-neus-facto", "neus-facto", sdf_scene, a_out, STEPS, *grid,
                                            "--pipeline.model.sp.alpha-grid-lr", "0.5")], cwd=tmp_path)
