@@ -88,7 +88,12 @@ def announce(method: str, device, names: List[str]) -> None:
     if key in _announced:
         return
     _announced.add(key)
-    grids = sorted({n.split(".mlp_base")[0].split(".encoding")[0] for n in names})
+    def owner(name: str) -> str:  # "proposal_networks.0.mlp_base.0" -> "proposal_networks.0"
+        parts = name.split(".")
+        cut = next((i for i, p in enumerate(parts) if p in ("mlp_base", "encoding")), len(parts))
+        return ".".join(parts[:cut]) or "the field"
+
+    grids = sorted({owner(n) for n in names})
     message = (
         f"{method}: tiny-cuda-nn cannot run on {device or 'this machine'}: the hash grids of {', '.join(grids)} are "
         "sp_plugins' HashGrid (tcnn's function and layout, the host's levels and sizes), the MLPs torch"
