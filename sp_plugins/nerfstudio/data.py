@@ -35,10 +35,12 @@ from nerfstudio.data.datasets.sdf_dataset import SDFDataset
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
+from sp_plugins.host_warnings import filter_host_warnings
 from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.views import ViewSelection, select_views
 
 install_input_error_hook()
+filter_host_warnings()  # nerfstudio imports this with our method configs (see sp_plugins.host_warnings)
 
 
 class SurfaceDataset(SDFDataset):
