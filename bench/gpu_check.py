@@ -13,7 +13,9 @@ It checks what no CPU test can see:
    the reason in the report, when ``tinycudann`` does not import.
 2. ``neus``: ``ns-train sp-neus-hashgrid`` for a few hundred steps on CUDA on a small scene made
    by ``sp-scene`` (a subprocess, as a user runs it): exit code, seconds per step, which hash-grid
-   backend the checkpoint holds, and the peak GPU memory in use while it ran.
+   backend the checkpoint holds, and the peak GPU memory in use while it ran; then ``ns-eval`` of
+   that GPU checkpoint with CUDA hidden (``CUDA_VISIBLE_DEVICES=""``), as on a machine without a
+   GPU: the checkpoint must load into the torch backend and evaluate.
 3. ``fit``: ``sp-fit pointcloud`` on the bundled Spot mesh with ``--device cuda``: exit code,
    seconds per step, Chamfer distance, peak GPU memory.
 
@@ -205,12 +207,12 @@ def _tool(name: str) -> str:
     return shutil.which(name) or str(Path(sys.executable).parent / name)
 
 
-def run_command(cmd: List[str], device, timeout: float) -> dict:
+def run_command(cmd: List[str], device, timeout: float, env: Optional[Dict[str, str]] = None) -> dict:
     """Run ``cmd``; exit code, seconds, peak GPU memory, and the tail of its output on failure."""
     start = time.perf_counter()
     with GPUMemoryWatch(device) as watch:
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
             code, output = proc.returncode, proc.stdout + proc.stderr
         except subprocess.TimeoutExpired as exc:
             code, output = None, f"timed out after {timeout:.0f} s\n{exc.stdout or ''}{exc.stderr or ''}"
@@ -232,7 +234,8 @@ def neus_command(scene: Path, out: Path, steps: int, device: str) -> List[str]:
 
 def check_neus(out: Path, steps: int, device: str, timeout: float) -> dict:
     scene = out / "scene"
-    made = run_command([_tool("sp-scene"), "sphere", str(scene), "--views", "24", "--resolution", "64", "--overwrite", "--quiet"], device, timeout)
+    made = run_command([_tool("sp-scene"), "sphere", str(scene), "--views", "24", "--val-views", "2", "--test-views", "2",
+                         "--resolution", "64", "--overwrite", "--quiet"], device, timeout)
     if made["returncode"] != 0:
         return {"status": "failed", "stage": "sp-scene", **made}
     result = run_command(neus_command(scene, out / "neus", steps, device), device, timeout)
@@ -243,7 +246,17 @@ def check_neus(out: Path, steps: int, device: str, timeout: float) -> dict:
         state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["pipeline"]
         result["checkpoint"] = str(ckpts[-1])
         result["grid_keys"] = sorted(k for k in state if k.endswith(("encoding.table", "encoding.tcnn_encoding.params")))
-    result["status"] = "ok" if result["returncode"] == 0 and ckpts else "failed"
+    configs = sorted((out / "neus").glob("**/config.yml"))
+    if result["returncode"] == 0 and configs:
+        # the GPU checkpoint on a CPU, as on a machine without a GPU: the real ns-eval, CUDA hidden
+        cpu_env = dict(os.environ, CUDA_VISIBLE_DEVICES="", OMP_WAIT_POLICY="PASSIVE")
+        metrics_path = out / "neus_eval_on_cpu.json"
+        cmd = [_tool("ns-eval"), "--load-config", str(configs[-1]), "--output-path", str(metrics_path)]
+        result["eval_on_cpu"] = run_command(cmd, device, 2 * timeout, env=cpu_env)  # CPU rendering is slower
+        if metrics_path.is_file():
+            result["eval_on_cpu"]["results"] = json.loads(metrics_path.read_text()).get("results")
+    ok_eval = result.get("eval_on_cpu", {}).get("returncode") == 0
+    result["status"] = "ok" if result["returncode"] == 0 and ckpts and ok_eval else "failed"
     return result
 
 
