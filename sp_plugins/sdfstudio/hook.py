@@ -44,7 +44,7 @@ class _FirstImport(importlib.abc.MetaPathFinder):
     def find_spec(self, fullname, path=None, target=None):
         if fullname not in _HOST_TOP_LEVEL:
             return None
-        sys.meta_path[:] = [f for f in sys.meta_path if not isinstance(f, _FirstImport)]
+        sys.meta_path[:] = [f for f in sys.meta_path if type(f).__name__ != _FirstImport.__name__]
         if not installed_nerfstudio_is_sdfstudio():
             return None
         from sp_plugins.patches.sdfstudio_import_hook import install_all, install_finder
@@ -55,7 +55,9 @@ class _FirstImport(importlib.abc.MetaPathFinder):
 
 def activate() -> None:
     """Called from the ``.pth`` file at start-up; cheap, and inert unless sdfstudio is imported."""
-    if switched_off() or any(isinstance(f, _FirstImport) for f in sys.meta_path):
+    # (site-packages can be processed twice, e.g. a venv's lib64 -> lib link: each run loads this
+    # file as a new module, so compare by name, not by class identity)
+    if switched_off() or any(type(f).__name__ == _FirstImport.__name__ for f in sys.meta_path):
         return
     if any(name in sys.modules for name in _HOST_TOP_LEVEL):
         return
@@ -67,11 +69,12 @@ def pth_path() -> Path:
 
 
 def pth_line() -> str:
+    """One start-up line; inert (no error at every start-up) once sp-plugins is uninstalled."""
     here = str(Path(__file__).resolve())
     return (
-        "import importlib.util as _u; "
-        f"_s = _u.spec_from_file_location('_sp_plugins_sdfstudio_hook', {here!r}); "
-        "_m = _u.module_from_spec(_s); _s.loader.exec_module(_m); _m.activate()\n"
+        f"import importlib.util as _u, os as _o; _p = {here!r}; "
+        "_s = _o.path.isfile(_p) and _u.spec_from_file_location('_sp_plugins_sdfstudio_hook', _p); "
+        "_m = _s and _u.module_from_spec(_s); _s and _s.loader.exec_module(_m); _m and _m.activate()\n"
     )
 
 

@@ -149,3 +149,18 @@ def test_only_sdfstudio_modules_go_through_the_patching_loader():
     assert isinstance(sdf_field.__spec__.loader, _PatchingLoader) and isinstance(train.__spec__.loader, _PatchingLoader)
     assert not isinstance(torch.__spec__.loader, _PatchingLoader)
     assert "class SDFField" in inspect.getsource(sdf_field)  # the wrapped loader still serves sources
+
+
+def test_opt_in_hook_waits_for_sdfstudio_and_can_be_switched_off():
+    """The .pth hook installed by ./run.sh setup-sdfstudio: one waiting finder at start-up, the
+    patching finder only once sdfstudio's nerfstudio is imported, nothing with SP_SDFSTUDIO_HOOK=0."""
+    from sp_plugins.sdfstudio.hook import pth_path
+
+    assert pth_path().is_file(), "run: python -m sp_plugins.sdfstudio.hook install"
+    names = "import sys; print(sorted(type(f).__name__ for f in sys.meta_path if 'First' in type(f).__name__ or 'Sdfstudio' in type(f).__name__))"
+    waiting = subprocess.run([sys.executable, "-c", names], env=env(), capture_output=True, text=True, timeout=60)
+    assert waiting.stdout.strip() == "['_FirstImport']", waiting.stdout + waiting.stderr[-500:]
+    active = subprocess.run([sys.executable, "-c", "import nerfstudio; " + names], env=env(), capture_output=True, text=True, timeout=120)
+    assert active.stdout.strip() == "['SdfstudioFinder']", active.stdout + active.stderr[-500:]
+    off = unpatched_python(names)
+    assert off.stdout.strip() == "[]", off.stdout + off.stderr[-500:]
