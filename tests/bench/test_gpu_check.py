@@ -77,16 +77,17 @@ def test_report_is_strict_json_with_a_summary(gpu_check, tmp_path):
     report = {
         "machine": gpu_check.machine_report(None),
         "grid": {"status": "ok", "agreement": {"output": {"relative": 2e-4}, "input_gradient": {"relative": 1e-3}, "tolerance": 1e-2},
-                 "speed": {"fit_torch_over_tcnn": 3.5, "eikonal_torch_over_tcnn": float("nan")}},
+                 "speed": {"fit_torch_over_tcnn": 3.5, "eikonal_torch_over_tcnn": float("nan"), "tcnn": {"eikonal": {"error": "x"}}}},
         "neus": {"status": "failed", "seconds_per_step": 0.05, "peak_gpu_mib_over_start": 812.0},
         "fit": {"status": "ok", "seconds_per_step": 0.01, "peak_gpu_mib_over_start": 300.0, "chamfer": float("inf")},
     }
     path = gpu_check.write_report(tmp_path / "deep" / "gpu_check.json", report)
     data = json.loads(path.read_text())  # strict: NaN / inf would not parse back as numbers
+    del report["grid"]["speed"]["eikonal_torch_over_tcnn"]  # a failed timing has no ratio
     assert data["fit"]["chamfer"] is None and data["grid"]["speed"]["eikonal_torch_over_tcnn"] is None
     assert data["machine"]["torch"] == torch.__version__
     lines = gpu_check.summary_lines(report)
-    assert lines[0].startswith("grid: ok: tcnn vs torch output 2.00e-04") and "fit 3.50x" in lines[0]
+    assert lines[0].startswith("grid: ok: tcnn vs torch output 2.00e-04") and "fit 3.50x, eikonal n/a" in lines[0]
     assert lines[1] == "neus: failed, 0.050 s/step, peak GPU +812 MiB"
 
 
