@@ -148,7 +148,8 @@ def check_grid(device: str, points: int, repeats: int, tolerance: float) -> dict
 
     if not tcnn_usable(device):
         return {"status": "skipped", "reason": "tinycudann does not import on this machine (pip install 'sp-plugins[tcnn]')"}
-    torch.cuda.set_device(torch.device(device))  # tcnn builds on the current device
+    if torch.device(device).index is not None:
+        torch.cuda.set_device(torch.device(device))  # tcnn builds on the current device
     torch.manual_seed(0)
     reference = HashGrid(**GRID_SETTING, backend="torch", init_scale=1.0).to(device)
     candidate = HashGrid(**GRID_SETTING, backend="tcnn")
