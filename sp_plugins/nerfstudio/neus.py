@@ -38,6 +38,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
+from sp_plugins.nerfstudio import hash_encoding
 from sp_plugins.nerfstudio.callbacks import trainer_total_steps
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
@@ -72,6 +73,10 @@ class SPNeuSModel(SPModel, NeuSModel):
 
         super().populate_modules()
         install_cpu_marching_cubes()  # ns-export marching-cubes builds this model, then meshes it
+        device = self.kwargs.get("device")
+        if self.config.background_model == "grid" and hash_encoding.use_sp_hash_grids(device):
+            # the host's background grid is nerfstudio's slow torch HashEncoding without tcnn
+            hash_encoding.setup_host_modules(self.field_background, self.__class__.__name__, device)
 
     def attach_sp(self) -> None:
         self.field.use_preconditioner(self.sp)
