@@ -1,0 +1,110 @@
+"""sp-nerfacto vs its baseline (``--pipeline.model.sp.enabled False``) on the real fox capture, at the
+CPU recipe: paired in one process (same seed, same rays per step, steps alternating), test-view
+PSNR / SSIM and seconds per step.
+
+    python -m bench.fox_nerfacto --steps 1500          # writes bench/out/fox_nerfacto.json
+
+The recipe (``RECIPE``) is what the README gives as ``ns-train`` flags; ``--print-flags`` prints them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+
+from bench.common import machine_info, write_json
+
+FOX = Path(os.environ.get("SP_FOX_CAPTURE", "/work/shared/data/real/fox"))
+
+RECIPE: Dict[str, object] = {
+    "pipeline.datamanager.train-num-rays-per-batch": 256,
+    "pipeline.model.log2-hashmap-size": 17,
+    "pipeline.model.num-nerf-samples-per-ray": 32,
+    "pipeline.model.num-proposal-samples-per-ray": (64, 32),
+    "pipeline.model.eval-num-rays-per-chunk": 4096,
+}
+"""CPU recipe for sp-nerfacto on a real capture (the rest are nerfacto's settings)."""
+
+
+def recipe_flags() -> List[str]:
+    flags = []
+    for key, value in RECIPE.items():
+        flags.append(f"--{key}")
+        flags.extend(str(v) for v in (value if isinstance(value, tuple) else (value,)))
+    return flags
+
+
+def fox_config(sp: bool, steps: int, out: Path, data: Path):
+    from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
+
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
+
+    config = method_config("sp-nerfacto")
+    configure_run(config, data, steps=steps, output_dir=out, experiment_name=f"fox-{'sp' if sp else 'baseline'}")
+    dm = config.pipeline.datamanager
+    dm.dataparser = InstantNGPDataParserConfig(data=data)
+    dm.train_num_rays_per_batch = RECIPE["pipeline.datamanager.train-num-rays-per-batch"]
+    model = config.pipeline.model
+    model.log2_hashmap_size = RECIPE["pipeline.model.log2-hashmap-size"]
+    model.num_nerf_samples_per_ray = RECIPE["pipeline.model.num-nerf-samples-per-ray"]
+    model.num_proposal_samples_per_ray = RECIPE["pipeline.model.num-proposal-samples-per-ray"]
+    model.eval_num_rays_per_chunk = RECIPE["pipeline.model.eval-num-rays-per-chunk"]
+    model.sp = dataclasses.replace(model.sp, enabled=sp)
+    config.mixed_precision = False  # no AMP on a CPU
+    return config
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--data", type=Path, default=FOX)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--print-flags", action="store_true", help="print the recipe as ns-train flags and exit")
+    args = parser.parse_args(argv)
+    if args.print_flags:
+        print(" ".join(recipe_flags()))
+        return
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    torch.set_num_threads(args.threads)
+    from bench.common import OUT_DIR
+    from bench.radiance_methods import Run, run_summary, train_together
+
+    out = OUT_DIR / "fox_nerfacto_runs"
+    runs = {name: Run(name, fox_config(name == "sp", args.steps, out, args.data), args.seed) for name in ("baseline", "sp")}
+    wall = train_together(runs, args.steps, args.seed, "fox")
+    results = {}
+    for name, run in runs.items():
+        start = time.perf_counter()
+        metrics = run.evaluate()
+        seconds = time.perf_counter() - start
+        results[name] = {k: v for k, v in run_summary(run, metrics).items() if k not in ("losses", "alphas")}
+        results[name]["eval_s_per_image"] = seconds / len(metrics["psnr_per_view"])
+        logging.info("%s: %s", name, results[name])
+    payload = {
+        "benchmark": "fox_nerfacto",
+        "steps": args.steps,
+        "seed": args.seed,
+        "recipe_flags": recipe_flags(),
+        "wall_s": wall,
+        "machine": machine_info(),
+        "results": results,
+        "psnr_delta": results["sp"]["psnr"] - results["baseline"]["psnr"],
+        "step_time_ratio": results["sp"]["median_step_s"] / results["baseline"]["median_step_s"],
+    }
+    path = write_json("fox_nerfacto", payload)
+    b, s = results["baseline"], results["sp"]
+    print(f"| fox, {args.steps} steps, seed {args.seed} | {b['psnr']:.2f} / {b['ssim']:.3f} | {s['psnr']:.2f} / {s['ssim']:.3f} "
+          f"| {b['median_step_s']:.2f} / {s['median_step_s']:.2f} s |")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
