@@ -100,6 +100,8 @@ def run_on_ray(
     from ray import tune
 
     logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)  # we keep our own results
+    # without ray[default] (aiohttp, ...) Ray logs its dashboard's failed start as errors, though it is not needed
+    logging.getLogger("ray._private.services").setLevel(logging.CRITICAL)
     own_temp = None
     if address:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)

@@ -55,9 +55,13 @@ class SweepSpec:
     sp: Literal["both", "on", "off"] = "both"
     sp_methods: Optional[Tuple[str, str]] = None
     """ns-train: (baseline method, SP method) instead of toggling --pipeline.model.sp.enabled."""
+    sp_only: List[str] = field(default_factory=list)
+    """Grid flags that only mean something with SP (e.g. sp.alpha0): baseline trials leave them out
+    (shown as '-'), so grid points that differ only there share one baseline trial."""
     seeds: List[int] = field(default_factory=lambda: [0])
     sample: Optional[int] = None
-    """Run only this many grid points, drawn at random (seeded by sample_seed); SP pairs stay together."""
+    """Run only this many grid points, drawn at random (seeded by sample_seed) and run in that
+    random order, so a sweep stopped early still covers the grid evenly; SP pairs stay together."""
     sample_seed: int = 0
     success: List[str] = field(default_factory=list)
     """Criteria a finished trial must all meet to count as a success, e.g. 'psnr >= 24'."""
@@ -91,6 +95,12 @@ class SweepSpec:
         for flag, values in self.grid.items():
             if not values:
                 raise SpecError(f"grid: {flag} has no values")
+        names = [flag_name(f) for f in self.grid]
+        if len(set(names)) != len(names):
+            raise SpecError("grid: a flag is listed twice (with and without dashes?)")
+        unknown = [f for f in self.sp_only if flag_name(f) not in {flag_name(g) for g in self.grid}]
+        if unknown:
+            raise SpecError(f"sp_only: {', '.join(unknown)} not in the grid")
         if not self.seeds:
             raise SpecError("seeds: give at least one seed")
         if self.sample is not None and self.sample < 1:
@@ -131,8 +141,9 @@ def spec_from_dict(raw: dict) -> SweepSpec:
         command=_as_list(raw["command"], "command"),
         data=_as_list(raw.get("data"), "data"),
         grid={str(k): [_value(v) for v in (vs if isinstance(vs, (list, tuple)) else [vs])] for k, vs in grid.items()},
-        sp=raw.get("sp", "both"),
+        sp={True: "on", False: "off"}.get(raw.get("sp", "both"), raw.get("sp", "both")),  # YAML reads on/off as booleans
         sp_methods=tuple(raw["sp_methods"]) if raw.get("sp_methods") else None,
+        sp_only=[str(f) for f in (raw.get("sp_only") or [])],
         seeds=[int(s) for s in (seeds if isinstance(seeds, (list, tuple)) else [seeds])],
         sample=raw.get("sample"),
         sample_seed=int(raw.get("sample_seed", 0)),
@@ -208,7 +219,7 @@ def grid_points(spec: SweepSpec) -> List[Dict[str, str]]:
     flags = [flag_name(f) for f in spec.grid]
     points = [dict(zip(flags, combo)) for combo in itertools.product(*spec.grid.values())] or [{}]
     if spec.sample is not None and spec.sample < len(points):
-        chosen = sorted(random.Random(spec.sample_seed).sample(range(len(points)), spec.sample))
+        chosen = random.Random(spec.sample_seed).sample(range(len(points)), spec.sample)
         points = [points[i] for i in chosen]
     return points
 
@@ -230,13 +241,20 @@ def expand(spec: SweepSpec) -> List[Trial]:
     """Every trial of the sweep, SP pairs next to each other (so partial results stay paired)."""
     spec.validate()
     sides = {"both": [False, True], "on": [True], "off": [False]}[spec.sp]
-    trials = []
+    sp_only = {flag_name(f) for f in spec.sp_only}
+    trials, seen = [], set()
     for point in grid_points(spec):
         for seed in spec.seeds:
             for sp in sides:
-                argv = build_argv(spec, point, sp, seed)
-                trials.append(Trial(trial_key(argv), dict(point), sp, seed, argv))
-    keys = [t.key for t in trials]
-    if len(set(keys)) != len(keys):
-        raise SpecError("two trials have the same command line: a grid flag is listed twice or has repeated values")
+                used = {k: v for k, v in point.items() if sp is not False or k not in sp_only}
+                argv = build_argv(spec, used, sp, seed)
+                key = trial_key(argv)
+                if key in seen:  # a baseline shared by grid points that differ only in SP-only flags
+                    continue
+                seen.add(key)
+                shown = {k: (v if k in used else "-") for k, v in point.items()}
+                trials.append(Trial(key, shown, sp, seed, argv))
+    for flag, values in spec.grid.items():
+        if len(set(values)) != len(values):
+            raise SpecError(f"grid: {flag} repeats a value")
     return trials
