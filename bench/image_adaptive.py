@@ -41,6 +41,8 @@ from bench.common import OUT_DIR, machine_info
 
 IMAGES = ("astronaut", "chelsea", "coffee", "rocket", "hubble_deep_field")
 VARIANTS = ("baseline", "sp", "adaptive")
+ABLATIONS = ("adaptive-sampling-only", "adaptive-masking-only")
+"""Phase 2 with one technique only (``--variants adaptive-sampling-only ...``): which one moves PSNR."""
 FIGURE = Path(__file__).resolve().parents[1] / "docs" / "image_alpha_maps.png"
 
 
@@ -74,7 +76,8 @@ def make_config(variant: str, args):
         return ImageFitConfig(**common, sp=SPConfig(alpha0=0.01, schedule="exponential", end=0.2))
     return ImageFitConfig(
         **common, sp=SPConfig(alpha0=0.01, schedule="step", end=0.2), adaptive_alpha=True, alpha_map_downscale=16,
-        alpha_map_lr=0.01, importance_sampling=True, level_masking=True,
+        alpha_map_lr=0.01, importance_sampling=variant != "adaptive-masking-only",
+        level_masking=variant != "adaptive-sampling-only",
     )
 
 
@@ -117,7 +120,8 @@ def run_one(name: str, variant: str, args, out_dir: Path) -> dict:
     save_image(fitted, out_dir / f"{name}_{variant}.png")
     if trainer.sp.alpha_grid is not None:
         alpha = trainer.pixel_alpha().reshape(trainer.height, trainer.width).cpu().numpy()
-        np.save(out_dir / f"{name}_alpha.npy", alpha)
+        if variant == "adaptive":
+            np.save(out_dir / f"{name}_alpha.npy", alpha)
         block = trainer.config.alpha_map_downscale  # one map cell
         log_alpha = np.log(block_mean(alpha, block))
         grad_img = block_mean(gradient_magnitude(img), block)
@@ -132,7 +136,7 @@ def run_one(name: str, variant: str, args, out_dir: Path) -> dict:
             spearman_alpha_vs_image_gradient=spearman(log_alpha, grad_img),
             spearman_alpha_vs_local_std=spearman(log_alpha, local_std),
             spearman_alpha_vs_fitted_gradient=spearman(log_alpha, grad_fit),
-            level_mask_alpha_range=list(trainer.level_mask_alpha_range), phase2_step=trainer.phase2_step,
+            level_mask_alpha_range=list(trainer.level_mask_alpha_range or ()), phase2_step=trainer.phase2_step,
             psnr_at_phase2_start=psnr(phase1_render, img),
         )
     return record
@@ -160,6 +164,10 @@ def write_summary(args, out_dir: Path) -> None:
             f"{a['spearman_alpha_vs_fitted_gradient']:+.2f} | "
             f"{b['seconds_per_step']:.3f} / {s['seconds_per_step']:.3f} / {a['seconds_per_step']:.3f} |"
         )
+    ablation = [f"| {name} | {r['adaptive']['psnr']:.2f} | " + " | ".join(f"{r[v]['psnr']:.2f}" for v in ABLATIONS) + " |"
+                for name, r in rows.items() if "adaptive" in r and all(v in r for v in ABLATIONS)]
+    if ablation:
+        lines += ["", "| image | sampling + masking | sampling only | masking only |", "|---|---|---|---|"] + ablation
     (out_dir / "summary.md").write_text("\n".join(lines) + "\n")
     (out_dir / "summary.json").write_text(json.dumps(rows, indent=2))
     print("\n".join(lines))
@@ -197,7 +205,7 @@ def make_figure(names, args, out_dir: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--images", nargs="+", default=list(IMAGES), choices=IMAGES)
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS + ABLATIONS)
     parser.add_argument("--size", type=int, default=128, help="long side of the resized photographs (pixels)")
     parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--batch", type=int, default=4096)
