@@ -79,7 +79,9 @@ def main(argv=None) -> None:
 
     out = OUT_DIR / "fox_nerfacto_runs"
     runs = {name: Run(name, fox_config(name == "sp", args.steps, out, args.data), args.seed) for name in ("baseline", "sp")}
-    wall = train_together(runs, args.steps, args.seed, "fox")
+    cpu = time.process_time()
+    wall = train_together(runs, args.steps, args.seed, "fox", log_every=max(1, args.steps // 10))
+    cpu_per_step = (time.process_time() - cpu) / (2 * args.steps)  # one thread: CPU time is near idle wall time
     results = {}
     for name, run in runs.items():
         start = time.perf_counter()
@@ -94,6 +96,7 @@ def main(argv=None) -> None:
         "seed": args.seed,
         "recipe_flags": recipe_flags(),
         "wall_s": wall,
+        "cpu_s_per_step_both_runs": cpu_per_step,
         "machine": machine_info(),
         "results": results,
         "psnr_delta": results["sp"]["psnr"] - results["baseline"]["psnr"],

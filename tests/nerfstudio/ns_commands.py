@@ -10,7 +10,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import List, Sequence
+from typing import Dict, List, Sequence
 
 BIN = Path(sys.executable).parent
 
@@ -19,12 +19,33 @@ def command(name: str) -> str:
     return shutil.which(name, path=str(BIN)) or shutil.which(name) or str(BIN / name)
 
 
+ENV = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
+
+
+def _report(args: Sequence[str], proc: subprocess.CompletedProcess) -> str:
+    return f"{' '.join(map(str, args))}\n--- stdout\n{proc.stdout[-3000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+
+
 def run(args: Sequence[str], timeout: int = 600) -> subprocess.CompletedProcess:
     """Run ``args`` on one torch thread; fail with the tail of its output when it fails."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
-    proc = subprocess.run(list(args), env=env, capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, f"{' '.join(map(str, args))}\n--- stdout\n{proc.stdout[-3000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+    proc = subprocess.run(list(args), env=ENV, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, _report(args, proc)
     return proc
+
+
+def run_many(commands: Dict[str, List[str]], parallel: int = 2, timeout: int = 900) -> Dict[str, subprocess.CompletedProcess]:
+    """Run several commands, ``parallel`` at a time (each on one thread: their start-up, mostly
+    nerfstudio's imports, is what costs); fail naming every command that failed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(args):
+        return subprocess.run(list(args), env=ENV, capture_output=True, text=True, timeout=timeout)
+
+    with ThreadPoolExecutor(parallel) as pool:
+        procs = dict(zip(commands, pool.map(one, commands.values())))
+    failed = [f"[{name}] " + _report(commands[name], p) for name, p in procs.items() if p.returncode != 0]
+    assert not failed, "\n\n".join(failed)
+    return procs
 
 
 RUN_FLAGS = [
@@ -62,10 +83,18 @@ def ns_train(method: str, out: Path, data_args: List[str], *flags: str, steps: i
     return config
 
 
-def ns_eval(config: Path, out: Path) -> dict:
-    """``ns-eval`` on the checkpoint; returns its results (asserts PSNR is finite)."""
-    proc = run([command("ns-eval"), "--load-config", str(config), "--output-path", str(out / "eval.json")])
+def ns_eval_args(config: Path, out: Path) -> List[str]:
+    return [command("ns-eval"), "--load-config", str(config), "--output-path", str(out / "eval.json")]
+
+
+def check_eval(proc: subprocess.CompletedProcess, out: Path) -> dict:
+    """What ``ns-eval`` wrote to ``out``: a finite PSNR, and our per-image progress lines."""
     results = json.loads((out / "eval.json").read_text())["results"]
     assert math.isfinite(results["psnr"]), results
-    assert "evaluating image 1/" in proc.stderr  # our per-image progress line
+    assert "evaluating image 1/" in proc.stderr and "took" in proc.stderr
     return results
+
+
+def ns_eval(config: Path, out: Path) -> dict:
+    """``ns-eval`` on the checkpoint; returns its results (asserts PSNR is finite)."""
+    return check_eval(run(ns_eval_args(config, out)), out)

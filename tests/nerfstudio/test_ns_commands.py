@@ -1,7 +1,7 @@
-"""Every registered method's checkpoint loads in the real ``ns-eval`` (a subprocess), as written by
-nerfstudio's trainer on the tiny synthetic scene; ``ns-render`` and the exports for one method of
-each kind. (sp-nerfacto and sp-neus-hashgrid run the whole command line on a real capture in
-test_real_capture.py.)
+"""Every registered method's checkpoint loads in the real ``ns-eval`` (subprocesses), as written by
+nerfstudio's trainer on the tiny synthetic scene; ``ns-render`` and the mesh export for one SDF
+method. (sp-nerfacto and sp-neus-hashgrid run the whole command line, ``ns-train`` included, on
+a real capture in test_real_capture.py.)
 
 torch >= 2.6 loads checkpoints weights-only; nerfstudio's schedulers stored numpy learning rates,
 which it refuses. The SDF runs here go past the warm-up so the cosine factor is a numpy scalar.
@@ -9,13 +9,14 @@ which it refuses. The SDF runs here go past the warm-up so the cosine factor is 
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import numpy as np
 import pytest
 import trimesh
 
-from ns_commands import command, ns_eval, run
+from ns_commands import check_eval, command, ns_eval_args, run_many
 from ns_tiny import SDF_METHODS, _tiny_config, run_recording
 from radiance_tiny import tiny_radiance_config
 
@@ -26,16 +27,22 @@ ON_THE_FOX = ("sp-nerfacto", "sp-neus-hashgrid")
 OTHERS = sorted(set(our_methods()) - set(ON_THE_FOX))
 
 
-def _trained(name, scene, out):
-    if name in SDF_METHODS:
-        config = _tiny_config(name, scene, out, steps=2)
-        for group in config.optimizers.values():
-            if group["scheduler"] is not None:
-                group["scheduler"].warm_up_end = 1
-    else:
-        config = tiny_radiance_config(name, scene, out, steps=2)
-    run_recording(config)
-    return config.get_base_dir() / "config.yml"
+@pytest.fixture(scope="module")
+def checkpoints(tiny_scene, tmp_path_factory):
+    """``name -> config.yml`` of a 2-step run of each method (the real trainer, in this process)."""
+    out = {}
+    for name in OTHERS:
+        folder = tmp_path_factory.mktemp(name)
+        if name in SDF_METHODS:
+            config = _tiny_config(name, tiny_scene, folder, steps=2)
+            for group in config.optimizers.values():
+                if group["scheduler"] is not None:
+                    group["scheduler"].warm_up_end = 1
+        else:
+            config = tiny_radiance_config(name, tiny_scene, folder, steps=2)
+        run_recording(config)
+        out[name] = config.get_base_dir() / "config.yml"
+    return out
 
 
 def test_every_method_keeps_its_learning_rates_python_floats():
@@ -47,28 +54,28 @@ def test_every_method_keeps_its_learning_rates_python_floats():
             ), f"{name}: optimizer group {group!r} uses {type(scheduler).__name__}, whose numpy learning rates ns-eval cannot load"
 
 
-@pytest.mark.parametrize("name", OTHERS)
-def test_ns_eval_loads_the_checkpoint(name, tiny_scene, tmp_path):
-    config = _trained(name, tiny_scene, tmp_path)
-    ns_eval(config, tmp_path)
+def test_ns_eval_loads_every_method_checkpoint(checkpoints, tmp_path):
+    outs = {name: tmp_path / name for name in checkpoints}
+    procs = run_many({name: ns_eval_args(config, outs[name]) for name, config in checkpoints.items()})
+    for name, proc in procs.items():
+        check_eval(proc, outs[name])
 
 
-def test_ns_render_and_sp_export_mesh_on_an_sdf_checkpoint(tiny_scene, tmp_path):
-    config = _trained("neuralangelo-lite", tiny_scene, tmp_path)
-    run([command("ns-render"), "dataset", "--load-config", str(config), "--split", "test",
-         "--output-path", str(tmp_path / "renders"), "--rendered-output-names", "rgb", "--image-format", "png"])
+def test_ns_render_and_sp_export_mesh_on_an_sdf_checkpoint(checkpoints, tmp_path):
+    config = checkpoints["neuralangelo-lite"]
+    procs = run_many({
+        "render": [command("ns-render"), "dataset", "--load-config", str(config), "--split", "test",
+                   "--output-path", str(tmp_path / "renders"), "--rendered-output-names", "rgb", "--image-format", "png"],
+        "mesh": [sys.executable, "-m", "sp_plugins.cli.export_mesh", "--load-config", str(config),
+                 "--output-dir", str(tmp_path / "mesh"), "--resolution", "96"],
+    })
     assert list((tmp_path / "renders").glob("**/*.png"))
-    proc = run([sys.executable, "-m", "sp_plugins.cli.export_mesh", "--load-config", str(config),
-                "--output-dir", str(tmp_path / "mesh"), "--resolution", "96"])
     mesh = trimesh.load(tmp_path / "mesh" / "mesh.ply")
-    assert len(mesh.faces) > 0 and "96^3" in proc.stdout and np.isfinite(mesh.vertices).all()
+    assert len(mesh.faces) > 0 and "96^3" in procs["mesh"].stdout and np.isfinite(mesh.vertices).all()
 
 
-def test_sp_export_mesh_refuses_a_density_field_in_one_line(tiny_scene, tmp_path):
-    import subprocess
-
-    config = _trained("sp-tensorf", tiny_scene, tmp_path)
-    proc = subprocess.run([sys.executable, "-m", "sp_plugins.cli.export_mesh", "--load-config", str(config),
+def test_sp_export_mesh_refuses_a_density_field_in_one_line(checkpoints, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "sp_plugins.cli.export_mesh", "--load-config", str(checkpoints["sp-tensorf"]),
                            "--output-dir", str(tmp_path / "mesh")], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "has no SDF field" in proc.stderr.strip().splitlines()[-1]

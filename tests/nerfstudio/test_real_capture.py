@@ -57,3 +57,17 @@ def test_sp_neus_hashgrid_in_an_object_box_trains_evaluates_and_meshes_the_objec
     mesh = trimesh.load(tmp_path / "mesh" / "mesh.ply")
     assert len(mesh.faces) > 0 and "128^3" in proc.stdout
     assert (np.abs(mesh.vertices) <= 1.0 + 1e-6).all()  # inside the object box, not the +-2 room box
+
+
+def test_a_configuration_error_in_model_construction_is_one_line(fox, tmp_path):
+    import os
+    import subprocess
+
+    from ns_commands import RUN_FLAGS
+
+    cmd = [command("ns-train"), "sp-nerfacto", *RUN_FLAGS, "--output-dir", str(tmp_path),
+           "--pipeline.model.sp.boundary", "reflect", *_data(fox)]  # reflect needs a bounded box; nerfacto contracts
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("ns-train: error: sp-nerfacto: --pipeline.model.sp.boundary reflect needs a bounded scene")
