@@ -106,13 +106,27 @@ def main(argv=None) -> int:
     p.add_argument("--success", nargs="+", default=None, help="success criteria (default: the study's)")
     p.add_argument("--num-cpus", type=int, default=1, help="local Ray CPUs (trials run 1 CPU each)")
     p.add_argument("--summarize-only", action="store_true")
+    p.add_argument("--publish", action="store_true",
+                   help="copy results.md / .csv to bench/results/ and the histogram to docs/ (the committed copies)")
     args = p.parse_args(argv)
     spec = write_spec(args.study, args.sample, args.sample_seed, args.success)
     cmd = [str(Path(sys.executable).parent / "sp-sweep"), str(spec), "--out", str(ROOT / args.study),
            "--num-cpus", str(args.num_cpus), "--cpus-per-trial", "1"]
-    if args.summarize_only:
+    if args.summarize_only or args.publish:
         cmd.append("--summarize-only")
-    return subprocess.run(cmd).returncode
+    code = subprocess.run(cmd).returncode
+    if args.publish and code == 0:
+        import shutil
+
+        repo = Path(__file__).resolve().parents[1]
+        (repo / "bench" / "results").mkdir(exist_ok=True)
+        src = ROOT / args.study
+        shutil.copy(src / "results.csv", repo / "bench" / "results" / f"robustness_{args.study}.csv")
+        text = (src / "results.md").read_text().replace("](histogram.png)", f"](../../docs/robustness_{args.study}.png)")
+        (repo / "bench" / "results" / f"robustness_{args.study}.md").write_text(text)
+        if (src / "histogram.png").is_file():
+            shutil.copy(src / "histogram.png", repo / "docs" / f"robustness_{args.study}.png")
+    return code
 
 
 if __name__ == "__main__":

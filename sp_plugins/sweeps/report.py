@@ -132,7 +132,9 @@ def axis_medians(spec: SweepSpec, trials: Sequence[Trial], results: Dict[str, di
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     flags = list(trials[0].params) if trials else []
     for flag in flags:
-        for value in dict.fromkeys(t.params[flag] for t in trials):
+        listed = next((vs for f, vs in spec.grid.items() if "--" + f.lstrip("-") == flag), [])
+        seen = dict.fromkeys(t.params[flag] for t in trials)
+        for value in [v for v in listed if v in seen] + [v for v in seen if v not in listed]:  # the spec's order
             cells = [short_name(flag, flags), value]
             group = {s: [t for t in trials if t.sp is s and t.params[flag] == value and t.key in results] for s in sides}
             for s in sides:

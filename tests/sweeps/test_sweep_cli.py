@@ -61,10 +61,10 @@ def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials
     assert len(rows) == 4 and sorted(r["sp"] for r in rows) == ["SP", "SP", "baseline", "baseline"]
     for r in rows:
         if r["max-resolution"] == "32":
-            assert r["status"] == "ok" and math.isfinite(float(r["wall_seconds"])) and r["sound"] in ("0", "1")
-            assert r["success"] == "1"
+            assert r["status"] == "ok" and math.isfinite(float(r["wall_seconds"])) and float(r["sound"]) in (0.0, 1.0)
+            assert float(r["success"]) == 1
         else:
-            assert r["status"] == "failed" and "base_resolution <= max_resolution" in r["error"] and r["success"] == "0"
+            assert r["status"] == "failed" and "base_resolution <= max_resolution" in r["error"] and float(r["success"]) == 0
     md = (out / "results.md").read_text()
     assert all(md.count(r["trial"]) == 1 for r in rows)  # one row per trial
     assert "success (fscore >= 0): baseline 1/2 (50%), SP 1/2 (50%)" in md
