@@ -144,17 +144,13 @@ class CoarseToFine(NamedTuple):
 
 def coarse_to_fine_schedule(step: int, warmup_steps: int, end_steps: int, init_levels: int, num_levels: int) -> CoarseToFine:
     """Levels and warm-up at ``step``: ``init_levels`` until ``warmup_steps``, then evenly more
-    until all ``num_levels`` are on at ``end_steps``; the warm-up factor ramps 0 -> 1 over
-    ``warmup_steps``."""
-    if end_steps <= warmup_steps and init_levels < num_levels:
-        raise ValueError(
-            f"c2f_end ({end_steps} steps) must come after c2f_warmup ({warmup_steps} steps): levels are added between them"
-        )
+    until all ``num_levels`` are on at ``end_steps`` (at once when ``end_steps <= warmup_steps``,
+    as in a run of a few steps); the warm-up factor ramps 0 -> 1 over ``warmup_steps``."""
     warm = min(1.0, step / warmup_steps) if warmup_steps > 0 else 1.0
     if step < warmup_steps or init_levels >= num_levels:
         return CoarseToFine(init_levels, 0, warm)
     interval = (end_steps - warmup_steps) / (num_levels - init_levels)
-    added = min(num_levels - init_levels, int((step - warmup_steps) // interval))
+    added = num_levels - init_levels if interval <= 0 else min(num_levels - init_levels, int((step - warmup_steps) // interval))
     return CoarseToFine(init_levels + added, added, warm)
 
 

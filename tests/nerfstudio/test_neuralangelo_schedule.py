@@ -21,8 +21,9 @@ def test_the_schedule_at_neuralangelos_own_settings():
     assert at(35000) == (10, 6, 1.0)  # mid-way: 6 of the 12 levels added
     assert at(64999).active_levels == 15 and at(65000) == (16, 12, 1.0)
     assert at(500000) == (16, 12, 1.0)  # the end
-    with pytest.raises(ValueError, match="c2f_end"):
-        coarse_to_fine_schedule(0, 5000, 5000, 4, 16)
+    # a run of a few steps, where the end rounds onto the warm-up: every level at warm-up end
+    assert coarse_to_fine_schedule(0, 1, 1, 4, 16) == (4, 0, 0.0)
+    assert coarse_to_fine_schedule(1, 1, 1, 4, 16) == (16, 12, 1.0)
 
 
 def _box():
