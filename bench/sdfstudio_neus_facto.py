@@ -131,7 +131,7 @@ class Run:
 
         pipeline = self.trainer.pipeline
         pipeline.eval()
-        images = pipeline.get_average_eval_image_metrics()
+        images, _ = pipeline.get_average_eval_image_metrics()  # sdfstudio returns (metrics, images)
         field = pipeline.model.field
         with torch.no_grad():
             mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=resolution)

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from sdf_tiny import run
+
 
 pytestmark = pytest.mark.usefixtures("patched")
 
@@ -50,12 +50,6 @@ def test_sp_replaces_neuralangelo_coarse_to_fine(base, fd):
     assert not model.enable_progressive_hash_encoding and not model.enable_numerical_gradients_schedule
     assert math.isclose(model.sdf_field.fd_step, fd / host_model.sdf_field.max_res)
     assert model.sp.alpha_grid_init == 0.03 and model.sp.alpha_grid_lr == 1e-3
-
-
-def test_ns_train_lists_our_methods_and_sp_flags(tmp_path):
-    """sdfstudio's own ns-train, with the opt-in hook installed by ./run.sh setup-sdfstudio."""
-    out = run(["ns-train", "sp-neus-facto", "--help"], cwd=tmp_path).stdout
-    assert "--pipeline.model.sp.alpha0" in out and "0.013" in out
 
 
 def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):

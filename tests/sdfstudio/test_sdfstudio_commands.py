@@ -20,6 +20,8 @@ from sdf_tiny import run, run_dir, train_args
 
 BASES = ["neus", "neus-facto", "neuralangelo", "bakedangelo"]
 STEPS = 3
+ALPHA_GRID = ["--pipeline.model.sp.alpha-grid", "True", "--pipeline.model.sp.alpha-grid-resolution", "4",
+              "--pipeline.model.sp.end", "1.0"]
 MODEL_CLASS = {
     "neus": "SPNeuSModelConfig",
     "neus-facto": "SPNeuSFactoModelConfig",
@@ -36,13 +38,17 @@ def checkpoint(run: Path, step: int) -> dict:
 
 @pytest.fixture(scope="module")
 def sp_runs(sdf_scene, tmp_path_factory):
-    """Trains each SP method once (lazily), shared by the tests below."""
+    """Trains each SP method once (lazily), shared by the tests below. sp-neuralangelo goes through
+    sdfstudio's own ns-train (the opt-in hook lists our methods), the others through
+    sp-sdfstudio-train; sp-neus-facto learns an alpha grid (fast, for the resume test)."""
     out = tmp_path_factory.mktemp("sp_runs")
     done = {}
 
     def get(base: str) -> Path:
         if base not in done:
-            run(["sp-sdfstudio-train", *train_args(f"sp-{base}", base, sdf_scene, out, STEPS)], cwd=out)
+            command = "ns-train" if base == "neuralangelo" else "sp-sdfstudio-train"
+            extra = ALPHA_GRID + ["--pipeline.model.sp.alpha-grid-lr", "0.5"] if base == "neus-facto" else []
+            run([command, *train_args(f"sp-{base}", base, sdf_scene, out, STEPS, *extra)], cwd=out)
             done[base] = run_dir(out, f"sp-{base}")
         return done[base]
 
@@ -89,25 +95,22 @@ def test_sdfstudio_ns_extract_mesh_and_ours(sp_runs, tmp_path):
         assert len(mesh.faces) > 100 and abs(np.median(radii) - 0.5) < 0.1, (path.name, np.median(radii))
 
 
-def test_sp_state_survives_a_resume(sdf_scene, tmp_path):
-    """Run A trains a learnable alpha grid fast; run B resumes from A's checkpoint with the grid's
-    learning rate at 0, so B's grid must be exactly A's (not a fresh one), and the step must go on
-    from A's (sdfstudio resumes at the saved step + 1 and trains max-num-iterations more)."""
-    grid = ["--pipeline.model.sp.alpha-grid", "True", "--pipeline.model.sp.alpha-grid-resolution", "4",
-            "--pipeline.model.sp.end", "1.0"]
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    run(["sp-sdfstudio-train", *train_args("sp-neus-facto", "neus-facto", sdf_scene, a_out, STEPS, *grid,
-                                           "--pipeline.model.sp.alpha-grid-lr", "0.5")], cwd=tmp_path)
-    a_state = checkpoint(run_dir(a_out, "sp-neus-facto"), STEPS - 1)["pipeline"]
-    models = run_dir(a_out, "sp-neus-facto") / "sdfstudio_models"
-    run(["sp-sdfstudio-train", *train_args("sp-neus-facto", "neus-facto", sdf_scene, b_out, 2, *grid,
-                                           "--pipeline.model.sp.alpha-grid-lr", "0", "--trainer.load-dir", models)],
-        cwd=tmp_path)
+def test_sp_state_survives_a_resume(sdf_scene, sp_runs, tmp_path):
+    """The sp-neus-facto run trained its alpha grid fast; a run resumed from its checkpoint with
+    the grid's learning rate at 0 must hold exactly that grid (not a fresh one), and its step must
+    go on from the checkpoint's (sdfstudio resumes at the saved step + 1 and trains
+    max-num-iterations more)."""
+    a_run = sp_runs("neus-facto")
+    a_state = checkpoint(a_run, STEPS - 1)["pipeline"]
+    b_out = tmp_path / "b"
+    run(["sp-sdfstudio-train", *train_args("sp-neus-facto", "neus-facto", sdf_scene, b_out, 2, *ALPHA_GRID,
+                                           "--pipeline.model.sp.alpha-grid-lr", "0",
+                                           "--trainer.load-dir", a_run / "sdfstudio_models")], cwd=tmp_path)
     b_state = checkpoint(run_dir(b_out, "sp-neus-facto"), STEPS + 1)["pipeline"]
     grid_keys = [k for k in a_state if k.startswith("_model.sp.alpha_grid.")]
     assert grid_keys
     initial = float(np.log(np.expm1(0.013)))  # the grid stores softplus logits
     for key in grid_keys:
-        assert not torch.allclose(a_state[key], torch.full_like(a_state[key], initial), atol=1e-3), "run A's grid did not train"
+        assert not torch.allclose(a_state[key], torch.full_like(a_state[key], initial), atol=1e-3), "the grid did not train"
         torch.testing.assert_close(b_state[key], a_state[key], rtol=0, atol=0)
     assert int(b_state["_model.sp.step"]) == STEPS + 1
