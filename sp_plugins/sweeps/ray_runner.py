@@ -27,6 +27,10 @@ QUIET_RAY_ENV = {
     "TUNE_DISABLE_AUTO_CALLBACK_LOGGERS": "1",  # no CSV / JSON / TensorBoard loggers per trial: our store has the results
     "RAY_AIR_NEW_OUTPUT": "0",
     "TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S": "100000",
+    # a loaded 2-core machine took over a minute to start a worker (import ray); Ray's 60 s limit
+    # then dropped the worker and the sweep waited forever
+    "RAY_worker_register_timeout_seconds": "900",
+    "RAY_agent_register_timeout_ms": "900000",
 }
 
 
