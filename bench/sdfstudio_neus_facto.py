@@ -58,6 +58,9 @@ class Budget:
     views: int = 16
     resolution: int = 48
     mesh_resolution: int = 128
+    inside_outside: bool = False
+    """An object seen from outside (neus-facto's default, True, is its indoor setting; the 150-step
+    run in RESULTS.md kept True and found no surface)."""
 
 
 def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
@@ -86,6 +89,7 @@ def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
     f = model.sdf_field
     f.hidden_dim, f.hidden_dim_color, f.geo_feat_dim = budget.hidden_dim, budget.hidden_dim, budget.geo_feat_dim
     f.num_levels, f.max_res, f.log2_hashmap_size = budget.num_levels, budget.max_res, budget.log2_hashmap_size
+    f.inside_outside = budget.inside_outside
     if hasattr(model, "sp"):
         model.sp.seed = seed
     for group in ("fields", "field_background"):
