@@ -31,6 +31,7 @@ from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
 from sp_plugins.core import StochasticPreconditioner, finite_differences
+from sp_plugins.nerfstudio.errors import InputError
 
 LAPLACIAN = "sdf_laplacian"
 """Key of the stencil Laplacian in the field outputs (numerical gradients, training only)."""
@@ -75,14 +76,21 @@ class SPSDFField(SDFField):
         from sp_plugins.patches.nerfstudio_sdf_field import install_torch_tcnn_fallback
 
         if config.encoding_type != "hash":
-            raise ValueError(f"encoding_type={config.encoding_type!r}: SPSDFField supports 'hash' (with or without use_grid_feature)")
+            raise InputError(
+                f"--pipeline.model.sdf-field.encoding-type {config.encoding_type}: our SDF methods support 'hash' "
+                "(with --pipeline.model.sdf-field.use-grid-feature True or False)"
+            )
         if config.numerical_gradients and not config.use_grid_feature:
-            raise ValueError("numerical_gradients=True needs use_grid_feature=True (the step follows the grid levels)")
+            raise InputError(
+                "--pipeline.model.sdf-field.numerical-gradients True needs --pipeline.model.sdf-field.use-grid-feature True "
+                "(the finite-difference step follows the grid levels)"
+            )
         in_dim = 3 + 36 + (config.num_levels * config.features_per_level if config.use_grid_feature else 0)
         if config.num_layers == 3 or (config.num_layers >= 4 and config.hidden_dim <= in_dim):
-            raise ValueError(
-                f"num_layers={config.num_layers}, hidden_dim={config.hidden_dim}: the SDF MLP re-injects its "
-                f"{in_dim}-wide input after layer 4, so use num_layers <= 2, or num_layers >= 4 with hidden_dim > {in_dim}"
+            raise InputError(
+                f"--pipeline.model.sdf-field.num-layers {config.num_layers} with --pipeline.model.sdf-field.hidden-dim "
+                f"{config.hidden_dim}: the SDF MLP re-injects its {in_dim}-wide input after layer 4, so use num-layers <= 2, "
+                f"or num-layers >= 4 with hidden-dim > {in_dim}"
             )
         install_torch_tcnn_fallback()
         super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
