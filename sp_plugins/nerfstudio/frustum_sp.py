@@ -23,7 +23,6 @@ from typing import Any, Optional
 
 import torch
 from nerfstudio.cameras.rays import RaySamples
-from torch import nn
 
 from sp_plugins.core import StochasticPreconditioner
 
@@ -80,7 +79,3 @@ class FrustumSPField:
 
         return sp.mean_over_draws(one_draw)
 
-
-def frustum_fields(model: nn.Module) -> list:
-    """The model's fields that carry frustum SP."""
-    return [m for m in model.modules() if isinstance(m, FrustumSPField)]
