@@ -122,8 +122,10 @@ def run_on_ray(
             raise
     lost = []
     try:
+        # a local sweep's trials run at this command's niceness, not Ray's worker niceness (15)
+        niceness = None if address or not hasattr(os, "getpriority") else os.getpriority(os.PRIO_PROCESS, 0)
         for t in trials:
-            t["cpus"], t["gpus"] = cpus_per_trial, gpus_per_trial
+            t["cpus"], t["gpus"], t["niceness"] = cpus_per_trial, gpus_per_trial, niceness
         tuner = tune.Tuner(
             tune.with_resources(_trainable, {"cpu": cpus_per_trial, "gpu": gpus_per_trial}),
             param_space={"trial": tune.grid_search(trials)},
