@@ -8,6 +8,11 @@ same rays and jitter and the per-step times are measured under the same machine 
   ``sp-relu-field`` variants (alpha0 in *voxels* of the full grid, end as a fraction of training),
   at equal steps on synthetic scenes (24 views of 64x64, Blender layout scaled by 1.5 so the
   object fills the [-1.5, 1.5]^3 box like a [-1, 1]^3 box with the usual 0.85 radius).
+  ``--paper-regime`` sets thr3ed_atom's ratios at CPU size (:data:`PAPER_REGIME`: about one voxel
+  per pixel, samples and pixels under a voxel, thousands of samples per voxel; cell grid,
+  world-unit density, L1, lr restarted per stage); ``--methods`` also takes ``relu-field-flat-sp-lr``,
+  flat training with the SP runs' later lr decay, so SP's effect is not confused with its schedule's. Every run
+  reports train-view PSNR next to test PSNR.
 - ``mipnerf``: ``sp-mipnerf`` with SP off (plain MipNeRF) and on, trained on 6 of the 24 views,
   a CPU-sized MipNeRF (narrower MLP, fewer rays and samples: stated in the results).
 - ``cost``: the SP per-step cost of the ReLU field split into SP's own arithmetic (noise,
@@ -21,6 +26,8 @@ Usage::
 
     python -m bench.radiance_methods relu                  # the final ReLU table (resumable)
     python -m bench.radiance_methods relu --scenes spot --steps 300 --tag probe   # a quick probe
+    python -m bench.radiance_methods relu --paper-regime --scenes spot --tag paper16 \
+        --methods relu-field relu-field-flat relu-field-flat-sp-lr --sp 0.25@0.2857   # thr3ed_atom's ratios
     python -m bench.radiance_methods mipnerf
     python -m bench.radiance_methods cost
 
@@ -80,6 +87,28 @@ class ReLUBudget:
     background: str = "white"
     """Training background: white (the data's), or random (a random colour per ray; floaters
     cannot hide in front of it). Test renders are always composited on white."""
+    align_corners: bool = True
+    """False: thr3ed_atom's cell grid (resolution counts cells)."""
+    density_units: str = "voxel"
+    loss: str = "mse"
+    diffuse_loss_weight: float = 0.0
+    lr_schedule: str = "exponential"
+    """exponential (lr -> lr_final over the run) or staged (thr3ed_atom: restart per stage, x0.1
+    every decay_every of training; SP runs and relu-field-flat-sp-lr first decay at sp_first_decay)."""
+    decay_every: float = 3 / 28
+    stage_gamma: float = 1.0
+    sp_first_decay: float = 12 / 28
+
+
+PAPER_REGIME = dict(
+    resolution=64, align_corners=False, image=112, views=24, rays=1024, num_samples=128, steps=6000,
+    color_mode="rgb", density_units="world", density_scale=100 / 3, loss="l1", lr_schedule="staged",
+    stage_gamma=0.9,
+)
+"""``relu --paper-regime``: thr3ed_atom's ratios at CPU size (issue 16 part 2; see bench/RESULTS.md).
+64^3 cells over [-1.5, 1.5]^3 (voxel 3/64), 24 views of 112^2 (0.87 voxels per pixel, a pixel 0.57
+voxel wide at the centre), 128 samples in the box (at most 0.87 voxel apart), 1024 rays x 6000 steps
+(about 3000 samples per voxel), 4 stages of 8 -> 64 cells."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,7 +156,9 @@ class MipBudget:
     test_views: int = 8
 
 
-OMITTED_FROM_KEY = {"background": "white"}
+OMITTED_FROM_KEY = {"background": "white", "align_corners": True, "density_units": "voxel", "loss": "mse",
+                    "diffuse_loss_weight": 0.0, "lr_schedule": "exponential", "decay_every": 3 / 28, "stage_gamma": 1.0,
+                    "sp_first_decay": 12 / 28}
 """Settings added after the first tables: left out of the key at their defaults, so finished runs stay found."""
 
 
@@ -187,6 +218,27 @@ class Run:
             cb.run_callback_at_location(step, self.where.AFTER_TRAIN_ITERATION)
         self.losses.append(float(loss))
         self.alphas.append(float(self.model.sp.alpha))
+
+    @torch.no_grad()
+    def train_psnr(self, max_views: int = 24) -> float:
+        """Mean PSNR over (up to ``max_views``) training views: with the test PSNR it tells
+        under-determination (train high, test low) from an optimisation failure (both low)."""
+        model = self.model
+        model.eval()
+        dataset = self.trainer.pipeline.datamanager.train_dataset
+        psnrs = []
+        for i in range(min(max_views, len(dataset))):
+            gt = dataset.get_image_float32(i)
+            if gt.shape[-1] == 4:  # RGBA (random training background): straight alpha over white
+                gt = gt[..., :3] * gt[..., 3:] + (1.0 - gt[..., 3:])
+            out = model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))
+            rgb = out["rgb"]
+            if getattr(model.config, "background_color", "white") == "random":  # rendered over black
+                rgb = rgb + (1.0 - out["accumulation"])
+            mse = float(((rgb.clamp(0, 1) - gt) ** 2).mean())
+            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+        model.train()
+        return statistics.mean(psnrs)
 
     @torch.no_grad()
     def evaluate(self, rgb_key: str = "rgb", acc_key: str = "accumulation") -> dict:
@@ -323,13 +375,20 @@ def save_losses(result: dict, names: Sequence[str], path: Path) -> None:
 # -- ReLU fields ----------------------------------------------------------------------------------
 
 
+SP_LR_FLAT = "relu-field-flat-sp-lr"
+"""relu-field-flat with the SP runs' learning-rate schedule (first decay at sp_first_decay): the
+control that separates SP's effect from its later lr decay."""
+
+
 def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPVariant], seed: int, out: Path,
                 label: Optional[str] = None):
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
+    from sp_plugins.nerfstudio.relu_field_lr import StagedStepDecaySchedulerConfig
     from sp_plugins.nerfstudio.runs import configure_run, method_config
 
-    config = method_config(name)
+    late_lr = variant is not None or name == SP_LR_FLAT
+    config = method_config("relu-field-flat" if name == SP_LR_FLAT else name)
     m = config.pipeline.model
     m.resolution = budget.resolution
     m.num_samples = budget.num_samples
@@ -339,13 +398,21 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     m.density_scale = budget.density_scale
     m.eval_num_rays_per_chunk = 4096
     m.background_color = budget.background  # type: ignore[assignment]
+    m.align_corners = budget.align_corners
+    m.density_units = budget.density_units  # type: ignore[assignment]
+    m.loss = budget.loss  # type: ignore[assignment]
+    m.diffuse_loss_weight = budget.diffuse_loss_weight
     if variant is not None:
-        voxel = voxel_size(BOX, budget.resolution)
+        voxel = voxel_size(BOX, budget.resolution, budget.align_corners)
         m.sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
                                    schedule=variant.schedule, final_ratio=variant.final_ratio, seed=seed)
     opt = config.optimizers["fields"]
     opt["optimizer"].lr = budget.lr
-    if budget.lr_final != budget.lr:
+    if budget.lr_schedule == "staged":
+        opt["scheduler"] = StagedStepDecaySchedulerConfig(
+            max_steps=budget.steps, stages=m.hierarchy_stages, decay_every=budget.decay_every,
+            first_decay=budget.sp_first_decay if late_lr else None, stage_gamma=budget.stage_gamma)
+    elif budget.lr_final != budget.lr:
         opt["scheduler"] = ExponentialDecaySchedulerConfig(lr_final=budget.lr_final, max_steps=budget.steps)
     configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
                   experiment_name=(label or name).replace("[", "_").replace("]", "").replace(",", "_"))
@@ -375,11 +442,11 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
         runs[name] = Run(name, relu_config(name, data, budget, None, seed, work), seed)
     for variant in variants:
         runs[variant.name] = Run(variant.name, relu_config("sp-relu-field", data, budget, variant, seed, work, variant.name), seed)
-    wall = train_together(runs, budget.steps, seed, f"relu/{scene}")
+    wall = train_together(runs, budget.steps, seed, f"relu/{scene}", log_every=max(100, budget.steps // 30))
     result = {"study": "relu", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
               "variants": [dataclasses.asdict(v) for v in variants], "train_wall_s": wall, "runs": list(runs)}
     for name, run in runs.items():
-        result[name] = run_summary(run, run.evaluate())
+        result[name] = run_summary(run, {**run.evaluate(), "train_psnr": run.train_psnr()})
         logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
                      result[name]["background_opacity"])
         if save_grids:
@@ -535,14 +602,15 @@ def fmt(value, spec=".2f") -> str:
 
 
 def relu_table(results: List[dict]) -> str:
-    lines = ["| tag | scene | grid | steps | run | test PSNR | SSIM | bg opacity | fg opacity | final train MSE | s/step | SP time ratio (active / whole run) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| tag | scene | grid | steps | run | train PSNR | test PSNR | SSIM | bg opacity | fg opacity | final train loss | s/step | SP time ratio (active / whole run) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         b = r["budget"]
         for name in r["runs"]:
             m = r[name]
             ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
-            lines.append(f"| {r['tag']} | {r['scene']} | {b['resolution']}^3 {b['color_mode']} | {b['steps']} | {name} | {m['psnr']:.2f} | "
+            lines.append(f"| {r['tag']} | {r['scene']} | {b['resolution']}^3 {b['color_mode']} | {b['steps']} | {name} | "
+                         f"{fmt(m.get('train_psnr'))} | {m['psnr']:.2f} | "
                          f"{m['ssim']:.3f} | {m['background_opacity']:.4f} | {m['foreground_opacity']:.3f} | {m['final_loss']:.5f} | "
                          f"{m['median_step_s']:.3f} | {ratio} |")
     return "\n".join(lines)
@@ -576,13 +644,18 @@ def main(argv=None) -> None:
     relu = sub.add_parser("relu", help="relu-field vs relu-field-flat vs sp-relu-field")
     relu.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
     relu.add_argument("--methods", nargs="*", default=["relu-field", "relu-field-flat"],
-                      choices=["relu-field", "relu-field-flat"])
+                      choices=["relu-field", "relu-field-flat", SP_LR_FLAT])
+    relu.add_argument("--paper-regime", action="store_true",
+                      help="defaults of the CPU-sized thr3ed_atom regime (PAPER_REGIME); explicit flags still win")
     relu.add_argument("--sp", nargs="*", type=SPVariant.parse, default=[SPVariant(8.0, 0.3)],
                       help="sp-relu-field variants VOXELS@END[:SCHEDULE[:FINAL_RATIO]]")
     for f in dataclasses.fields(ReLUBudget):
         kind = type(f.default)
         if kind is tuple:
             relu.add_argument("--" + f.name.replace("_", "-"), nargs=2, type=float, default=f.default)
+        elif kind is bool:
+            relu.add_argument("--" + f.name.replace("_", "-"), type=lambda v: {"true": True, "false": False}[v.lower()],
+                              default=f.default, metavar="{true,false}")
         else:
             relu.add_argument("--" + f.name.replace("_", "-"), type=kind, default=f.default)
     relu.add_argument("--save-grids", action="store_true", help="keep each run's final grid (<result>.<run>.grid.pt)")
@@ -605,6 +678,9 @@ def main(argv=None) -> None:
     for p in (relu, mip):
         p.add_argument("--seeds", nargs="+", type=int, default=[0])
     args = parser.parse_args(argv)
+    if getattr(args, "paper_regime", False):
+        relu.set_defaults(**PAPER_REGIME)
+        args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")

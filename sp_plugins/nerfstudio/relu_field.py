@@ -5,6 +5,11 @@ voxel. Channel 0 is density; the others are colour, either view-dependent spheri
 coefficients (3 per basis function) or plain RGB. The grid spans the scene box; positions
 outside it have zero density.
 
+Two grid layouts (``align_corners``): vertex-aligned (``True``, our default: ``n`` values per axis,
+the first and last on the box faces, ``n - 1`` cells) or cell-centred (``False``, thr3ed_atom's:
+``n`` cells tile the box, values at their centres; beyond the outer centres the field fades to zero,
+to half the value on a face; samples never leave the box, so nothing is read further out).
+
 Stochastic preconditioning perturbs every sample position once (reflected into the box) before
 the single grid lookup that gives both density and colour.
 
@@ -29,6 +34,8 @@ from torch import Tensor, nn
 from sp_plugins.core import StochasticPreconditioner
 
 ColorMode = Literal["sh", "rgb"]
+DIFFUSE_RGB = "rgb_diffuse"
+"""Field output key of the view-independent (SH degree-0) colour."""
 
 
 def color_channels(color_mode: ColorMode, sh_degree: int) -> int:
@@ -42,24 +49,32 @@ def color_channels(color_mode: ColorMode, sh_degree: int) -> int:
     raise ValueError(f"color_mode={color_mode!r}: allowed values are 'sh' and 'rgb'")
 
 
-def upsample_grid(grid: Float[Tensor, "1 c d h w"], resolution: int) -> Float[Tensor, "1 c r r r"]:
-    """Trilinear resampling of a vertex grid (``align_corners``). Going from ``n`` to ``2n - 1``
-    vertices per axis reproduces the coarse field exactly (every new vertex lies on a coarse edge,
-    face or cell centre, where trilinear interpolation is what the coarse grid already renders)."""
-    return F.interpolate(grid, size=(resolution,) * 3, mode="trilinear", align_corners=True)
+def upsample_grid(grid: Float[Tensor, "1 c d h w"], resolution: int, align_corners: bool = True) -> Float[Tensor, "1 c r r r"]:
+    """Trilinear resampling of a grid. Vertex grids (``align_corners``) going from ``n`` to
+    ``2n - 1`` vertices reproduce the coarse field exactly (every new vertex lies on a coarse
+    edge, face or cell centre, where trilinear interpolation is what the coarse grid renders).
+    Cell grids going from ``n`` to ``2n`` cells are not exact: the new values are the coarse field
+    at the new centres, but the coarse field's kinks at the old centres fall between new ones (a
+    slight smoothing), and in the outer half coarse cell, where the coarse field fades to zero,
+    the resampling clamps instead."""
+    return F.interpolate(grid, size=(resolution,) * 3, mode="trilinear", align_corners=align_corners)
 
 
 class ReLUField(Field):
     """Dense grid field: ``density = relu(trilinear(grid)[0]) * density_scale``.
 
     Args:
-        aabb: ``[2, 3]`` box the grid spans (vertex-aligned: the first and last vertices lie on it).
-        resolution: vertices per axis at construction (the first hierarchy stage, or the full grid).
+        aabb: ``[2, 3]`` box the grid spans.
+        resolution: values per axis at construction (the first hierarchy stage, or the full grid):
+            vertices when ``align_corners``, else cells.
         color_mode: ``sh`` (view-dependent) or ``rgb``.
         sh_degree: spherical-harmonic degree for ``sh``.
         density_scale: multiplies the rectified density (scene units^-1).
         density_init: uniform range of the initial raw density values.
         color_init: uniform range of the initial raw colour values (before the sigmoid).
+        align_corners: vertex-aligned (True) or cell-centred (False, thr3ed_atom) grid.
+        diffuse_output: also return the diffuse colour (SH degree-0 term only) under
+            :data:`DIFFUSE_RGB`, for thr3ed_atom's diffuse-render loss (``sh`` colour only).
     """
 
     def __init__(
@@ -71,10 +86,14 @@ class ReLUField(Field):
         density_scale: float = 1.0,
         density_init: Sequence[float] = (-1.0, 1.0),
         color_init: Sequence[float] = (-1.0, 1.0),
+        align_corners: bool = True,
+        diffuse_output: bool = False,
     ) -> None:
         super().__init__()
-        if resolution < 2:
-            raise ValueError(f"resolution={resolution}: a grid needs at least 2 vertices per axis")
+        if resolution < (2 if align_corners else 1):
+            raise ValueError(f"resolution={resolution}: a vertex grid needs at least 2 vertices per axis, a cell grid 1 cell")
+        if diffuse_output and color_mode != "sh":
+            raise ValueError("diffuse_output needs color_mode 'sh' (the diffuse colour is the SH degree-0 term)")
         if not density_scale > 0:
             raise ValueError(f"density_scale={density_scale}: must be > 0")
         for name, (lo, hi) in (("density_init", density_init), ("color_init", color_init)):
@@ -84,6 +103,8 @@ class ReLUField(Field):
         self.num_color = color_channels(color_mode, sh_degree)
         self.sh = SHEncoding(levels=sh_degree + 1, implementation="torch") if color_mode == "sh" else None
         self.density_scale = float(density_scale)
+        self.align_corners = bool(align_corners)
+        self.diffuse_output = bool(diffuse_output)
         self.register_buffer("aabb", aabb.detach().float().clone())
         grid = torch.empty(1, 1 + self.num_color, resolution, resolution, resolution)
         grid[:, :1].uniform_(*density_init)
@@ -107,7 +128,7 @@ class ReLUField(Field):
         A new Parameter is needed because autograd remembers a leaf's shape; the caller moves
         the optimizer over to it (:meth:`ReLUFieldBaseModel.set_stage`)."""
         if resolution != self.resolution:
-            self.grid = nn.Parameter(upsample_grid(self.grid.detach(), resolution).contiguous())
+            self.grid = nn.Parameter(upsample_grid(self.grid.detach(), resolution, self.align_corners).contiguous())
         return self.grid
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -121,7 +142,8 @@ class ReLUField(Field):
         """Trilinear interpolation of every channel at ``x`` (zero outside the box)."""
         lo, hi = self.aabb[0], self.aabb[1]
         u = ((x - lo) / (hi - lo)) * 2.0 - 1.0
-        out = F.grid_sample(self.grid, u.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="zeros", align_corners=True)
+        out = F.grid_sample(self.grid, u.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="zeros",
+                            align_corners=self.align_corners)
         return out.view(self.grid.shape[1], -1).t()
 
     def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
@@ -147,4 +169,6 @@ class ReLUField(Field):
         basis = self.sh(ray_samples.frustums.directions)  # [..., K]
         coeffs = density_embedding.view(*basis.shape[:-1], 3, basis.shape[-1])
         rgb = torch.sigmoid((coeffs * basis[..., None, :]).sum(-1))
-        return {FieldHeadNames.RGB: rgb}
+        if not self.diffuse_output:
+            return {FieldHeadNames.RGB: rgb}
+        return {FieldHeadNames.RGB: rgb, DIFFUSE_RGB: torch.sigmoid(coeffs[..., 0] * basis[..., :1])}
