@@ -3,6 +3,8 @@
 import importlib.metadata
 import shutil
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -52,10 +54,13 @@ def test_built_elsewhere_still_offers_the_install(monkeypatch):
     assert printed and printed[0][0] == "install me first"
 
 
-@pytest.mark.skipif(shutil.which("ns-train") is None, reason="ns-train is not installed")
+NS_TRAIN = shutil.which("ns-train", path=str(Path(sys.executable).parent)) or shutil.which("ns-train")
+
+
+@pytest.mark.skipif(NS_TRAIN is None, reason="ns-train is not installed")
 def test_ns_train_of_an_external_method_still_prints_how_to_install_it():
     """The user's view: ``ns-train zipnerf`` shows zipnerf's instructions and asks; we answer no."""
-    out = subprocess.run(["ns-train", "zipnerf"], input="n\n", capture_output=True, text=True, timeout=300)
+    out = subprocess.run([NS_TRAIN, "zipnerf"], input="n\n", capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "To enable Zip-NeRF" in out.stdout
     assert "Would you like to run the install" in out.stdout
