@@ -6,8 +6,8 @@ the stage it is multiplied by ``gamma`` at ``first_decay`` after the stage start
 ratios: 4 stages x 7000 steps with x0.1 every 3000 steps is ``decay_every = 3/28``; the paper's
 SP run (one stage of 28000 steps, decay from step 12000) is ``first_decay = 12/28``.
 
-The stage boundaries are :func:`~sp_plugins.nerfstudio.relu_field_model.stage_at`'s, the ones the
-model upsamples at; the model refuses a schedule whose stage count differs from its own.
+The stage boundaries are :func:`stage_at`'s, the ones the model upsamples at; the model refuses a
+schedule whose stage count differs from its own.
 """
 
 from __future__ import annotations
@@ -23,6 +23,13 @@ from torch.optim.lr_scheduler import LRScheduler
 from sp_plugins.nerfstudio.schedulers import FloatLambdaLR
 
 
+def stage_at(step: int, total_steps: int, stages: int) -> int:
+    """Stage of ``step`` when ``total_steps`` are split into ``stages`` equal parts."""
+    if total_steps <= 0:
+        return stages - 1
+    return min(stages - 1, max(0, step) * stages // total_steps)
+
+
 def stage_start(stage: int, total_steps: int, stages: int) -> int:
     """First step of ``stage`` (the smallest step ``s`` with ``s * stages // total_steps == stage``)."""
     return -(-stage * total_steps // stages)
@@ -31,7 +38,7 @@ def stage_start(stage: int, total_steps: int, stages: int) -> int:
 def staged_lr_factor(step: int, *, total_steps: int, stages: int, decay_every: float, first_decay: Optional[float],
                      gamma: float, stage_gamma: float) -> float:
     """Learning-rate multiplier at ``step`` (see the module docstring)."""
-    stage = min(stages - 1, max(0, step) * stages // max(1, total_steps))
+    stage = stage_at(step, total_steps, stages)
     local = max(0, step) - stage_start(stage, total_steps, stages)
     every = max(1, round(decay_every * total_steps))
     first = every if first_decay is None else max(1, round(first_decay * total_steps))

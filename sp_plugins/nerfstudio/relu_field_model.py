@@ -57,7 +57,7 @@ from sp_plugins.nerfstudio.callbacks import trainer_total_steps
 from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.relu_field import DIFFUSE_RGB, ColorMode, ReLUField, color_channels, upsample_grid
-from sp_plugins.nerfstudio.relu_field_lr import StagedStepDecaySchedulerConfig
+from sp_plugins.nerfstudio.relu_field_lr import StagedStepDecaySchedulerConfig, stage_at
 
 log = logging.getLogger(__name__)
 
@@ -93,13 +93,6 @@ def stage_resolutions(resolution: int, stages: int, align_corners: bool = True) 
             f"use resolution >= {2 ** (stages - 1) + 1} or fewer stages"
         )
     return out
-
-
-def stage_at(step: int, total_steps: int, stages: int) -> int:
-    """Stage of ``step`` when ``total_steps`` are split into ``stages`` equal parts."""
-    if total_steps <= 0:
-        return stages - 1
-    return min(stages - 1, max(0, step) * stages // total_steps)
 
 
 def swap_parameter(optimizers: Optimizers, group: str, old: Parameter, new: Parameter, reset: bool,
