@@ -1,9 +1,7 @@
 """Our nerfstudio method configs (entry points in pyproject.toml).
 
-nerfstudio imports this package when it discovers plugin methods, before it builds its list of
-installable external methods: the moment to install the startup patch
-(:mod:`sp_plugins.patches.nerfstudio_external_methods`)."""
-
-from sp_plugins.patches.nerfstudio_external_methods import install_fast_external_methods
-
-install_fast_external_methods()
+nerfstudio imports these modules in every ``ns-*`` command, also when the user trains a method that
+is not ours, so importing them only registers methods: no exception hook, no warning filters, no
+patched host module. What our methods need is installed when one of them is built
+(:func:`sp_plugins.nerfstudio.model.install_process_settings`) or by our own commands (``sp-train``
+installs the start-up patch of :mod:`sp_plugins.patches.nerfstudio_external_methods`)."""

@@ -10,8 +10,12 @@ command on our 2-core CPU, 26 calls at 0.08 s (``python -m bench.ns_startup``).
 
 The patch asks the same question of the frame's code object (``sys._getframe``), which costs
 microseconds, and hands every other case (the CLI building the dummy, which offers to install the
-method) to the original method unchanged. It goes in when nerfstudio loads our method configs
-(``sp_plugins.method_configs``), which nerfstudio does before it builds the external methods.
+method) to the original method unchanged.
+
+Where it goes in: only in our own command, ``sp-train``, before it imports nerfstudio's method
+list. Installing sp-plugins must change nothing for ``ns-*`` commands that train methods not ours,
+and nerfstudio imports every plugin's method configs in all of them, so discovery does not install
+it (it did until issue 20): plain ``ns-train`` / ``ns-eval`` keep nerfstudio's start-up time.
 """
 
 from __future__ import annotations

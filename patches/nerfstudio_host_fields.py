@@ -7,6 +7,12 @@ subclass while the host's ``populate_modules`` runs, and restores it afterwards.
 overrides ``forward`` (see :mod:`sp_plugins.nerfstudio.frustum_sp`), so the modules, parameter
 names and checkpoints are the host's own.
 
+:func:`model_builds_variants` does the same for a model we have never seen (another plugin's,
+for ``with_sp``): every module-level ``Field`` class of the modules that define the model class
+and its bases resolves to its SP variant while that model's ``populate_modules`` runs. A field
+built any other way (from a config's ``_target``, or by a name imported inside a function) is
+not reached; the model then refuses to train (see ``sp_plugins.nerfstudio.models``).
+
 Targets nerfstudio 1.1.5; ``tests/patches/test_nerfstudio_host_fields_patch.py`` fails loudly when
 a name moves or stops being the class the host constructs.
 """
@@ -15,7 +21,7 @@ from __future__ import annotations
 
 import importlib
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator, List, Tuple
 
 TARGET_VERSION = "1.1.5"
 
@@ -49,3 +55,42 @@ def host_builds(module_name: str, subclass: type) -> Iterator[None]:
         yield
     finally:
         setattr(module, name, host)
+
+
+def module_field_classes(model_cls: type) -> List[Tuple[str, str, type]]:
+    """``(module, name, class)`` for every module-level ``Field`` subclass of the modules that
+    define ``model_cls`` and its bases (nerfstudio's base ``Model`` and ``torch.nn`` excluded)."""
+    from nerfstudio.fields.base_field import Field
+    from nerfstudio.models.base_model import Model
+
+    found, seen = [], set()
+    for cls in model_cls.__mro__:
+        if cls is Model or not (isinstance(cls, type) and issubclass(cls, Model)) or cls.__module__ in seen:
+            continue
+        seen.add(cls.__module__)
+        module = importlib.import_module(cls.__module__)
+        if module.__name__.startswith("sp_plugins."):
+            continue
+        for name, obj in sorted(vars(module).items()):
+            if isinstance(obj, type) and issubclass(obj, Field) and obj is not Field:
+                found.append((module.__name__, name, obj))
+    return found
+
+
+@contextmanager
+def model_builds_variants(model_cls: type, variant_of: Callable[[type], type]) -> Iterator[List[str]]:
+    """While active, every name of :func:`module_field_classes` resolves to ``variant_of(class)``
+    (a subclass of it); yields the ``module.name`` entries redirected. Restored on exit."""
+    targets = [(m, n, c) for m, n, c in module_field_classes(model_cls) if not getattr(c, "__sp_variant__", False)]
+    replaced = []
+    try:
+        for module_name, name, host in targets:
+            variant = variant_of(host)
+            if not issubclass(variant, host):
+                raise RuntimeError(f"{variant!r} is not a subclass of {host!r}")
+            setattr(importlib.import_module(module_name), name, variant)
+            replaced.append((module_name, name, host))
+        yield [f"{m}.{n}" for m, n, _ in replaced]
+    finally:
+        for module_name, name, host in replaced:
+            setattr(importlib.import_module(module_name), name, host)

@@ -11,9 +11,12 @@ takes minutes instead of an unknown time. ``ns-export marching-cubes`` itself st
 resolution divisible by 512 and textures the mesh afterwards; ``sp-export-mesh`` meshes at any
 resolution without texturing.
 
-It is explicit and only for machines without CUDA: our SDF models call
-:func:`install_cpu_marching_cubes` when they are built (``ns-export`` builds the model from the
-saved config before it meshes). With CUDA available it does nothing.
+It is explicit, only for machines without CUDA, and scoped to our models: our SDF models call
+:func:`claim_for_cpu_marching_cubes` when they are built (``ns-export`` builds the model from the
+saved config before it meshes). The name then points at :func:`scoped_marching_cubes`, which
+meshes on the CPU only when the SDF it is given belongs to a claimed model (the exporter passes a
+closure over its pipeline) and calls nerfstudio's own mesher for everything else, so a method that
+is not ours behaves exactly as without sp-plugins. With CUDA available nothing is installed.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ import importlib.metadata
 import inspect
 import logging
 import sys
-from typing import Callable, Optional, Tuple
+import weakref
+from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
 import torch
@@ -34,6 +38,7 @@ FUNCTION = "generate_mesh_with_multires_marching_cubes"
 MODULES = ("nerfstudio.exporter.marching_cubes", "nerfstudio.scripts.exporter")
 
 _originals: dict = {}
+_claimed: "weakref.WeakSet[Any]" = weakref.WeakSet()
 
 
 def cpu_marching_cubes(
@@ -83,8 +88,51 @@ def check_nerfstudio_marching_cubes() -> str:
     return version
 
 
+def _claimed_owner(fn: Callable) -> bool:
+    """True when ``fn`` (the exporter's closure over its pipeline, or a bound method) reaches a
+    claimed model."""
+    candidates = [getattr(fn, "__self__", None)]
+    for cell in getattr(fn, "__closure__", None) or ():
+        try:
+            candidates.append(cell.cell_contents)
+        except ValueError:  # an empty cell
+            continue
+    for obj in candidates:
+        for candidate in (obj, getattr(obj, "model", None)):
+            try:
+                if candidate is not None and candidate in _claimed:
+                    return True
+            except TypeError:  # unhashable
+                continue
+    return False
+
+
+def scoped_marching_cubes(
+    geometry_callable_field: Callable[[torch.Tensor], torch.Tensor],
+    resolution: int = 1024,
+    bounding_box_min: Tuple[float, float, float] = (-1.0, -1.0, -1.0),
+    bounding_box_max: Tuple[float, float, float] = (1.0, 1.0, 1.0),
+    isosurface_threshold: float = 0.0,
+    coarse_mask: Optional[torch.Tensor] = None,
+):
+    """nerfstudio's mesher, except for the SDF of a claimed model: :func:`cpu_marching_cubes`."""
+    args = (geometry_callable_field, resolution, bounding_box_min, bounding_box_max, isosurface_threshold, coarse_mask)
+    if _claimed_owner(geometry_callable_field):
+        return cpu_marching_cubes(*args)
+    return _originals[MODULES[0]](*args)
+
+
+def claim_for_cpu_marching_cubes(model: Any, force: bool = False) -> bool:
+    """Mesh ``model``'s SDF on the CPU under ``ns-export marching-cubes`` (no CUDA, or ``force``);
+    every other model keeps nerfstudio's mesher. True when the claim is in place."""
+    if not install_cpu_marching_cubes(force):
+        return False
+    _claimed.add(model)
+    return True
+
+
 def install_cpu_marching_cubes(force: bool = False) -> bool:
-    """Rebind nerfstudio's mesher to :func:`cpu_marching_cubes` when CUDA is unavailable (or
+    """Rebind nerfstudio's mesher to :func:`scoped_marching_cubes` when CUDA is unavailable (or
     ``force``). Returns True when the patch is in place. Idempotent."""
     if torch.cuda.is_available() and not force:
         return False
@@ -93,10 +141,10 @@ def install_cpu_marching_cubes(force: bool = False) -> bool:
 
     for name in MODULES:
         module = sys.modules.get(name)
-        if module is None or getattr(module, FUNCTION, None) is cpu_marching_cubes:
+        if module is None or getattr(module, FUNCTION, None) is scoped_marching_cubes:
             continue
         _originals.setdefault(name, getattr(module, FUNCTION))
-        setattr(module, FUNCTION, cpu_marching_cubes)
+        setattr(module, FUNCTION, scoped_marching_cubes)
     return True
 
 

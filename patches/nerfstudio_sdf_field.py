@@ -7,8 +7,11 @@ name is a lazy error object, so NeuS cannot even be constructed. The patch rebin
 global ``nerfstudio.fields.sdf_field.tcnn`` to a tiny namespace whose ``Encoding`` builds a
 :class:`HashGrid` (torch backend) from the same config. Nothing else in nerfstudio changes.
 
-It is explicit and opt-in: call :func:`install_torch_tcnn_fallback` (our SDF method configs and
-models do) before building the field. When tcnn imports and CUDA is available it does nothing.
+It is explicit and scoped: our SDF field builds its host part inside :func:`torch_tcnn_fallback`,
+which installs the fallback for that construction only and restores nerfstudio's ``tcnn`` after,
+so an ``SDFField`` of any other method is built exactly as without sp-plugins.
+:func:`install_torch_tcnn_fallback` (process-wide) remains for scripts that want it. When tcnn
+imports and CUDA is available neither does anything.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ import inspect
 import logging
 import types
 import warnings
-from typing import Any, Mapping, Optional
+from contextlib import contextmanager
+from typing import Any, Iterator, Mapping, Optional
 
 import torch
 
@@ -117,3 +121,16 @@ def torch_tcnn_fallback_installed() -> bool:
     from nerfstudio.fields import sdf_field
 
     return isinstance(getattr(sdf_field, PATCHED_ATTRIBUTE), _TorchTcnnShim)
+
+
+@contextmanager
+def torch_tcnn_fallback(force: bool = False) -> Iterator[bool]:
+    """The fallback for the duration of the block (yields whether it is active); afterwards
+    nerfstudio's ``tcnn`` is what it was before."""
+    was_installed = torch_tcnn_fallback_installed()
+    active = install_torch_tcnn_fallback(force)
+    try:
+        yield active
+    finally:
+        if active and not was_installed:
+            uninstall_torch_tcnn_fallback()

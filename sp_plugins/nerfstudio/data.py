@@ -35,12 +35,8 @@ from nerfstudio.data.datasets.sdf_dataset import SDFDataset
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
-from sp_plugins.host_warnings import filter_host_warnings
-from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
+from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.views import ViewSelection, select_views
-
-install_input_error_hook()
-filter_host_warnings()  # nerfstudio imports this with our method configs (see sp_plugins.host_warnings)
 
 
 class SurfaceDataset(SDFDataset):
@@ -212,6 +208,9 @@ class CheckedDataManager(VanillaDataManager):
     dataset_type = InputDataset  # type: ignore[assignment]  (shadows the generic lookup)
 
     def __init__(self, config: CheckedDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
+        from sp_plugins.nerfstudio.model import install_process_settings
+
+        install_process_settings()  # our method is being built: its input errors print as one line
         self._checks = config.check_data and test_mode != "inference"
         if self._checks:
             data = config.data if config.data is not None else config.dataparser.data

@@ -24,6 +24,7 @@ from typing import Any, Optional
 import torch
 from nerfstudio.cameras.rays import RaySamples
 
+from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner
 
 
@@ -49,26 +50,24 @@ def set_perturbed_offsets(ray_samples: RaySamples, sp: StochasticPreconditioner)
     return previous
 
 
-class FrustumSPField:
+class FrustumSPField(SPFieldMixin):
     """Mixin for a host field that reads ``get_positions()``: list it first among the bases.
 
     While training and ``sp`` is active, ``forward`` sets the frustum offsets to the perturbation
     (averaged over ``sp.num_samples`` draws) and restores them afterwards. The host model builds
     the subclass with its own arguments (``sp_plugins.patches.nerfstudio_host_fields``), so
-    modules and checkpoints are the host's."""
+    modules and checkpoints are the host's. Calls without a ``RaySamples`` (``density_fn``
+    queries of proposal samplers) stay plain."""
 
-    _sp: Optional[StochasticPreconditioner] = None
-
-    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
-        """Perturb through ``sp`` (owned and checkpointed by the model, not the field)."""
-        object.__setattr__(self, "_sp", sp)
+    __sp_variant__ = True
 
     def forward(self, *args: Any, **kwargs: Any):
         plain = super().forward  # type: ignore[misc]
-        sp = self._sp
         samples = _ray_samples(args, kwargs)
-        if sp is None or samples is None or not (self.training and sp.active):  # type: ignore[attr-defined]
+        if samples is None or not self.sp_active():
             return plain(*args, **kwargs)
+        sp = self.sp
+        assert sp is not None
 
         def one_draw():
             previous = set_perturbed_offsets(samples, sp)
@@ -77,5 +76,4 @@ class FrustumSPField:
             finally:
                 samples.frustums.offsets = previous
 
-        return sp.mean_over_draws(one_draw)
-
+        return self.perturbed(one_draw)

@@ -18,20 +18,16 @@ from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from nerfstudio.utils.math import Gaussians
 from torch import Tensor
 
+from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner
 from sp_plugins.nerfstudio.frustum_sp import set_perturbed_offsets
 
 
-class SPNeRFField(NeRFField):
+class SPNeRFField(SPFieldMixin, NeRFField):
     """``NeRFField`` whose sample positions (or Gaussian means) are perturbed while SP is active.
 
     The host's ``MipNerfModel`` builds it with its own arguments, so every architecture setting is
     the host's."""
-
-    _sp: Optional[StochasticPreconditioner] = None
-
-    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
-        object.__setattr__(self, "_sp", sp)
 
     def perturbed_gaussians(self, ray_samples: RaySamples, sp: StochasticPreconditioner) -> Gaussians:
         """The frustums' Gaussians with SP-perturbed means (the covariance is unchanged)."""
@@ -42,13 +38,13 @@ class SPNeRFField(NeRFField):
     def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
         """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
         plain = super().forward
-        if self._sp is None or not self.training:
+        if not self.sp_active():
             return plain(ray_samples, compute_normals=compute_normals)
-        return self._sp.mean_over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
+        return self.perturbed(lambda: plain(ray_samples, compute_normals=compute_normals))
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
-        sp = self._sp
-        if sp is None or not (self.training and sp.active):
+        sp = self.sp
+        if sp is None or not self.sp_active():
             return super().get_density(ray_samples)
         if not self.use_integrated_encoding:  # plain positions: the frustum-offset route
             previous = set_perturbed_offsets(ray_samples, sp)

@@ -69,10 +69,10 @@ class SPNeuSModel(SPModel, NeuSModel):
     field: SPSDFField
 
     def populate_modules(self) -> None:
-        from sp_plugins.patches.nerfstudio_marching_cubes import install_cpu_marching_cubes
+        from sp_plugins.patches.nerfstudio_marching_cubes import claim_for_cpu_marching_cubes
 
         super().populate_modules()
-        install_cpu_marching_cubes()  # ns-export marching-cubes builds this model, then meshes it
+        claim_for_cpu_marching_cubes(self)  # ns-export marching-cubes builds this model, then meshes it
         device = self.kwargs.get("device")
         if self.config.background_model == "grid" and hash_encoding.use_sp_hash_grids(device):
             # the host's background grid is nerfstudio's slow torch HashEncoding without tcnn

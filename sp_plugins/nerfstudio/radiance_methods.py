@@ -28,6 +28,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.data import CheckedDataManagerConfig
@@ -50,9 +51,8 @@ class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     """torch.optim.Adam's fused implementation; None lets torch choose."""
 
 
-RELU_FIELD_STEPS = 28_000
-RELU_FIELD_SP = SPConfig(alpha0=0.003, end=8000 / RELU_FIELD_STEPS, schedule="exponential", boundary="reflect")
-"""The paper's 8000 of 28000 steps, as a fraction so a shortened run keeps the ratio."""
+RELU_FIELD_STEPS = presets.RELU_FIELD_STEPS
+RELU_FIELD_SP = presets.RELU_FIELD
 MIPNERF_STEPS = 7_500
 """sp-mipnerf's preset length: SP ends at the paper's step 2500, a third of training (the paper's
 "by 1/3 of training at the latest"); nerfstudio's own mipnerf preset has no length (1M steps)."""

@@ -25,6 +25,7 @@ from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.models.tensorf import TensoRFModel, TensoRFModelConfig
 from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 
+from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.frustum_sp import FrustumSPField
@@ -34,15 +35,8 @@ from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
 log = logging.getLogger(__name__)
 
-MIPNERF_SP = SPConfig(alpha0=0.04, end=1 / 3, schedule="exponential", boundary="none")
-"""The paper's sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500, which is a third of
-the sp-mipnerf preset's 7500 steps (a fraction, so shortened runs keep the ratio; pass
-``--pipeline.model.sp.end 2500`` for the absolute step). NeRF MLPs are defined everywhere, so
-there is no box to reflect into."""
-
-POSITION_FIELD_SP = SPConfig(alpha0=0.02, end=0.2, schedule="exponential", boundary="none")
-"""Not from the paper (it does not run these hosts): about 0.5-1% of a Blender scene's box diagonal,
-exponential to 0 over the first 20% of training."""
+MIPNERF_SP = presets.MIPNERF
+POSITION_FIELD_SP = presets.POSITION_FIELD
 
 
 @dataclass

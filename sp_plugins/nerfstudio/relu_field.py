@@ -31,6 +31,8 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from torch import Tensor, nn
 
+from sp_plugins.adapter.field import SPFieldMixin
+
 from sp_plugins.core import StochasticPreconditioner
 
 ColorMode = Literal["sh", "rgb"]
@@ -60,7 +62,7 @@ def upsample_grid(grid: Float[Tensor, "1 c d h w"], resolution: int, align_corne
     return F.interpolate(grid, size=(resolution,) * 3, mode="trilinear", align_corners=align_corners)
 
 
-class ReLUField(Field):
+class ReLUField(SPFieldMixin, Field):
     """Dense grid field: ``density = relu(trilinear(grid)[0]) * density_scale``.
 
     Args:
@@ -110,16 +112,11 @@ class ReLUField(Field):
         grid[:, :1].uniform_(*density_init)
         grid[:, 1:].uniform_(*color_init)
         self.grid = nn.Parameter(grid)
-        self._sp: Optional[StochasticPreconditioner] = None
 
     # -- state ---------------------------------------------------------------------------------
     @property
     def resolution(self) -> int:
         return int(self.grid.shape[-1])
-
-    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
-        """Perturb queries through ``sp`` (owned and checkpointed by the model)."""
-        object.__setattr__(self, "_sp", sp)
 
     @torch.no_grad()
     def upsample_to(self, resolution: int) -> nn.Parameter:
@@ -149,15 +146,15 @@ class ReLUField(Field):
     def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
         """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
         plain = super().forward
-        if self._sp is None or not self.training:
+        if not self.sp_active():
             return plain(ray_samples, compute_normals=compute_normals)
-        return self._sp.mean_over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
+        return self.perturbed(lambda: plain(ray_samples, compute_normals=compute_normals))
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         shape = ray_samples.frustums.shape
         x = ray_samples.frustums.get_positions().reshape(-1, 3)
-        if self._sp is not None and self.training:
-            x = self._sp(x)
+        if self.sp_active():
+            x = self.sp(x)
         values = self.lookup(x)
         density = F.relu(values[:, :1]) * self.density_scale
         return density.view(*shape, 1), values[:, 1:].view(*shape, self.num_color)

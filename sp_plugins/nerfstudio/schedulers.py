@@ -73,3 +73,22 @@ class FloatCosineDecaySchedulerConfig(CosineDecaySchedulerConfig):
     """nerfstudio's cosine decay with linear warm-up; learning rates stored as Python floats."""
 
     _target: Type = field(default_factory=lambda: FloatCosineDecayScheduler)
+
+
+FLOAT_VARIANTS = {
+    ExponentialDecaySchedulerConfig: FloatExponentialDecaySchedulerConfig,
+    CosineDecaySchedulerConfig: FloatCosineDecaySchedulerConfig,
+}
+
+
+def with_float_schedulers(optimizers: dict) -> dict:
+    """``optimizers`` (a trainer config's) with nerfstudio's numpy schedulers swapped for the float
+    ones above (same fields, same factors), so checkpoints of a method we wrap load in ``ns-eval``."""
+    from sp_plugins.adapter.variants import convert
+
+    for entry in optimizers.values():
+        scheduler = entry.get("scheduler") if isinstance(entry, dict) else None
+        float_cls = FLOAT_VARIANTS.get(type(scheduler))
+        if float_cls is not None:
+            entry["scheduler"] = convert(scheduler, float_cls)
+    return optimizers

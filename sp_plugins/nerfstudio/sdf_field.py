@@ -30,6 +30,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
+from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner, finite_differences
 from sp_plugins.nerfstudio.errors import InputError
 
@@ -67,13 +68,13 @@ class _NoGrid(nn.Module):
         return x.new_zeros(*x.shape[:-1], 0)
 
 
-class SPSDFField(SDFField):
+class SPSDFField(SPFieldMixin, SDFField):
     """``SDFField`` that perturbs its queries through a :class:`StochasticPreconditioner`."""
 
     config: SPSDFFieldConfig
 
     def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
-        from sp_plugins.patches.nerfstudio_sdf_field import install_torch_tcnn_fallback
+        from sp_plugins.patches.nerfstudio_sdf_field import torch_tcnn_fallback
 
         if config.encoding_type != "hash":
             raise InputError(
@@ -92,9 +93,8 @@ class SPSDFField(SDFField):
                 f"{config.hidden_dim}: the SDF MLP re-injects its {in_dim}-wide input after layer 4, so use num-layers <= 2, "
                 f"or num-layers >= 4 with hidden-dim > {in_dim}"
             )
-        install_torch_tcnn_fallback()
-        super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
-        self._sp: Optional[StochasticPreconditioner] = None
+        with torch_tcnn_fallback():  # for this construction only
+            super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
         n_levels = config.num_levels if config.use_grid_feature else 0
         # Coarse-to-fine state lives in buffers so a checkpoint restores it (eval, export, resume).
         self.register_buffer("active_levels", torch.tensor(n_levels, dtype=torch.long))
@@ -123,12 +123,9 @@ class SPSDFField(SDFField):
         super().initialize_geo_layers()
 
     # -- SP and coarse-to-fine controls ------------------------------------------------------
-    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
-        """Perturb queries through ``sp`` (owned and checkpointed by the model, not the field)."""
-        object.__setattr__(self, "_sp", sp)
-
     def perturb(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
-        return x if self._sp is None else self._sp(x)
+        sp = self.sp
+        return x if sp is None else sp(x)
 
     def level_cell_size(self, level: int) -> float:
         """Cell size of grid level ``level`` in scene units (for the finite-difference step)."""
@@ -191,9 +188,11 @@ class SPSDFField(SDFField):
         gradient, colour, Laplacian; normals re-normalised from the mean gradient)."""
         if ray_samples.camera_indices is None:
             raise AttributeError("Camera indices are not provided.")
-        if self._sp is None or not (self.training and self._sp.active) or self._sp.config.num_samples == 1:
+        if not self.sp_active():
             return self.outputs_of_one_draw(ray_samples, return_alphas)
-        outputs = self._sp.mean_over_draws(lambda: self.outputs_of_one_draw(ray_samples, False))
+        if self.sp.config.num_samples == 1:
+            return self.perturbed(lambda: self.outputs_of_one_draw(ray_samples, return_alphas))
+        outputs = self.perturbed(lambda: self.outputs_of_one_draw(ray_samples, False))
         outputs[FieldHeadNames.NORMALS] = F.normalize(outputs[FieldHeadNames.GRADIENT], p=2, dim=-1)
         if return_alphas:
             outputs[FieldHeadNames.ALPHA] = self.get_alpha(ray_samples, outputs[FieldHeadNames.SDF], outputs[FieldHeadNames.GRADIENT])

@@ -25,6 +25,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP
 from sp_plugins.nerfstudio.data import SurfaceDataManagerConfig
@@ -34,8 +35,8 @@ from sp_plugins.nerfstudio.schedulers import FloatCosineDecaySchedulerConfig
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
-NEUS_SP = SPConfig(alpha0=0.013, end=0.2, schedule="exponential")
-NEURALANGELO_SP = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid_init=0.03, alpha_grid_lr=1e-3)
+NEUS_SP = presets.NEUS
+NEURALANGELO_SP = presets.NEURALANGELO
 
 
 def _optimizer(lr: float, steps: int, warm_up_end: int) -> dict:

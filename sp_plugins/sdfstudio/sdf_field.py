@@ -32,6 +32,7 @@ from nerfstudio.cameras.rays import RaySamples
 from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
+from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner
 
 CONTRACTED_BOUNDS = (-2.0, 2.0)
@@ -53,20 +54,26 @@ class SPSDFFieldConfig(SDFFieldConfig):
 class PerturbedContraction(nn.Module):
     """``sp(inner(x))``: the field's spatial distortion followed by the perturbation.
 
-    Holds no state of its own (``inner`` is sdfstudio's stateless ``SceneContraction``), so the
-    field's checkpoint keys are sdfstudio's."""
+    Holds no state of its own (``inner`` is sdfstudio's stateless ``SceneContraction``; the
+    preconditioner is reached through the field's :class:`PreconditionerHandle`, a plain
+    attribute), so the field's checkpoint keys are sdfstudio's."""
 
     def __init__(self, inner: Optional[nn.Module]) -> None:
         super().__init__()
         self.inner = inner
-        self._sp: Optional[StochasticPreconditioner] = None
+        self.sp_handle: Optional[PreconditionerHandle] = None
 
     def forward(self, x: Tensor) -> Tensor:
         x = x if self.inner is None else self.inner(x)
-        return x if self._sp is None else self._sp(x)
+        handle = self.sp_handle
+        if handle is None or handle.sp is None:
+            return x
+        if handle.sp.training and handle.sp.active:
+            handle.perturbed_calls += 1
+        return handle.sp(x)
 
 
-class SPSDFField(SDFField):
+class SPSDFField(SPFieldMixin, SDFField):
     """``SDFField`` whose training queries go through a :class:`StochasticPreconditioner`."""
 
     config: SPSDFFieldConfig
@@ -79,12 +86,10 @@ class SPSDFField(SDFField):
 
     # -- SP controls ----------------------------------------------------------------------------
     def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
-        """Perturb queries through ``sp`` (owned and checkpointed by the model, not the field)."""
-        object.__setattr__(self.spatial_distortion, "_sp", sp)
-
-    @property
-    def sp(self) -> Optional[StochasticPreconditioner]:
-        return self.spatial_distortion._sp
+        """Perturb queries through ``sp`` (owned and checkpointed by the model, not the field);
+        the contraction shares the field's handle."""
+        super().use_preconditioner(sp)
+        self.spatial_distortion.sp_handle = self.sp_handle
 
     def perturb(self, x: Tensor) -> Tensor:
         return x if self.sp is None else self.sp(x)

@@ -19,13 +19,14 @@ import copy
 import dataclasses
 from typing import Any, Dict
 
+from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.sdfstudio.callbacks import ALPHA_GRID_GROUP
 from sp_plugins.sdfstudio.registration import MethodSpecification
 from sp_plugins.sdfstudio.sdf_field import SPSDFFieldConfig
 
-NEUS_SP = SPConfig(alpha0=0.013, end=0.2, schedule="exponential")
-NEURALANGELO_SP = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid_init=0.03, alpha_grid_lr=1e-3)
+NEUS_SP = presets.NEUS
+NEURALANGELO_SP = presets.NEURALANGELO
 
 
 def convert(config: Any, cls: type, **changes: Any) -> Any:

@@ -24,12 +24,13 @@ def test_nerfstudio_still_makes_the_slow_check():
     assert patch.host_post_init_is_as_expected(), "nerfstudio no longer calls inspect.stack() there: drop the patch?"
 
 
-def test_loading_our_method_configs_installs_it():
-    import sp_plugins.method_configs  # noqa: F401  (what nerfstudio's plugin discovery imports first)
-
+def test_installing_it_is_idempotent():
+    """It goes in only through our own command (sp-train); discovery of our methods leaves it out
+    (tests/nerfstudio/test_guest.py checks that in a fresh process)."""
+    assert patch.install_fast_external_methods()
     post_init = ns_external.ExternalMethodDummyTrainerConfig.__post_init__
     assert getattr(post_init, "__sp_original__", None) is not None
-    assert patch.install_fast_external_methods()  # idempotent
+    assert patch.install_fast_external_methods()
     assert ns_external.ExternalMethodDummyTrainerConfig.__post_init__ is post_init
 
 

@@ -33,10 +33,10 @@ def test_install_rebinds_both_names_and_uninstall_restores():
         patch.uninstall_cpu_marching_cubes()
         assert getattr(ns_mc, patch.FUNCTION) is original
         assert patch.install_cpu_marching_cubes(force=True)
-        assert getattr(ns_mc, patch.FUNCTION) is patch.cpu_marching_cubes
+        assert getattr(ns_mc, patch.FUNCTION) is patch.scoped_marching_cubes
         exporter = sys.modules.get("nerfstudio.scripts.exporter")
         if exporter is not None:
-            assert exporter.generate_mesh_with_multires_marching_cubes is patch.cpu_marching_cubes
+            assert exporter.generate_mesh_with_multires_marching_cubes is patch.scoped_marching_cubes
         patch.uninstall_cpu_marching_cubes()
         assert getattr(ns_mc, patch.FUNCTION) is original
     finally:
@@ -66,3 +66,24 @@ def test_cpu_marching_cubes_meshes_a_sphere_outward():
     assert mesh.is_watertight and mesh.volume > 0
     with pytest.raises(ValueError, match="does not cross"):
         patch.cpu_marching_cubes(lambda p: p.norm(dim=-1) + 1.0, resolution=16)
+
+
+def test_only_claimed_models_get_the_cpu_mesher(monkeypatch):
+    """The rebinding is scoped: the SDF of a model that is not ours goes to nerfstudio's own mesher."""
+    calls = []
+    patch.install_cpu_marching_cubes(force=True)  # the host's mesher is recorded before we stand in for it
+    monkeypatch.setitem(patch._originals, patch.MODULES[0], lambda *args: calls.append(args) or "host mesher")
+    ours, theirs = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
+
+    class Pipeline:
+        def __init__(self, model):
+            self.model = model
+
+    def exporter_closure(pipeline):  # what ns-export passes: a lambda over its pipeline
+        return lambda x: _sphere(x) + 0 * len(str(pipeline))
+
+    patch.claim_for_cpu_marching_cubes(ours, force=True)
+    assert patch.scoped_marching_cubes(exporter_closure(Pipeline(theirs)), resolution=16) == "host mesher"
+    assert len(calls) == 1
+    mesh = patch.scoped_marching_cubes(exporter_closure(Pipeline(ours)), resolution=32)
+    assert len(calls) == 1 and mesh.is_watertight

@@ -1,0 +1,57 @@
+"""The field side of every adapter: a visible handle to the model's preconditioner.
+
+The model owns the :class:`~sp_plugins.core.StochasticPreconditioner` (it is a submodule of
+the model, so it is checkpointed once, with the model). A field that perturbs its queries holds
+a :class:`PreconditionerHandle` to it: a plain attribute (``field.sp_handle``), not a submodule,
+so the preconditioner is not registered a second time under the field and the field's state
+dict keys stay the host's.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, TypeVar
+
+from sp_plugins.core import StochasticPreconditioner
+
+T = TypeVar("T")
+
+
+class PreconditionerHandle:
+    """A reference to a model's preconditioner that ``nn.Module`` does not register."""
+
+    __slots__ = ("sp", "perturbed_calls")
+
+    def __init__(self, sp: Optional[StochasticPreconditioner]) -> None:
+        self.sp = sp
+        self.perturbed_calls = 0
+        """Field queries that were perturbed (the model checks SP reached a field while training)."""
+
+    def __repr__(self) -> str:
+        return f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls})"
+
+
+class SPFieldMixin:
+    """Mixin for a host field that perturbs its queries; list it first among the bases."""
+
+    sp_handle: Optional[PreconditionerHandle] = None
+
+    def use_preconditioner(self, sp: Optional[StochasticPreconditioner]) -> None:
+        """Perturb through ``sp`` (owned and checkpointed by the model, not the field)."""
+        self.sp_handle = PreconditionerHandle(sp)
+
+    @property
+    def sp(self) -> Optional[StochasticPreconditioner]:
+        handle = self.sp_handle
+        return None if handle is None else handle.sp
+
+    def sp_active(self) -> bool:
+        """True while training with alpha > 0: the only time queries are perturbed."""
+        sp = self.sp
+        return sp is not None and bool(getattr(self, "training", False)) and sp.active
+
+    def perturbed(self, run_once: Callable[[], T]) -> T:
+        """``run_once()`` (which perturbs through ``self.sp``), averaged over ``num_samples``
+        draws, and counted."""
+        assert self.sp_handle is not None and self.sp_handle.sp is not None
+        self.sp_handle.perturbed_calls += 1
+        return self.sp_handle.sp.mean_over_draws(run_once)

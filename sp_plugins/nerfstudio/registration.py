@@ -1,0 +1,186 @@
+"""How SP methods reach nerfstudio's commands: ``with_sp`` for any method, and ``sp-train``.
+
+``with_sp(spec)`` returns the ``sp-<name>`` variant of any registered method (nerfstudio's own or
+another plugin's): the same trainer config, with the model config converted to its SP variant
+(:mod:`sp_plugins.nerfstudio.variants`), which adds ``--pipeline.model.sp.*`` and leaves every
+other flag as it was, plus the optimizer entry a learnable alpha grid needs. A plugin author
+registers an SP variant of their method with one entry point::
+
+    # pyproject.toml: [project.entry-points."nerfstudio.method_configs"]
+    # sp-mymethod = "my_plugin.sp:sp_mymethod"
+    from sp_plugins.nerfstudio import with_sp
+    sp_mymethod = with_sp(mymethod)
+
+``sp-train METHOD [ns-train flags]`` is ``ns-train`` with SP on for every registered method
+(``sp-train --help`` lists them). Its runs keep the method's name (``outputs/<experiment>/<method>``):
+nerfstudio's ``ns-eval``, ``ns-render`` and ``ns-export`` look the data manager up by that name, and
+``config.yml`` names the SP classes and holds the ``sp`` block. Methods SP cannot reach are refused in one line that says why
+(:func:`refusal`). This module is cheap to import and changes nothing in the process; our own
+command installs what it needs (:func:`train`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import sys
+from typing import Any, Dict, Optional, Tuple
+
+from sp_plugins.adapter import presets
+from sp_plugins.adapter.variants import class_path, convert
+from sp_plugins.core import SPConfig
+
+PROG = "sp-train"
+
+REFUSED_MODELS: Dict[str, str] = {
+    "nerfstudio.models.base_surface_model.SurfaceModel": (
+        "its SDF field reads Frustums.get_start_positions(), which ignores offsets; "
+        "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite instead"
+    ),
+    "nerfstudio.models.mipnerf.MipNerfModel": (
+        "its field encodes Gaussian blobs (conical frustums), which refuse Frustums.offsets; train sp-mipnerf instead"
+    ),
+    "nerfstudio.models.splatfacto.SplatfactoModel": (
+        "Gaussian splatting has no field queried with RaySamples (it rasterises Gaussians); SP does not apply"
+    ),
+}
+"""Host model classes (and their subclasses) SP cannot reach through frustum offsets, and why."""
+
+OUR_BASELINES = {
+    "neus-hashgrid": "sp-neus-hashgrid",
+    "neuralangelo-lite": "sp-neuralangelo-lite",
+    "relu-field": "sp-relu-field",
+    "relu-field-flat": "sp-relu-field",
+}
+"""Our baselines (SP off) and the method that is the same with SP on."""
+
+
+def _model_class(model_config: Any) -> Optional[type]:
+    target = getattr(model_config, "_target", None)
+    return target if isinstance(target, type) else None
+
+
+def refusal(config: Any) -> Optional[str]:
+    """Why SP cannot be put on the method of trainer config ``config`` (None when it can).
+
+    Decided from classes only (nothing is built): a method that passes can still be refused when
+    its model is built (see :class:`sp_plugins.nerfstudio.model.AnyMethodSPModel`)."""
+    if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
+        return "it is an external method that is not installed; install it, then it is listed here"
+    model_config = getattr(getattr(config, "pipeline", None), "model", None)
+    model = _model_class(model_config)
+    if model is None:
+        return "its model config has no model class (_target) to subclass"
+    if hasattr(model_config, "sp"):
+        return None  # one of ours: SP is already part of it
+    for cls in model.__mro__:
+        reason = REFUSED_MODELS.get(class_path(cls))
+        if reason:
+            return reason
+    from sp_plugins.patches.nerfstudio_host_fields import module_field_classes
+
+    if not module_field_classes(model):
+        return f"{model.__name__}'s modules define no Field class, so no field can be built as its SP variant"
+    return None
+
+
+def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = None, description: Optional[str] = None):
+    """The SP variant of method ``spec`` (a ``MethodSpecification`` or a ``TrainerConfig``).
+
+    ``sp`` defaults to :data:`sp_plugins.adapter.presets.DEFAULT`; ``name`` to ``sp-<method name>``.
+    A method that is already ours (its model config has ``sp``) comes back with SP enabled.
+    Raises ``ValueError`` naming the reason when SP cannot reach the method."""
+    from nerfstudio.plugins.types import MethodSpecification
+
+    from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+    from sp_plugins.nerfstudio.schedulers import with_float_schedulers
+    from sp_plugins.nerfstudio.variants import variant
+
+    config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
+    base_description = getattr(spec, "description", "") or config.method_name
+    reason = refusal(config)
+    if reason:
+        raise ValueError(f"SP cannot be put on {config.method_name}: {reason}")
+    model = config.pipeline.model
+    if hasattr(model, "sp"):  # ours already: switch SP on (an explicit sp wins)
+        model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
+    else:
+        sp_config = copy.deepcopy(sp) if sp is not None else dataclasses.replace(presets.DEFAULT)
+        config_cls = variant("ModelConfig", type(model))
+        config.pipeline.model = convert(model, config_cls, _target=variant("Model", _model_class(model)), sp=sp_config)
+    config.method_name = name or (config.method_name if config.method_name.startswith("sp-") else f"sp-{config.method_name}")
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    with_float_schedulers(config.optimizers)  # the host's numpy learning rates break torch.load in ns-eval
+    text = description or f"{base_description} + stochastic preconditioning of the sample positions (sp-plugins)."
+    return MethodSpecification(config=config, description=text)
+
+
+def sp_methods(methods: Dict[str, Any], descriptions: Dict[str, str]) -> Tuple[Dict[str, Any], Dict[str, str], Dict[str, str]]:
+    """``(configs, descriptions, refused)`` of ``sp-train``: for every method, its SP variant's
+    trainer config, or why it is refused. Our own baselines are refused with their SP method's name."""
+    configs: Dict[str, Any] = {}
+    texts: Dict[str, str] = {}
+    refused: Dict[str, str] = {}
+    for method, config in methods.items():
+        model = getattr(getattr(config, "pipeline", None), "model", None)
+        sp = getattr(model, "sp", None)
+        if isinstance(sp, SPConfig) and not sp.enabled:
+            counterpart = OUR_BASELINES.get(method, f"sp-{method}")
+            refused[method] = f"it is the baseline of {counterpart}, the method with SP; train that one"
+            continue
+        reason = refusal(config)
+        if reason:
+            refused[method] = reason
+            continue
+        try:  # the method keeps its name: ns-eval / ns-render / ns-export look its data manager up by it
+            spec = with_sp(config, name=config.method_name, description=descriptions.get(method, ""))
+        except ValueError as err:
+            refused[method] = str(err)
+            continue
+        configs[method] = spec.config
+        texts[method] = spec.description
+    return configs, texts, refused
+
+
+def _method_argument(argv: list) -> Optional[str]:
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def train(argv: Optional[list] = None) -> None:
+    """``sp-train METHOD [ns-train flags]``: nerfstudio's ``ns-train`` with SP on ``METHOD``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # our own command: the process is ours, so the process-wide conveniences go in here
+    from sp_plugins.nerfstudio.model import install_process_settings
+    from sp_plugins.patches.nerfstudio_external_methods import install_fast_external_methods
+
+    install_process_settings()
+    install_fast_external_methods()
+    import tyro
+    from nerfstudio.configs.config_utils import convert_markup_to_ansi
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+
+    configs, texts, refused = sp_methods(all_methods, all_descriptions)
+    method = _method_argument(argv)
+    if method in refused:
+        print(f"{PROG}: error: SP cannot be put on {method}: {refused[method]}", file=sys.stderr)
+        raise SystemExit(2)
+    if method is not None and method not in configs and not any(a in ("-h", "--help") for a in argv):
+        print(f"{PROG}: error: no method {method!r}; sp-train --help lists them", file=sys.stderr)
+        raise SystemExit(2)
+    union = tyro.conf.SuppressFixed[
+        tyro.conf.FlagConversionOff[tyro.extras.subcommand_type_from_defaults(defaults=configs, descriptions=texts)]
+    ]
+    tyro.extras.set_accent_color("bright_yellow")
+    refused_text = "; ".join(f"{m}: {why}" for m, why in sorted(refused.items()))
+    description = (
+        "ns-train with stochastic preconditioning on any registered method (sp-plugins): the method's own flags, "
+        f"plus --pipeline.model.sp.*. Not offered: {refused_text}."
+    )
+    config = tyro.cli(union, args=argv, prog=PROG, description=convert_markup_to_ansi(description))
+    from nerfstudio.scripts.train import main
+
+    main(config)
+
+
+def entrypoint() -> None:
+    train()
