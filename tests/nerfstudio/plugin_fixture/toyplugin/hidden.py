@@ -1,0 +1,19 @@
+"""A model that builds its field through a module object, not a module-level class name: SP's
+generic route cannot redirect that construction, so the SP variant must refuse to train."""
+
+from dataclasses import dataclass, field
+from typing import Type
+
+import toyplugin.fieldlib as fieldlib
+from toyplugin.model import ToyModel, ToyModelConfig
+
+
+@dataclass
+class HiddenFieldModelConfig(ToyModelConfig):
+    _target: Type = field(default_factory=lambda: HiddenFieldModel)
+
+
+class HiddenFieldModel(ToyModel):
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        self.field = fieldlib.PlainField(self.config.width)

@@ -1,0 +1,224 @@
+"""SP on any nerfstudio method (issue 20): ``with_sp``, ``sp-train``, a third-party plugin, refusals.
+
+The plugin (``plugin_fixture/toyplugin``: its own ``Model`` and ``Field``, classes sp-plugins has
+never seen) is installed as a temporary distribution with a ``nerfstudio.method_configs`` entry
+point, as a plugin author ships one. Its field logs the positions it reads (``TOY_FIELD_LOG``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from ns_commands import ENV, RUN_FLAGS, _report, command
+
+pytest.importorskip("nerfstudio")
+
+FIXTURE = Path(__file__).parent / "plugin_fixture"
+STEPS = 4
+
+
+def install_toy_plugin(root: Path) -> Path:
+    """The toy plugin as a distribution in ``root`` (importable once ``root`` is on the path)."""
+    shutil.copytree(FIXTURE / "toyplugin", root / "toyplugin")
+    dist = root / "toyplugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: toyplugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(
+        "[nerfstudio.method_configs]\ntoy-method = toyplugin.config:toy_method\nsp-toy-method = toyplugin.config:sp_toy_method\n"
+    )
+    return root
+
+
+def run_env(args, env, timeout=600, expect=0):
+    proc = subprocess.run([str(a) for a in args], env=env, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == expect, _report(args, proc)
+    return proc
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = install_toy_plugin(tmp_path_factory.mktemp("plugin"))
+    env = dict(ENV, PYTHONPATH=os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p))
+    return root, env
+
+
+def log_lines(path: Path):
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+@pytest.fixture(scope="module")
+def toy_run(toy, tiny_scene, tmp_path_factory):
+    """``sp-train toy-method``: SP (alpha 0.05) for the first half of 4 steps, then plain."""
+    root, env = toy
+    out = tmp_path_factory.mktemp("toy-run")
+    log = out / "train.jsonl"
+    proc = run_env(
+        [command("sp-train"), "toy-method", *RUN_FLAGS, "--max-num-iterations", STEPS, "--steps-per-save", STEPS,
+         "--steps-per-eval-batch", 1000, "--steps-per-eval-image", 1000, "--steps-per-eval-all-images", 1000,
+         "--output-dir", out, "--pipeline.model.sp.alpha0", "0.05", "--pipeline.model.sp.schedule", "step",
+         "--pipeline.model.sp.end", "0.5", "--pipeline.model.sp.seed", "0",
+         "blender-data", "--data", tiny_scene / "blender"],
+        dict(env, TOY_FIELD_LOG=str(log)),
+    )
+    (config,) = out.glob("**/config.yml")
+    return config, log, proc, env
+
+
+def test_sp_train_trains_a_plugin_method_with_its_field_perturbed_then_plain(toy_run):
+    config, log, _, _ = toy_run
+    training = [line for line in log_lines(log) if line["training"]]
+    assert len(training) == STEPS, training  # one field query per step
+    offsets = [line["offset"] for line in training]
+    assert all(o > 1e-3 for o in offsets[:2]), offsets  # alpha 0.05: the field read perturbed positions
+    assert all(o < 1e-6 for o in offsets[2:]), offsets  # alpha 0 from step 2 on: the plain positions
+    assert config.parent.parent.name == "toy-method"  # the run keeps the method's name (ns-eval looks it up)
+    text = config.read_text()
+    assert "sp_plugins.nerfstudio.variants.SPModel__toyplugin_dmodel_dToyModel" in text
+
+
+def test_ns_eval_and_ns_render_load_the_plugin_checkpoint_unperturbed(toy_run, tmp_path):
+    config, _, _, env = toy_run
+    log = tmp_path / "eval.jsonl"
+    env = dict(env, TOY_FIELD_LOG=str(log))
+    run_env([command("ns-eval"), "--load-config", config, "--output-path", tmp_path / "eval.json"], env)
+    results = json.loads((tmp_path / "eval.json").read_text())["results"]
+    assert results["psnr"] == results["psnr"]  # finite, not NaN
+    run_env([command("ns-render"), "dataset", "--load-config", config, "--split", "test", "--output-path",
+             tmp_path / "renders", "--rendered-output-names", "rgb", "--image-format", "png"], env)
+    assert list((tmp_path / "renders").glob("**/*.png"))
+    queries = log_lines(log)
+    assert queries and not any(q["training"] for q in queries)
+    assert max(q["offset"] for q in queries) < 1e-6  # evaluation and rendering see the plain field
+
+
+def test_a_plugin_registers_its_sp_variant_with_one_with_sp_call(toy, tmp_path):
+    """The plugin's own entry point ``sp-toy-method = with_sp(toy_method)`` reaches nerfstudio's list."""
+    _, env = toy
+    code = (
+        "from nerfstudio.plugins.registry import discover_methods\n"
+        "methods, descriptions = discover_methods()\n"
+        "config = methods['sp-toy-method']\n"
+        "print(type(config.pipeline.model).__name__, config.pipeline.model.sp.enabled, config.method_name)\n"
+    )
+    out = run_env([sys.executable, "-c", code], env).stdout.split()
+    assert out[-3:] == ["SPModelConfig__toyplugin_dmodel_dToyModelConfig", "True", "sp-toy-method"]
+
+
+REFUSED = {
+    "neus": "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite",
+    "neus-facto": "reads Frustums.get_start_positions()",
+    "mipnerf": "train sp-mipnerf",
+    "splatfacto": "Gaussian splatting",
+    "neus-hashgrid": "baseline of sp-neus-hashgrid",
+    "relu-field-flat": "baseline of sp-relu-field",
+    "zipnerf": "not installed",
+}
+
+
+def test_sp_train_help_lists_every_method_and_refuses_the_unreachable_in_one_line(toy):
+    _, env = toy
+    help_text = run_env([command("sp-train"), "--help"], dict(env, COLUMNS="200")).stdout
+    for method in ("nerfacto", "vanilla-nerf", "tensorf", "toy-method", "sp-neus-hashgrid"):
+        assert method in help_text, method
+    proc = run_env([command("sp-train"), "neus", "--max-num-iterations", "1"], env, expect=2)
+    assert proc.stderr.strip().splitlines() == [f"sp-train: error: SP cannot be put on neus: {_refusals()['neus']}"]
+    assert REFUSED["neus"] in proc.stderr
+
+
+def _refusals():
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+
+    from sp_plugins.nerfstudio.registration import sp_methods
+
+    return sp_methods(all_methods, all_descriptions)[2]
+
+
+def test_sp_train_offers_every_builtin_method_it_can_reach_and_says_why_not_for_the_rest():
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+
+    from sp_plugins.nerfstudio.registration import sp_methods
+
+    configs, _, refused = sp_methods(all_methods, all_descriptions)
+    assert set(configs) | set(refused) == set(all_methods)
+    for method, why in REFUSED.items():
+        assert why in refused[method], (method, refused[method])
+    for method in ("nerfacto", "nerfacto-big", "depth-nerfacto", "vanilla-nerf", "tensorf", "instant-ngp", "semantic-nerfw"):
+        model = configs[method].pipeline.model
+        assert model.sp.enabled and type(model).__name__.startswith("SPModelConfig__"), method
+        assert configs[method].method_name == all_methods[method].method_name  # ns-eval finds its data manager by it
+    assert configs["sp-neus-hashgrid"].pipeline.model.sp.enabled
+
+
+# -- in-process ---------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def toy_importable(toy, monkeypatch):
+    root, _ = toy
+    monkeypatch.syspath_prepend(str(root))
+    return root
+
+
+def test_with_sp_keeps_the_method_flags_and_adds_sp(toy_importable):
+    from toyplugin.config import toy_method
+
+    from sp_plugins.core import SPConfig
+    from sp_plugins.nerfstudio import with_sp
+
+    spec = with_sp(toy_method, SPConfig(alpha0=0.07))
+    model = spec.config.pipeline.model
+    host = toy_method.config.pipeline.model
+    assert isinstance(model, type(host)) and model.sp.alpha0 == 0.07
+    assert model.num_samples == host.num_samples and model.width == host.width
+    assert spec.config.method_name == "sp-toy-method"
+    assert "sp_alpha_grid" in spec.config.optimizers and "fields" in spec.config.optimizers
+    assert toy_method.config.pipeline.model is host and not hasattr(host, "sp")  # the plugin's spec is untouched
+
+
+def test_sp_variants_resolve_by_path_in_a_saved_config(toy_importable):
+    """config.yml names the variants by path; a fresh process makes them again from the name."""
+    from toyplugin.config import toy_method
+
+    from sp_plugins.nerfstudio import variants, with_sp
+
+    config = with_sp(toy_method).config
+    loaded = yaml.load(yaml.dump(config), Loader=yaml.Loader)
+    assert type(loaded.pipeline.model) is type(config.pipeline.model)
+    assert loaded.pipeline.model._target is config.pipeline.model._target
+    name = type(config.pipeline.model).__name__
+    code = f"import sp_plugins.nerfstudio.variants as v; print(v.{name}.__mro__[2].__name__)"
+    out = run_env([sys.executable, "-c", code], dict(ENV, PYTHONPATH=str(toy_importable))).stdout.split()[-1]
+    assert out == "ToyModelConfig"
+    with pytest.raises(AttributeError):
+        variants.SPModel__not_da_dpath
+    with pytest.raises(AttributeError):
+        variants.SomethingElse
+
+
+def test_a_field_sp_cannot_reach_is_refused_when_the_model_is_built(toy_importable, tiny_scene, tmp_path):
+    """A model that builds its field through a name SP does not redirect refuses in one line
+    instead of training without SP."""
+    from toyplugin.config import toy_method
+    from toyplugin.hidden import HiddenFieldModelConfig
+
+    from sp_plugins.adapter.variants import convert
+    from sp_plugins.nerfstudio import with_sp
+    from sp_plugins.nerfstudio.errors import InputError
+    from sp_plugins.nerfstudio.runs import configure_run, train
+
+    base = toy_method.config
+    hidden = type(toy_method)(config=base, description="")
+    hidden.config = type(base)(**{f: getattr(base, f) for f in ("method_name", "max_num_iterations", "mixed_precision", "optimizers")},
+                               pipeline=type(base.pipeline)(datamanager=base.pipeline.datamanager,
+                                                            model=convert(base.pipeline.model, HiddenFieldModelConfig)))
+    config = with_sp(hidden).config
+    configure_run(config, tiny_scene / "blender", steps=1, output_dir=tmp_path)
+    with pytest.raises(InputError, match="SP cannot reach toyplugin.hidden.HiddenFieldModel: none of its fields"):
+        train(config)
