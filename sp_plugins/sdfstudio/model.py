@@ -2,7 +2,8 @@
 :mod:`sp_plugins.nerfstudio.model`).
 
 Put :class:`SPModelConfig` and :class:`SPModel` first among the bases of a host model's config
-and model::
+and model (:mod:`sp_plugins.sdfstudio.variants` does this for every sdfstudio SDF model, with
+:class:`SDFFieldSPModel`, whose ``attach_sp`` hands the preconditioner to the SDF field)::
 
     @dataclass
     class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
@@ -83,3 +84,22 @@ class SPModel:
         if self.training:  # type: ignore[attr-defined]
             metrics["sp_alpha"] = self.sp.alpha
         return metrics
+
+
+class SDFFieldSPModel(SPModel):
+    """:class:`SPModel` for any sdfstudio ``SurfaceModel``: the preconditioner goes to the SDF
+    field ``self.field`` that ``SurfaceModel.populate_modules`` builds from ``config.sdf_field``
+    (an :class:`~sp_plugins.sdfstudio.sdf_field.SPSDFFieldConfig` in every SP model config).
+    List it before the host model class (the SP model variants of
+    :mod:`sp_plugins.sdfstudio.variants` are ``(SDFFieldSPModel, HostModel)``)."""
+
+    def attach_sp(self) -> None:
+        from sp_plugins.sdfstudio.sdf_field import SPSDFField
+
+        field = getattr(self, "field", None)
+        if not isinstance(field, SPSDFField):
+            raise TypeError(
+                f"{type(self).__name__}: SP needs the SDF field built from an SPSDFFieldConfig, got "
+                f"{type(field).__name__} (the model config's sdf_field must be SPSDFFieldConfig)"
+            )
+        field.use_preconditioner(self.sp)
