@@ -1,10 +1,9 @@
-"""sp-bakedangelo: sdfstudio's bakedangelo with stochastic preconditioning instead of coarse-to-fine."""
+"""sp-bakedangelo: sdfstudio's bakedangelo with stochastic preconditioning instead of coarse-to-fine
+(the generic conversion, Neuralangelo preset; coarse-to-fine is replaced because the host enables it)."""
 
-from sp_plugins.sdfstudio.neus import SPBakedAngeloModelConfig
 from sp_plugins.sdfstudio.sdf_methods import NEURALANGELO_SP, sp_method
 
 sp_bakedangelo = sp_method(
-    "bakedangelo", SPBakedAngeloModelConfig, NEURALANGELO_SP,
+    "bakedangelo", NEURALANGELO_SP,
     "sdfstudio bakedangelo, coarse-to-fine replaced by stochastic preconditioning (alpha0 0.03, first 30%).",
-    replace_coarse_to_fine=True,
 )

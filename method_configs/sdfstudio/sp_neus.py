@@ -1,9 +1,8 @@
-"""sp-neus: sdfstudio's NeuS with stochastic preconditioning."""
+"""sp-neus: sdfstudio's NeuS with stochastic preconditioning (the generic conversion, NeuS preset)."""
 
-from sp_plugins.sdfstudio.neus import SPNeuSModelConfig
 from sp_plugins.sdfstudio.sdf_methods import NEUS_SP, sp_method
 
 sp_neus = sp_method(
-    "neus", SPNeuSModelConfig, NEUS_SP,
+    "neus", NEUS_SP,
     "sdfstudio NeuS + stochastic preconditioning (alpha0 0.013, to 0 over the first 20%).",
 )

@@ -1,9 +1,8 @@
-"""sp-neus-facto: sdfstudio's neus-facto with stochastic preconditioning."""
+"""sp-neus-facto: sdfstudio's neus-facto with stochastic preconditioning (the generic conversion, NeuS preset)."""
 
-from sp_plugins.sdfstudio.neus import SPNeuSFactoModelConfig
 from sp_plugins.sdfstudio.sdf_methods import NEUS_SP, sp_method
 
 sp_neus_facto = sp_method(
-    "neus-facto", SPNeuSFactoModelConfig, NEUS_SP,
+    "neus-facto", NEUS_SP,
     "sdfstudio neus-facto + stochastic preconditioning (alpha0 0.013, to 0 over the first 20%).",
 )

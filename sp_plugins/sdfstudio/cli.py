@@ -1,8 +1,10 @@
 """Console entry points for sdfstudio.
 
 - ``sp-sdfstudio-train``: sdfstudio's ``ns-train`` with our methods: applies the compatibility
-  patches, adds the methods of our entry-point group, rebuilds sdfstudio's tyro union, then runs
-  sdfstudio's own train ``main``. Same arguments as ``ns-train``.
+  patches, adds the methods of our entry-point group and ``sp-<method>`` for every SDF method
+  sdfstudio registers, rebuilds sdfstudio's tyro union, then runs sdfstudio's own train ``main``.
+  Same arguments as ``ns-train``; ``sp-<method>`` of a method SP does not apply to (nerfacto,
+  mipnerf, ...) is refused in one line that says why.
 - ``sp-sdfstudio-extract-mesh``: mesh of a trained checkpoint at any resolution (sdfstudio's
   ``ns-extract-mesh`` accepts only multiples of 512 for SDFs: minutes and GBs on a CPU). It loads
   the checkpoint with sdfstudio's ``eval_setup`` (the same loading as ns-eval) and runs our marching
@@ -46,10 +48,21 @@ def train(argv: Optional[list] = None) -> None:
 
     from sp_plugins.sdfstudio.registration import add_methods
 
+    from sp_plugins.sdfstudio.registration import REFUSED
+
     add_methods(host_train)
+    args = list(sys.argv[1:] if argv is None else argv)
+    method = next((a for a in args if not a.startswith("-")), None)
+    if method in REFUSED:
+        _error(prog, f"SP cannot be put on {method[len('sp-'):]}: {REFUSED[method]}")
     tyro.extras.set_accent_color("bright_yellow")
+    refused = ", ".join(sorted(REFUSED))
+    description = (host_train.__doc__ or "") + (
+        f"\n\nsp-<method>: any sdfstudio SDF method with stochastic preconditioning (--pipeline.model.sp.*). "
+        f"Not offered (no SurfaceModel SDF field for SP to enter; sp-sdfstudio-train sp-<method> says why): {refused}."
+    )
     config = tyro.cli(
-        host_train.AnnotatedBaseConfigUnion, args=argv, prog=prog, description=convert_markup_to_ansi(host_train.__doc__)
+        host_train.AnnotatedBaseConfigUnion, args=args, prog=prog, description=convert_markup_to_ansi(description)
     )
     if config.machine.num_gpus > 0 and not torch.cuda.is_available():
         _error(prog, f"--machine.num-gpus {config.machine.num_gpus} but no CUDA device is available; pass --machine.num-gpus 0")
