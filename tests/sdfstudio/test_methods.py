@@ -52,6 +52,20 @@ def test_sp_replaces_neuralangelo_coarse_to_fine(base, fd):
     assert model.sp.alpha_grid_init == 0.03 and model.sp.alpha_grid_lr == 1e-3
 
 
+@pytest.mark.parametrize("base", sorted(BASES))
+def test_the_named_methods_are_the_generic_conversion(base):
+    """One mechanism: sp-neus ... sp-bakedangelo (entry points, fixed names and presets) are what
+    the generic route makes of sdfstudio's config (only the description is their own)."""
+    import nerfstudio.configs.method_configs as host
+
+    from sp_plugins.sdfstudio.registration import discover
+    from sp_plugins.sdfstudio.sdf_methods import with_sp
+
+    named = discover()[f"sp-{base}"]
+    assert named.config == with_sp(host.method_configs[base]).config
+    assert host.method_configs[f"sp-{base}"] is named.config
+
+
 def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):
     import subprocess
 

@@ -67,7 +67,10 @@ def test_sp_method_and_its_baseline_train(base, sdf_scene, sp_runs, tmp_path):
     for key, value in baseline.items():  # same field and network layout as the host's method
         assert key in state and state[key].shape == value.shape, key
     config = yaml.load((sp_run / "config.yml").read_text(), Loader=yaml.Loader)
-    assert type(config.pipeline.model).__name__ == MODEL_CLASS[base]
+    from sp_plugins.sdfstudio import neus  # the old names are the generic variants
+
+    assert type(config.pipeline.model) is getattr(neus, MODEL_CLASS[base])
+    assert type(config.pipeline.model).__module__ == "sp_plugins.sdfstudio.variants"
     assert config.pipeline.model.sp.enabled and config.pipeline.model.sp.alpha0 > 0
 
 
