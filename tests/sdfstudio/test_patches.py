@@ -91,6 +91,28 @@ def test_cuda_only_calls_run_on_the_cpu():
     assert (torch.Tensor.cuda, torch.cuda.synchronize) == saved
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU meaning of CUDA-only calls")
+def test_pair_loading_runs_on_the_cpu_outside_train_loop(sdf_scene, tmp_path):
+    """GeoNeuS patch warping (--load-pairs True) moves the images with .cuda() in the parser, which
+    ns-eval / eval_setup run outside train_loop."""
+    import json
+    import shutil
+
+    from nerfstudio.data.dataparsers import sdfstudio_dataparser
+    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+
+    from sdf_tiny import pairs_file
+
+    assert ".cuda()" in inspect.getsource(sdfstudio_dataparser.SDFStudio._generate_dataparser_outputs.__wrapped__)
+    scene = tmp_path / "scene"
+    shutil.copytree(sdf_scene, scene)
+    frames = len(json.loads((scene / "meta_data.json").read_text())["frames"])
+    pairs_file(scene, frames)
+    outputs = SDFStudioDataParserConfig(data=scene, load_pairs=True).setup().get_dataparser_outputs("train")
+    images = outputs.additional_inputs["pairs"]["kwargs"]["all_imgs"]
+    assert images.device.type == "cpu" and len(images) == frames
+
+
 def test_tcnn_stand_in_is_given_to_sdfstudio_only():
     import nerfstudio.fields.density_fields as density_fields
     import nerfstudio.fields.sdf_field as sdf_field
