@@ -7,9 +7,11 @@ by sp_plugins itself (module ``sp_plugins.*``) or any other message is never hid
 
 - Our console scripts (``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``, ``sp-export-mesh``)
   call :func:`filter_host_warnings` first: we own the process.
-- Under ``ns-train`` / ``ns-eval`` / ``ns-export`` / ``ns-render`` the filters go in when
-  nerfstudio imports our method configs. Warnings nerfstudio raises while importing itself
-  (``torch.jit.script``, ``torch.cuda.amp.custom_fwd``) come before that and still print once.
+- ``sp-train`` installs them first thing. Under ``ns-train`` / ``ns-eval`` / ``ns-export`` /
+  ``ns-render`` they go in when one of *our* methods is built (its data manager or model), never
+  when nerfstudio merely discovers our method configs: a nerfacto user sees every warning
+  nerfstudio and torch print, as without sp-plugins. Warnings raised before our method is built
+  (nerfstudio's imports, ``torch.jit.script``) still print once.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.
 """
 

@@ -46,6 +46,12 @@ REFUSED_MODELS: Dict[str, str] = {
 }
 """Host model classes (and their subclasses) SP cannot reach through frustum offsets, and why."""
 
+NEEDS_CUDA: Dict[str, str] = {
+    "nerfstudio.models.instant_ngp.NGPModel": "it ray-marches with nerfacc's CUDA kernels and no CUDA device is available",
+}
+"""Host models that cannot run without CUDA: refused on such a machine (on a CPU nerfacc tries to
+JIT-compile its CUDA extension, fails after minutes and can leave a lock that hangs later runs)."""
+
 OUR_BASELINES = {
     "neus-hashgrid": "sp-neus-hashgrid",
     "neuralangelo-lite": "sp-neuralangelo-lite",
@@ -58,6 +64,12 @@ OUR_BASELINES = {
 def _model_class(model_config: Any) -> Optional[type]:
     target = getattr(model_config, "_target", None)
     return target if isinstance(target, type) else None
+
+
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def refusal(config: Any) -> Optional[str]:
@@ -76,6 +88,9 @@ def refusal(config: Any) -> Optional[str]:
     for cls in model.__mro__:
         reason = REFUSED_MODELS.get(class_path(cls))
         if reason:
+            return reason
+        reason = NEEDS_CUDA.get(class_path(cls))
+        if reason and not _cuda_available():
             return reason
     from sp_plugins.patches.nerfstudio_host_fields import module_field_classes
 

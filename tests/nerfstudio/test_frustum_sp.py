@@ -170,5 +170,5 @@ def test_resume_restores_the_sp_state(tiny_scene, tmp_path):
     from nerfstudio.fields.vanilla_nerf_field import NeRFField
 
     field = second.pipeline.model.field_fine
-    assert isinstance(field, FrustumSPField) and isinstance(field, NeRFField) and field._sp is sp
+    assert isinstance(field, FrustumSPField) and isinstance(field, NeRFField) and field.sp is sp
     assert not any("_sp" in k for k in loaded["pipeline"] if "field_fine" in k)

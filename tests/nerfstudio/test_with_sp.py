@@ -119,6 +119,7 @@ REFUSED = {
     "neus-hashgrid": "baseline of sp-neus-hashgrid",
     "relu-field-flat": "baseline of sp-relu-field",
     "zipnerf": "not installed",
+    "instant-ngp": "nerfacc's CUDA kernels",
 }
 
 
@@ -140,7 +141,14 @@ def _refusals():
     return sp_methods(all_methods, all_descriptions)[2]
 
 
-def test_sp_train_offers_every_builtin_method_it_can_reach_and_says_why_not_for_the_rest():
+@pytest.fixture
+def no_cuda(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+
+
+def test_sp_train_offers_every_builtin_method_it_can_reach_and_says_why_not_for_the_rest(no_cuda):
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
 
     from sp_plugins.nerfstudio.registration import sp_methods
@@ -149,7 +157,7 @@ def test_sp_train_offers_every_builtin_method_it_can_reach_and_says_why_not_for_
     assert set(configs) | set(refused) == set(all_methods)
     for method, why in REFUSED.items():
         assert why in refused[method], (method, refused[method])
-    for method in ("nerfacto", "nerfacto-big", "depth-nerfacto", "vanilla-nerf", "tensorf", "instant-ngp", "semantic-nerfw"):
+    for method in ("nerfacto", "nerfacto-big", "depth-nerfacto", "vanilla-nerf", "tensorf", "semantic-nerfw"):
         model = configs[method].pipeline.model
         assert model.sp.enabled and type(model).__name__.startswith("SPModelConfig__"), method
         assert configs[method].method_name == all_methods[method].method_name  # ns-eval finds its data manager by it
@@ -222,3 +230,29 @@ def test_a_field_sp_cannot_reach_is_refused_when_the_model_is_built(toy_importab
     configure_run(config, tiny_scene / "blender", steps=1, output_dir=tmp_path)
     with pytest.raises(InputError, match="SP cannot reach toyplugin.hidden.HiddenFieldModel: none of its fields"):
         train(config)
+
+
+BUILTIN_TRAIN = ("nerfacto", "nerfacto-big", "nerfacto-huge", "vanilla-nerf", "tensorf", "phototourism", "dnerf")
+"""nerfstudio's methods that run on a CPU with the data a Blender scene gives (depth-nerfacto,
+semantic-nerfw and generfacto need depth / semantic data or downloaded models; instant-ngp needs CUDA)."""
+
+
+@pytest.mark.parametrize("method", BUILTIN_TRAIN)
+def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(method, tiny_scene, tmp_path):
+    import copy
+
+    from builtin_tiny import shrink_model
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+
+    from sp_plugins.nerfstudio.registration import sp_methods
+    from sp_plugins.nerfstudio.runs import configure_run, train
+
+    config = copy.deepcopy(sp_methods({method: all_methods[method]}, all_descriptions)[0][method])
+    shrink_model(config.pipeline.model)
+    config.pipeline.model.sp.end = 1.0  # alpha > 0 in both steps
+    configure_run(config, tiny_scene / "blender", steps=2, output_dir=tmp_path, rays_per_batch=32)
+    trainer = train(config)
+    model = trainer.pipeline.model
+    assert model.perturbed_calls() >= 2, method  # a field read perturbed positions in every step
+    assert int(model.sp.step) >= 1 and model.sp.total_steps == 2
+    assert list(config.get_checkpoint_dir().glob("*.ckpt"))

@@ -1,5 +1,6 @@
 """The CPU mesher for ``ns-export marching-cubes``: guards on nerfstudio, then the coarse-to-fine mesher behind it."""
 
+import functools
 import importlib.metadata
 import inspect
 import sys
@@ -72,7 +73,8 @@ def test_only_claimed_models_get_the_cpu_mesher(monkeypatch):
     """The rebinding is scoped: the SDF of a model that is not ours goes to nerfstudio's own mesher."""
     calls = []
     patch.install_cpu_marching_cubes(force=True)  # the host's mesher is recorded before we stand in for it
-    monkeypatch.setitem(patch._originals, patch.MODULES[0], lambda *args: calls.append(args) or "host mesher")
+    host = functools.wraps(patch._originals[patch.MODULES[0]])(lambda *args: calls.append(args) or "host mesher")
+    monkeypatch.setitem(patch._originals, patch.MODULES[0], host)
     ours, theirs = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
 
     class Pipeline:
