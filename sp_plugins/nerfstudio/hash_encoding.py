@@ -133,3 +133,34 @@ def setup_host_modules(model: nn.Module, method: str, device: Optional[Union[str
     refuse_fused_tcnn_checkpoints(model, method)
     announce(method, device, names)
     return names
+
+
+# -- nerfacto on our grids ----------------------------------------------------------------------
+from dataclasses import dataclass, field  # noqa: E402
+from typing import Type  # noqa: E402
+
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig  # noqa: E402
+
+
+@dataclass
+class NerfactoHashGridModelConfig(NerfactoModelConfig):
+    """nerfacto, with our hash grids where tiny-cuda-nn cannot run (the base of ``sp-nerfacto``)."""
+
+    _target: Type = field(default_factory=lambda: NerfactoHashGridModel)
+
+
+class NerfactoHashGridModel(NerfactoModel):
+    """``NerfactoModel`` that, where tcnn cannot run on its device, builds nerfstudio's torch
+    modules (no slow-path warnings) and swaps their hash encodings for our :class:`HashGrid`.
+    Not SP: ``sp-nerfacto`` is ``with_sp`` of the method built on it."""
+
+    config: NerfactoHashGridModelConfig
+
+    def populate_modules(self) -> None:
+        device = self.kwargs.get("device")
+        ours = use_sp_hash_grids(device)
+        if ours:
+            self.config.implementation = "torch"
+        super().populate_modules()
+        if ours:
+            setup_host_modules(self, "nerfacto", device)

@@ -1,28 +1,15 @@
-"""What every nerfstudio model with stochastic preconditioning shares.
+"""The models of the nerfstudio adapter: the shared mixin with nerfstudio's few differences.
 
-Put :class:`SPModelConfig` and :class:`SPModel` first among the bases of a host model's config
-and model::
+:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from
+``config.sp`` over the scene box, checkpointed, its alpha-grid optimizer group, the schedule
+callbacks, ``sp_alpha`` in the metrics) plus, for nerfstudio 1.x:
 
-    @dataclass
-    class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
-        _target: Type = field(default_factory=lambda: SPNeuSModel)
-
-    class SPNeuSModel(SPModel, NeuSModel):
-        def attach_sp(self):            # hand the preconditioner to whatever perturbs positions
-            self.field.use_preconditioner(self.sp)
-
-The mixin then
-
-- builds ``self.sp`` (a :class:`StochasticPreconditioner`) from ``config.sp`` before the host's
-  modules, with the scene box as bounds and its diagonal as the scale for relative alphas;
-- registers it as a submodule, so its step, total and alpha grid are in every checkpoint;
-- exposes a learnable alpha grid as the optimizer group ``sp_alpha_grid``;
-- drives the schedule from the trainer (step and ``max_num_iterations``);
-- builds LPIPS without downloads, and leaves it out of the state dict;
-- logs ``sp_alpha`` with the training metrics;
-- installs, when it is built (not when nerfstudio discovers our methods), the one-line report
-  of :class:`InputError` and the filters for the host's known warnings: only a process that
-  trains one of our methods gets them.
+- LPIPS built without downloads and kept out of the state dict (every nerfstudio model builds
+  torchmetrics' LPIPS, which fetches AlexNet weights);
+- options that only act through SP refused on a baseline (``sp.enabled False``);
+- when it is built (not when nerfstudio discovers our methods), the one-line report of
+  :class:`InputError` and the filters for the host's known warnings: only a process that trains
+  or loads one of our methods gets them.
 
 :class:`AnyMethodSPModel` is the same for a model we have never seen (``with_sp``): the host's
 ``populate_modules`` builds its fields as SP variants, and the model refuses, in one line, to
@@ -31,26 +18,18 @@ train where SP would reach nothing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Any, Dict, List
 
 import torch
-from torch.nn import Parameter
-
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 
+from sp_plugins.adapter import model as adapter_model
+from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.core import SPConfig, StochasticPreconditioner
-from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, sp_callbacks
 from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
-
-@dataclass
-class SPModelConfig:
-    """Adds the shared ``sp`` settings (``--pipeline.model.sp.*``) to a model config."""
-
-    sp: SPConfig = field(default_factory=SPConfig)
-    """Stochastic preconditioning: perturb query positions while training, alpha annealed to 0."""
+__all__ = ["AnyMethodSPModel", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
 
 
 def refuse_inert_options(config: SPConfig) -> None:
@@ -66,15 +45,6 @@ def refuse_inert_options(config: SPConfig) -> None:
         )
 
 
-def build_preconditioner(config: SPConfig, aabb: torch.Tensor) -> StochasticPreconditioner:
-    """A preconditioner over the scene box ``aabb`` ``[2, 3]``; the total steps come later from
-    the trainer."""
-    refuse_inert_options(config)
-    aabb = aabb.detach().float().cpu()
-    diagonal = float(torch.linalg.norm(aabb[1] - aabb[0]))
-    return config.setup(scene_diagonal=diagonal, bounds=aabb, dim=3)
-
-
 def install_process_settings() -> None:
     """What a process that trains or loads one of our methods gets: ``InputError`` as one line
     (exit status 2) and the host's known, non-actionable warnings filtered."""
@@ -84,41 +54,33 @@ def install_process_settings() -> None:
     filter_host_warnings()
 
 
-class SPModel:
+class SPModel(adapter_model.SPModel):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
-
-    sp: StochasticPreconditioner
 
     def populate_modules(self) -> None:
         install_process_settings()
-        self.sp = build_preconditioner(self.config.sp, self.scene_box.aabb)  # type: ignore[attr-defined]
+        super().populate_modules()
+
+    def build_preconditioner(self) -> StochasticPreconditioner:
+        refuse_inert_options(self.config.sp)  # type: ignore[attr-defined]
+        return super().build_preconditioner()
+
+    def populate_host_modules(self) -> None:
         with offline_lpips():
-            super().populate_modules()  # type: ignore[misc]
+            super().populate_host_modules()
         detach_lpips(self)  # type: ignore[arg-type]
-        self.attach_sp()
-
-    def attach_sp(self) -> None:
-        """Hand ``self.sp`` to the fields or samplers that perturb positions (host specific)."""
-
-    def get_param_groups(self) -> Dict[str, List[Parameter]]:
-        groups = super().get_param_groups()  # type: ignore[misc]
-        if self.sp.alpha_grid is not None:
-            groups[ALPHA_GRID_GROUP] = list(self.sp.alpha_grid.parameters())
-        return groups
-
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]
-        return list(callbacks) + sp_callbacks(self.sp, training_callback_attributes)
-
-    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
-        metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]
-        if self.training:  # type: ignore[attr-defined]
-            metrics["sp_alpha"] = self.sp.alpha
-        return metrics
 
     def get_image_metrics_and_images(self, outputs, batch):
         metrics, images = super().get_image_metrics_and_images(outputs, batch)  # type: ignore[misc]
         return drop_missing_lpips(self, metrics), images  # type: ignore[arg-type]
+
+
+ALPHA_GRID_UNREACHABLE = {
+    "nerfstudio.models.tensorf.TensoRFModel": (
+        "TensoRF", "nerfstudio's TensoRF encoding detaches its sample positions, so no gradient reaches the alpha grid"
+    ),
+}
+"""Host models whose fields detach the positions they read: a learnable alpha grid cannot learn."""
 
 
 class AnyMethodSPModel(SPModel):
@@ -161,6 +123,12 @@ class AnyMethodSPModel(SPModel):
                     f"SP cannot reach {host}: its SDF field reads Frustums.get_start_positions(), which ignores offsets; "
                     "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite (nerfstudio) or sp-sdfstudio-train (sdfstudio)"
                 )
+        if sp.enabled and sp.alpha_grid:
+            for cls in type(self).__mro__:
+                unreachable = ALPHA_GRID_UNREACHABLE.get(f"{cls.__module__}.{cls.__qualname__}")
+                if unreachable:
+                    raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
+                                     "use a global alpha (the default)")
         fields = self.sp_fields()
         if not fields:
             raise InputError(
@@ -172,9 +140,10 @@ class AnyMethodSPModel(SPModel):
                 raise InputError(f"SP cannot reach {host}: its field encodes Gaussian blobs (MipNeRF), which refuse "
                                  "Frustums.offsets; train sp-mipnerf")
             if sp.enabled and sp.boundary != "none" and getattr(f, "spatial_distortion", None) is not None:
+                way_out = " (or --pipeline.model.disable-scene-contraction True)" if hasattr(self.config, "disable_scene_contraction") else ""  # type: ignore[attr-defined]
                 raise InputError(
                     f"--pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but {type(f).__bases__[-1].__name__} "
-                    "contracts space (scene contraction); pass --pipeline.model.sp.boundary none"
+                    f"contracts space (scene contraction is on); pass --pipeline.model.sp.boundary none{way_out}"
                 )
             f.use_preconditioner(self.sp)
 
@@ -190,6 +159,12 @@ class AnyMethodSPModel(SPModel):
             raise InputError(
                 f"SP reached no field of {self.sp_host_name()} in training step {step}: no field was called with "
                 "RaySamples (fields queried only through positions or density_fn stay plain); SP does not apply to this method"
+            )
+        grid = self.sp.alpha_grid
+        if grid is not None and all(p.grad is None or not bool(p.grad.any()) for p in grid.parameters()):
+            raise InputError(
+                f"--pipeline.model.sp.alpha-grid True cannot learn on {self.sp_host_name()}: no gradient reached the alpha "
+                "grid in the first training step (the field detaches the positions it reads); use a global alpha (the default)"
             )
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:

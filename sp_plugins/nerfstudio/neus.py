@@ -39,7 +39,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
 from sp_plugins.nerfstudio import hash_encoding
-from sp_plugins.nerfstudio.callbacks import trainer_total_steps
+from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
 

@@ -6,8 +6,10 @@
 - ``sp-mipnerf``: nerfstudio's mipnerf settings (RAdam 5e-4, 1024 rays, 128 + 128 samples) with
   SP on the Gaussian means (alpha0 0.04, exponential to 0 by step 2500 of the preset's 7500,
   a third of training when a run is shortened).
-- ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host plus
-  SP through frustum offsets.
+- ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
+  SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on
+  :class:`~sp_plugins.nerfstudio.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
+  cannot run; ``sp-tensorf`` reflecting inside the scene box).
 
 All use the checked vanilla data manager (no worker processes), which also takes
 ``--pipeline.datamanager.train-views N`` for the sparse-view setting.
@@ -25,19 +27,17 @@ from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConf
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.models.tensorf import TensoRFModelConfig
+from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.data import CheckedDataManagerConfig
-from sp_plugins.nerfstudio.radiance_models import (
-    SPMipNerfModelConfig,
-    SPNerfactoModelConfig,
-    SPNeRFModelConfig,
-    SPTensoRFModelConfig,
-)
+from sp_plugins.nerfstudio.hash_encoding import NerfactoHashGridModelConfig
+from sp_plugins.nerfstudio.radiance_models import SPMipNerfModelConfig
 from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
 from sp_plugins.nerfstudio.schedulers import FloatExponentialDecaySchedulerConfig
 
@@ -112,19 +112,26 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
     return _with_sp_optimizer(config, description)
 
 
+def _generic(config: TrainerConfig, sp: SPConfig, description: str) -> MethodSpecification:
+    """A host method plus SP: the generic route (``with_sp``) with the method's preset."""
+    from sp_plugins.nerfstudio.registration import with_sp
+
+    return with_sp(config, dataclasses.replace(sp), name=config.method_name, description=description)
+
+
 def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
     config = TrainerConfig(
         method_name=name,
         pipeline=VanillaPipelineConfig(
             datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig()),
-            model=SPNeRFModelConfig(),
+            model=VanillaModelConfig(_target=NeRFModel),
         ),
         optimizers={
             "fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
             "temporal_distortion": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
         },
     )
-    return _with_sp_optimizer(config, description)
+    return _generic(config, presets.POSITION_FIELD, description)
 
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
@@ -139,7 +146,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
             datamanager=CheckedDataManagerConfig(
                 dataparser=NerfstudioDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
             ),
-            model=SPNerfactoModelConfig(
+            model=NerfactoHashGridModelConfig(
                 eval_num_rays_per_chunk=1 << 15,
                 average_init_density=0.01,
                 camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
@@ -156,7 +163,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )
-    return _with_sp_optimizer(config, description)
+    return _generic(config, presets.POSITION_FIELD, description)
 
 
 def tensorf_method(name: str, description: str) -> MethodSpecification:
@@ -170,7 +177,7 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
             datamanager=CheckedDataManagerConfig(
                 dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
             ),
-            model=SPTensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
+            model=TensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
         ),
         optimizers={
             "fields": {
@@ -189,4 +196,4 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
         viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
         vis="viewer",
     )
-    return _with_sp_optimizer(config, description)
+    return _generic(config, dataclasses.replace(presets.POSITION_FIELD, boundary="reflect"), description)

@@ -107,7 +107,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     Raises ``ValueError`` naming the reason when SP cannot reach the method."""
     from nerfstudio.plugins.types import MethodSpecification
 
-    from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+    from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
     from sp_plugins.nerfstudio.schedulers import with_float_schedulers
     from sp_plugins.nerfstudio.variants import variant
 

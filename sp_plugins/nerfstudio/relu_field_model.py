@@ -53,7 +53,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from torch.nn import Parameter
 
-from sp_plugins.nerfstudio.callbacks import trainer_total_steps
+from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.nerfstudio.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.relu_field import DIFFUSE_RGB, ColorMode, ReLUField, color_channels, upsample_grid

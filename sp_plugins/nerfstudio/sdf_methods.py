@@ -27,7 +27,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
 from sp_plugins.nerfstudio.data import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig

@@ -7,7 +7,7 @@ adapter:
 
 - :mod:`~sp_plugins.sdfstudio.sdf_field`: where positions are perturbed (``SPSDFField``);
 - :mod:`~sp_plugins.sdfstudio.model`: what every SP model shares: the SP module, optimizer group,
-  callbacks (:mod:`~sp_plugins.sdfstudio.callbacks`), handing SP to the SDF field;
+  callbacks (:mod:`~sp_plugins.adapter.callbacks`), handing SP to the SDF field;
 - :mod:`~sp_plugins.sdfstudio.variants`: the SP subclass of any sdfstudio SDF model / model config,
   made on demand and importable by a path that names the host class (``config.yml`` loads);
   :mod:`~sp_plugins.sdfstudio.neus` keeps the old class names of the NeuS family as aliases;

@@ -68,9 +68,9 @@ def train(argv: Optional[list] = None) -> None:
         _error(prog, f"--machine.num-gpus {config.machine.num_gpus} but no CUDA device is available; pass --machine.num-gpus 0")
     sp = getattr(config.pipeline.model, "sp", None)
     if sp is not None:
-        from sp_plugins.sdfstudio.callbacks import schedule_problem
+        from sp_plugins.adapter.callbacks import schedule_problem
 
-        problem = schedule_problem(sp, config.trainer.max_num_iterations)
+        problem = schedule_problem(sp, config.trainer.max_num_iterations, "--trainer.max-num-iterations")
         if problem:
             _error(prog, problem)
     host_train.main(config)

@@ -1,26 +1,10 @@
-"""What every sdfstudio model with stochastic preconditioning shares (the same names as
-:mod:`sp_plugins.nerfstudio.model`).
+"""The models of the sdfstudio adapter: the shared mixin with sdfstudio's few differences.
 
-Put :class:`SPModelConfig` and :class:`SPModel` first among the bases of a host model's config
-and model (:mod:`sp_plugins.sdfstudio.variants` does this for every sdfstudio SDF model, with
-:class:`SDFFieldSPModel`, whose ``attach_sp`` hands the preconditioner to the SDF field)::
-
-    @dataclass
-    class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
-        _target: Type = field(default_factory=lambda: SPNeuSModel)
-
-    class SPNeuSModel(SPModel, NeuSModel):
-        def attach_sp(self):            # hand the preconditioner to whatever perturbs positions
-            self.field.use_preconditioner(self.sp)
-
-The mixin then
-
-- builds ``self.sp`` (a :class:`StochasticPreconditioner`) before the host's modules, reflecting
-  into the scene contraction's range and scaling relative alphas by the scene box's diagonal;
-- registers it as a submodule, so its step, total and alpha grid are in every checkpoint;
-- exposes a learnable alpha grid as the optimizer group ``sp_alpha_grid``;
-- drives the schedule from the trainer (step and ``max_num_iterations``);
-- logs ``sp_alpha`` with the training metrics.
+:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from
+``config.sp``, checkpointed, its alpha-grid optimizer group, the schedule callbacks, ``sp_alpha``
+in the metrics; the same names as in ``sp_plugins.nerfstudio.model``), except that SP reflects
+into the scene contraction's range (the hash grid's domain, where sdfstudio's SDF field is
+queried) and the run's length is ``--trainer.max-num-iterations``.
 
 (LPIPS without downloads is a patch here, :mod:`sp_plugins.patches.sdfstudio_lpips`, because
 sdfstudio's own ns-eval builds the same models.)
@@ -28,62 +12,22 @@ sdfstudio's own ns-eval builds the same models.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Any
 
-import torch
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
-from torch.nn import Parameter
-
-from sp_plugins.core import SPConfig, StochasticPreconditioner
-from sp_plugins.sdfstudio.callbacks import ALPHA_GRID_GROUP, sp_callbacks
+from sp_plugins.adapter import model as adapter_model
+from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.sdfstudio.sdf_field import CONTRACTED_BOUNDS
 
-
-@dataclass
-class SPModelConfig:
-    """Adds the shared ``sp`` settings (``--pipeline.model.sp.*``) to a model config."""
-
-    sp: SPConfig = field(default_factory=SPConfig)
-    """Stochastic preconditioning: perturb query positions while training, alpha annealed to 0."""
+__all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
 
-def build_preconditioner(config: SPConfig, aabb: torch.Tensor) -> StochasticPreconditioner:
-    """A preconditioner over sdfstudio's contracted space; relative alphas use the diagonal of
-    the scene box ``aabb`` ``[2, 3]``. The total steps come later from the trainer."""
-    aabb = aabb.detach().float().cpu()
-    diagonal = float(torch.linalg.norm(aabb[1] - aabb[0]))
-    return config.setup(scene_diagonal=diagonal, bounds=CONTRACTED_BOUNDS, dim=3)
-
-
-class SPModel:
+class SPModel(adapter_model.SPModel):
     """Mixin for an sdfstudio ``Model``; list it before the host model class."""
 
-    sp: StochasticPreconditioner
+    steps_flag = "--trainer.max-num-iterations"
 
-    def populate_modules(self) -> None:
-        self.sp = build_preconditioner(self.config.sp, self.scene_box.aabb)  # type: ignore[attr-defined]
-        super().populate_modules()  # type: ignore[misc]
-        self.attach_sp()
-
-    def attach_sp(self) -> None:
-        """Hand ``self.sp`` to the fields that perturb positions (host specific)."""
-
-    def get_param_groups(self) -> Dict[str, List[Parameter]]:
-        groups = super().get_param_groups()  # type: ignore[misc]
-        if self.sp.alpha_grid is not None:
-            groups[ALPHA_GRID_GROUP] = list(self.sp.alpha_grid.parameters())
-        return groups
-
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]
-        return list(callbacks) + sp_callbacks(self.sp, training_callback_attributes)
-
-    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
-        metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]
-        if self.training:  # type: ignore[attr-defined]
-            metrics["sp_alpha"] = self.sp.alpha
-        return metrics
+    def sp_bounds(self, aabb) -> Any:
+        return CONTRACTED_BOUNDS
 
 
 class SDFFieldSPModel(SPModel):

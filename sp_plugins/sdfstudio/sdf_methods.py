@@ -36,7 +36,7 @@ from sp_plugins.adapter import presets
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.adapter.variants import convert as _convert
 from sp_plugins.core import SPConfig
-from sp_plugins.sdfstudio.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
 from sp_plugins.sdfstudio.registration import MethodSpecification
 
 NEUS_SP = presets.NEUS

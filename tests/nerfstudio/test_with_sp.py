@@ -256,3 +256,19 @@ def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(meth
     assert model.perturbed_calls() >= 2, method  # a field read perturbed positions in every step
     assert int(model.sp.step) >= 1 and model.sp.total_steps == 2
     assert list(config.get_checkpoint_dir().glob("*.ckpt"))
+
+
+def test_config_yml_of_the_former_hand_built_classes_still_loads():
+    """sp-nerfacto / sp-vanilla-nerf / sp-tensorf are the generic route now; a config.yml written
+    with their former class names loads as the generic variants (same fields, same host modules)."""
+    from nerfstudio.models.tensorf import TensoRFModel
+
+    from sp_plugins.nerfstudio.hash_encoding import NerfactoHashGridModel
+
+    for name, host, extra in (("SPNerfactoModel", NerfactoHashGridModel, "num_nerf_samples_per_ray: 12"),
+                              ("SPTensoRFModel", TensoRFModel, "num_samples: 12")):
+        text = (f"!!python/object:sp_plugins.nerfstudio.radiance_models.{name}Config\n"
+                f"_target: !!python/name:sp_plugins.nerfstudio.radiance_models.{name} ''\n{extra}\n")
+        config = yaml.load(text, Loader=yaml.Loader)
+        assert type(config).__name__.startswith("SPModelConfig__") and issubclass(config._target, host)
+        assert config._target.__name__.startswith("SPModel__") and getattr(config, extra.split(":")[0]) == 12

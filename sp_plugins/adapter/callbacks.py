@@ -1,0 +1,87 @@
+"""Training callbacks that drive a :class:`StochasticPreconditioner` from a host's trainer.
+
+Both hosts are a package named ``nerfstudio`` with the same ``nerfstudio.engine.callbacks``
+(``TrainingCallback``, its locations and attributes), imported lazily here, so one module serves
+both. What differs is where the run's length lives (nerfstudio 1.x: ``attributes.trainer.config``;
+sdfstudio: ``attributes.config``) and the flag that sets it, which the model passes.
+"""
+
+from __future__ import annotations
+
+from typing import Any, List, Optional
+
+from sp_plugins.adapter.errors import InputError
+from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
+
+ALPHA_GRID_GROUP = "sp_alpha_grid"
+"""Name of the optimizer param group holding a learnable alpha grid."""
+
+
+def alpha_grid_optimizer(sp_config: SPConfig) -> dict:
+    """The optimizer entry for a learnable alpha grid (``--pipeline.model.sp.alpha-grid True``).
+    Every SP method config carries it: the hosts need an entry per parameter group, and an entry
+    without a group (alpha grid off) is never used."""
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+
+    return {"optimizer": AdamOptimizerConfig(lr=sp_config.alpha_grid_lr, eps=1e-15), "scheduler": None}
+
+
+def trainer_total_steps(attributes: Any) -> Optional[int]:
+    """Length of one training run as the trainer sees it (``max_num_iterations``), or None."""
+    trainer = getattr(attributes, "trainer", None)
+    config = trainer.config if trainer is not None else getattr(attributes, "config", None)
+    total = getattr(config, "max_num_iterations", None)
+    return None if total is None else int(total)
+
+
+def start_step(attributes: Any) -> int:
+    """The step training starts at (a resumed run: the checkpoint's step + 1)."""
+    return int(getattr(getattr(attributes, "trainer", None), "_start_step", 0))
+
+
+def schedule_problem(config: SPConfig, total_steps: int, steps_flag: str = "--max-num-iterations") -> Optional[str]:
+    """None when ``config``'s schedule fits a run of ``total_steps``; else the message to show,
+    naming the flags a user typed."""
+    try:
+        AlphaSchedule.resolve(config.schedule, config.alpha0, end=config.end, total_steps=total_steps,
+                              scene_diagonal=1.0 if config.relative_to_diagonal else None, final_ratio=config.final_ratio)
+    except ValueError as err:
+        return (f"--pipeline.model.sp.end {config.end:g} does not fit {steps_flag} {total_steps} ({err}); "
+                f"give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= {steps_flag}")
+    return None
+
+
+def sync_alpha_grid_lr(sp: StochasticPreconditioner, attributes: Any) -> None:
+    """Give the alpha grid's optimizer the learning rate of ``--pipeline.model.sp.alpha-grid-lr``
+    (the single place it is set), also after a resume restored an older one."""
+    optimizers = getattr(attributes, "optimizers", None)
+    if sp.alpha_grid is None or optimizers is None or ALPHA_GRID_GROUP not in optimizers.optimizers:
+        return
+    for group in optimizers.optimizers[ALPHA_GRID_GROUP].param_groups:
+        group["lr"] = sp.config.alpha_grid_lr
+        group["initial_lr"] = sp.config.alpha_grid_lr
+
+
+def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int]):
+    """Before every iteration, move ``sp`` to the trainer's step (with ``total_steps`` None, the
+    total saved in ``sp``'s state is kept). A resumed run starts at the checkpoint's step + 1, so it
+    continues at the alpha it stopped at."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    def step_to(step: int) -> None:
+        sp.set_step(step, total_steps)
+
+    return TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=step_to, update_every_num_iters=1)
+
+
+def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, steps_flag: str = "--max-num-iterations") -> List[Any]:
+    """Everything a model with SP registers: the schedule (checked against the run's length, one
+    line naming the flags when it does not fit), plus the alpha grid's learning rate."""
+    total = trainer_total_steps(attributes)
+    if total is not None:
+        problem = schedule_problem(sp.config, total, steps_flag)
+        if problem:
+            raise InputError(problem)
+        sp.set_step(start_step(attributes), total)
+    sync_alpha_grid_lr(sp, attributes)
+    return [schedule_callback(sp, total)]
