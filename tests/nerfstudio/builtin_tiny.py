@@ -21,4 +21,35 @@ def shrink_model(model) -> None:
         for args in model.proposal_net_args_list:
             args.update(log2_hashmap_size=10, max_res=32, hidden_dim=8)
     if hasattr(model, "upsampling_iters"):
-        model.upsampling_iters = ()
+        # TensoRF: no upsampling in a short run; not (), which TensoRFModel.update_to_step indexes when a
+        # checkpoint loads
+        model.upsampling_iters = (10**9,)
+
+
+def sp_train_config(method: str):
+    """A private copy of ``sp-train METHOD``'s trainer config for nerfstudio's built-in ``method``
+    (the generic route, :func:`sp_plugins.nerfstudio.registration.sp_methods`)."""
+    import copy
+
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+
+    from sp_plugins.nerfstudio.registration import sp_methods
+
+    configs, _, refused = sp_methods({method: all_methods[method]}, all_descriptions)
+    assert method in configs, f"sp-train refuses {method}: {refused.get(method)}"
+    return copy.deepcopy(configs[method])
+
+
+def in_process_data(config) -> None:
+    """Replace a ``ParallelDataManager`` (a spawned worker process: seconds to start on a CPU) by
+    nerfstudio's vanilla data manager with the same settings; the model is untouched."""
+    import dataclasses
+
+    from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+    from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManagerConfig
+
+    dm = config.pipeline.datamanager
+    if isinstance(dm, ParallelDataManagerConfig):
+        names = [f.name for f in dataclasses.fields(VanillaDataManagerConfig) if f.init and f.name != "_target"]
+        kept = {name: getattr(dm, name) for name in names}
+        config.pipeline.datamanager = VanillaDataManagerConfig(**kept)

@@ -1,20 +1,34 @@
-"""Every SP setting works on every registered method (issue 12's matrix).
+"""Every SP setting works on every registered method (issue 12's matrix), and on nerfstudio's own
+methods wrapped by ``sp-train`` (issue 20).
 
 For each SP method, four short runs cover every value of every option at least once (a covering
 design, not the full product: the product is 8 x 2 x 2 x 3 x 3 x 4 runs):
 
 | run | alpha grid | num_samples | noise | schedule | boundary |
 |---|---|---|---|---|---|
-| grid | on | 1 | uniform | linear | reflect (none where the scene is contracted) |
-| multi | off | 2 | squared-gaussian | step | clamp (none where contracted) |
+| grid | on | 1 | uniform | linear | reflect |
+| multi | off | 2 | squared-gaussian | step | clamp |
 | plain | off | 1 | gaussian | exponential | none |
 | constant | off | 1 | gaussian | constant | the method's default |
 
-Each run (but the refused ones: an alpha grid on sp-tensorf, whose host encoding detaches its
-input positions) trains a few iterations on the CPU: every loss is finite, the evaluation outputs equal
-those of the same weights with SP switched off, and (``plain``) a checkpoint resumes at the same
-alpha. ``multi`` calls the preconditioner exactly twice as often per step as ``plain``. Options
-that cannot apply are refused at configuration time, naming the flag.
+The methods are ours (``sp-*``) and the ``sp-train`` configs of nerfstudio's ``nerfacto``,
+``vanilla-nerf`` and ``tensorf`` (``sp-train:<method>``: ``sp_methods`` on nerfstudio's own list,
+the generic route that builds the host's fields as SP subclasses), shrunk for the CPU.
+
+Each run trains a few iterations on the CPU: every loss is finite, every setting reaches the
+model's preconditioner, the evaluation outputs equal those of the same weights with SP switched
+off, a learnable alpha grid moves, and (``plain``) a checkpoint resumes at the same alpha.
+Options that cannot apply are refused when the model is built, with an ``InputError`` naming the
+flag:
+
+- a box boundary (``reflect``, ``clamp``) where the scene is contracted (nerfacto's fields have a
+  ``spatial_distortion``): the run is refused, then trains with boundary ``none``;
+- an alpha grid on TensoRF (ours or nerfstudio's): its encoding detaches the positions it reads,
+  so the grid could not learn.
+
+``num_samples 2`` calls the preconditioner exactly twice as often, in every step, as the same
+method's ``plain`` run: one test per method runs both itself (it does not depend on test order
+or on ``-k``).
 """
 
 from __future__ import annotations
@@ -23,15 +37,23 @@ import math
 
 import pytest
 import torch
+from builtin_tiny import in_process_data, shrink_model, sp_train_config
 from ns_tiny import _tiny_config, run_recording
 from radiance_tiny import tiny_radiance_config
 
 from sp_plugins.core import AlphaSchedule
+from sp_plugins.nerfstudio.runs import configure_run
 
 SDF = ("sp-neus", "sp-neus-hashgrid", "sp-neuralangelo-lite")
 RADIANCE = ("sp-relu-field", "sp-mipnerf", "sp-vanilla-nerf", "sp-nerfacto", "sp-tensorf")
-CONTRACTED = {"sp-nerfacto"}  # scene contraction: only boundary "none" applies
-REFUSED = {("sp-tensorf", "grid"): r"--pipeline\.model\.sp\.alpha-grid True cannot learn on sp-tensorf"}
+SP_TRAIN = "sp-train:"
+WRAPPED = ("sp-train:nerfacto", "sp-train:vanilla-nerf", "sp-train:tensorf")
+"""nerfstudio's own methods as ``sp-train`` offers them (the generic route)."""
+METHODS = SDF + RADIANCE + WRAPPED
+CONTRACTED = {"sp-nerfacto", "sp-train:nerfacto"}
+"""Scene contraction (the fields' ``spatial_distortion``): only boundary "none" applies."""
+GRID_CANNOT_LEARN = r"--pipeline\.model\.sp\.alpha-grid True cannot learn on \S+: nerfstudio's TensoRF encoding detaches"
+REFUSED = {("sp-tensorf", "grid"): GRID_CANNOT_LEARN, ("sp-train:tensorf", "grid"): GRID_CANNOT_LEARN}
 """Options that cannot apply: nerfstudio's TensoRF encoding detaches its input positions."""
 BASELINES = ("neus-hashgrid", "neuralangelo-lite", "relu-field", "relu-field-flat")
 
@@ -43,17 +65,49 @@ RUNS = {
 }
 
 
+def wrapped_config(name, scene, out, *, steps, rays=64, **sp):
+    """``sp-train``'s config of built-in ``sp-train:<method>``, CPU-sized; the data manager runs in
+    this process (a ``ParallelDataManager`` worker takes seconds to start and is not under test)."""
+    config = sp_train_config(name[len(SP_TRAIN):])
+    model = config.pipeline.model
+    shrink_model(model)
+    if hasattr(model, "implementation"):
+        model.implementation = "torch"
+    in_process_data(config)
+    for key, value in sp.items():
+        setattr(model.sp, key, value)
+    return configure_run(config, scene / "blender", steps=steps, output_dir=out, rays_per_batch=rays)
+
+
 def matrix_config(name, scene, out, *, steps, **sp):
     sp = {"alpha0": 0.05, "end": 1.0, "seed": 0, **sp}
-    if name in CONTRACTED and "boundary" in sp:
-        sp["boundary"] = "none"
     if name in SDF:
         config = _tiny_config(name, scene, out, steps=steps, **sp)
+    elif name.startswith(SP_TRAIN):
+        config = wrapped_config(name, scene, out, steps=steps, **sp)
     else:
         config = tiny_radiance_config(name, scene, out, steps=steps, **sp)
     if name == "sp-neuralangelo-lite":
         config.pipeline.model.c2f_end = 0.1
     return config
+
+
+def refused_at_build(config, match):
+    """Building the trainer (pipeline, model) raises an ``InputError`` that matches ``match``."""
+    from sp_plugins.nerfstudio.errors import InputError
+
+    with pytest.raises(InputError, match=match):
+        config.setup(local_rank=0, world_size=1).setup()
+
+
+def runnable(name, settings, scene, out):
+    """The settings of run ``settings`` that ``name`` trains with: a box boundary in a contracted
+    scene is first checked to be refused (naming the flag), then replaced by "none"."""
+    boundary = settings.get("boundary", "none")
+    if name in CONTRACTED and boundary != "none":
+        refused_at_build(matrix_config(name, scene, out, steps=2, **settings), rf"--pipeline\.model\.sp\.boundary {boundary}\b")
+        return {**settings, "boundary": "none"}
+    return settings
 
 
 def count_calls(monkeypatch):
@@ -93,40 +147,52 @@ def eval_outputs_equal_sp_off(trainer) -> None:
             assert torch.equal(with_sp[key], without[key]), f"{key} differs in eval with SP on"
 
 
-@pytest.fixture(scope="module")
-def calls_per_step():
-    return {}
+def calls_per_step(name, settings, scene, out, monkeypatch, steps=3):
+    """Train ``steps`` iterations; the preconditioner calls (while active) of each iteration."""
+    from nerfstudio.engine.trainer import Trainer
+
+    counter, per_step = count_calls(monkeypatch), []
+    iteration = Trainer.train_iteration
+
+    def counted(self, step):
+        before = counter["n"]
+        result = iteration(self, step)
+        per_step.append(counter["n"] - before)
+        return result
+
+    monkeypatch.setattr(Trainer, "train_iteration", counted)
+    try:
+        _, record = run_recording(matrix_config(name, scene, out, steps=steps, **settings))
+    finally:
+        monkeypatch.undo()
+    assert len(per_step) == len(record) == steps
+    return per_step
 
 
 @pytest.mark.parametrize("run", list(RUNS))
-@pytest.mark.parametrize("name", SDF + RADIANCE)
-def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_path, calls_per_step, monkeypatch):
-    settings = RUNS[run]
+@pytest.mark.parametrize("name", METHODS)
+def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_path, monkeypatch):
     if (name, run) in REFUSED:
-        from sp_plugins.nerfstudio.errors import InputError
-
-        config = matrix_config(name, tiny_scene, tmp_path / "run", steps=3, **settings)
-        with pytest.raises(InputError, match=REFUSED[(name, run)]):
-            config.setup(local_rank=0, world_size=1).setup()
+        refused_at_build(matrix_config(name, tiny_scene, tmp_path / "run", steps=3, **RUNS[run]), REFUSED[(name, run)])
         return
+    settings = runnable(name, RUNS[run], tiny_scene, tmp_path / "refused")
     config = matrix_config(name, tiny_scene, tmp_path / "run", steps=6 if run == "plain" else 3, **settings)
     counter = count_calls(monkeypatch)
     trainer, record = run_recording(config, stop_after=2 if run == "plain" else None)
     monkeypatch.undo()
-    sp = trainer.pipeline.model.sp
+    model = trainer.pipeline.model
+    sp = model.sp
     assert record and all(math.isfinite(loss) for loss, _, _ in record), f"{name}/{run}: non-finite loss"
+    assert counter["n"] >= len(record), f"{name}/{run}: the preconditioner was not called in every step"
     for key, value in settings.items():
-        expected = "none" if (key == "boundary" and name in CONTRACTED) else value
-        assert getattr(sp.config, key) == expected, f"{name}: sp.{key} did not reach the model"
+        assert getattr(sp.config, key) == value, f"{name}: sp.{key} did not reach the model"
+    if name.startswith(SP_TRAIN):  # the generic route: the host's fields, built as SP subclasses, were perturbed
+        assert type(model).__name__.startswith("SPModel__nerfstudio_dmodels_d") and model.sp_fields()
+        assert model.perturbed_calls() >= len(record), f"{name}/{run}: a step perturbed no field"
     if run == "grid":
         assert "sp_alpha_grid" in trainer.optimizers.optimizers
         values = sp.alpha_grid.values()
         assert not torch.allclose(values, torch.full_like(values, 0.05), atol=1e-6), f"{name}: the alpha grid did not learn"
-    if run in ("multi", "plain"):
-        calls_per_step[(name, run)] = counter["n"] / len(record)
-        if (name, "plain") in calls_per_step and (name, "multi") in calls_per_step:
-            plain, multi = calls_per_step[(name, "plain")], calls_per_step[(name, "multi")]
-            assert plain > 0 and multi == pytest.approx(2 * plain), f"{name}: num_samples 2 is not two draws per query"
     eval_outputs_equal_sp_off(trainer)
 
     if run == "plain":  # a checkpoint written mid-run resumes at the same step and alpha
@@ -150,6 +216,17 @@ def test_baselines_refuse_options_that_only_act_through_sp(name, flag, tiny_scen
     assert config.pipeline.model.sp.enabled is False
     with pytest.raises(InputError, match=r"--pipeline\.model\.sp\.(alpha-grid|num-samples).*enabled True"):
         config.setup(local_rank=0, world_size=1).setup()
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_num_samples_2_draws_twice_per_query_in_every_step(name, tiny_scene, tmp_path, monkeypatch):
+    """The ``multi`` run against the same method's ``plain`` run, both run here."""
+    plain, multi = (
+        calls_per_step(name, runnable(name, RUNS[run], tiny_scene, tmp_path / "box"), tiny_scene, tmp_path / run, monkeypatch)
+        for run in ("plain", "multi")
+    )
+    assert all(n > 0 for n in plain), f"{name}: a plain step made no preconditioner call: {plain}"
+    assert multi == [2 * n for n in plain], f"{name}: num_samples 2 is not two draws per query (plain {plain}, multi {multi})"
 
 
 def test_reflect_on_a_contracted_scene_is_refused(tiny_scene, tmp_path):
