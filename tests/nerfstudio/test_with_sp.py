@@ -272,3 +272,22 @@ def test_config_yml_of_the_former_hand_built_classes_still_loads():
         config = yaml.load(text, Loader=yaml.Loader)
         assert type(config).__name__.startswith("SPModelConfig__") and issubclass(config._target, host)
         assert config._target.__name__.startswith("SPModel__") and getattr(config, extra.split(":")[0]) == 12
+
+
+def test_depth_nerfacto_builds_with_sp_on_its_main_field():
+    """depth-nerfacto needs depth images (or downloads a depth model) to train; its SP model builds
+    and reaches the main field as nerfacto's does."""
+    import copy
+
+    import torch
+    from nerfstudio.configs.method_configs import all_descriptions, all_methods
+    from nerfstudio.data.scene_box import SceneBox
+
+    from builtin_tiny import shrink_model
+    from sp_plugins.nerfstudio.registration import sp_methods
+
+    model_config = copy.deepcopy(sp_methods({"depth-nerfacto": all_methods["depth-nerfacto"]}, all_descriptions)[0]["depth-nerfacto"].pipeline.model)
+    shrink_model(model_config)
+    model = model_config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={}, device="cpu")
+    reached = [type(f).__bases__[-1].__name__ for f in model.sp_fields()]
+    assert "NerfactoField" in reached and all(f.sp is model.sp for f in model.sp_fields())
