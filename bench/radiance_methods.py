@@ -53,7 +53,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary
-from sp_plugins.nerfstudio.relu_field_model import voxel_size
+from sp_plugins.nerfstudio.relu_field.model import voxel_size
 
 OUT = OUT_DIR / "radiance_methods"
 SCENES = {"spot": "spot", "cow": "/work/shared/data/meshes/cow.ply", "bunny": "/work/shared/data/meshes/bunny.ply"}
@@ -247,7 +247,7 @@ class Run:
         from PIL import Image
         from torchmetrics.functional import structural_similarity_index_measure as ssim
 
-        from sp_plugins.nerfstudio.lpips import lpips_available
+        from sp_plugins.nerfstudio.host.lpips import lpips_available
 
         model = self.model
         model.eval()
@@ -384,7 +384,7 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
                 label: Optional[str] = None):
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    from sp_plugins.nerfstudio.relu_field_lr import StagedStepDecaySchedulerConfig
+    from sp_plugins.nerfstudio.relu_field.lr import StagedStepDecaySchedulerConfig
     from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     late_lr = variant is not None or name == SP_LR_FLAT
@@ -534,7 +534,7 @@ def cost_study(resolution: int, rays: int, samples: int, color_mode: str, repeat
     from nerfstudio.data.scene_box import SceneBox
 
     from sp_plugins.core import SPConfig
-    from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
+    from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
 
     box = SceneBox(aabb=BOX)
     voxel = voxel_size(BOX, resolution)

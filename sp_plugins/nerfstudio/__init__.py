@@ -1,11 +1,21 @@
 """The nerfstudio 1.x adapter: SP on any nerfstudio method (``with_sp``, ``sp-train``) and our methods.
 
-One shape, as in ``sp_plugins.sdfstudio``: fields (where positions are perturbed:
-:mod:`~sp_plugins.nerfstudio.frustum_sp`, :mod:`~sp_plugins.nerfstudio.mipnerf`,
-:mod:`~sp_plugins.nerfstudio.sdf_field`), models (:mod:`~sp_plugins.nerfstudio.model`, the
-preconditioner, optimizer group and callbacks) and registration
-(:mod:`~sp_plugins.nerfstudio.registration`: ``with_sp`` and ``sp-train``). Importing this
-package imports no host module.
+One shape, as in ``sp_plugins.sdfstudio``, on the host-neutral base ``sp_plugins.adapter``:
+
+- fields, where positions are perturbed: :mod:`~sp_plugins.nerfstudio.frustum_sp` (any field that
+  reads ``get_positions()``), :mod:`~sp_plugins.nerfstudio.mipnerf` (Gaussian means),
+  :mod:`~sp_plugins.nerfstudio.sdf_field` (NeuS / Neuralangelo-lite);
+- models: :mod:`~sp_plugins.nerfstudio.model` (``SPModel``, ``AnyMethodSPModel``),
+  :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.radiance_models`;
+- registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, ``sp-train``),
+  :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
+  trainer configs of our registered methods (:mod:`~sp_plugins.nerfstudio.sdf_methods`,
+  :mod:`~sp_plugins.nerfstudio.radiance_methods`; ``runs`` runs them from Python).
+
+Not SP, in their own sub-packages: :mod:`~sp_plugins.nerfstudio.relu_field` (a method of ours) and
+:mod:`~sp_plugins.nerfstudio.host` (data checks, the tcnn fallback, float schedulers, offline
+LPIPS). ``data``, ``schedulers``, ``relu_field_model`` and ``relu_field_lr`` at this level are
+former paths kept for saved ``config.yml`` files. Importing this package imports no host module.
 """
 
 from sp_plugins.nerfstudio.registration import with_sp

@@ -26,8 +26,8 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.core import SPConfig, StochasticPreconditioner
-from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
-from sp_plugins.nerfstudio.lpips import detach_lpips, drop_missing_lpips, offline_lpips
+from sp_plugins.adapter.errors import InputError, install_input_error_hook
+from sp_plugins.nerfstudio.host.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
 __all__ = ["AnyMethodSPModel", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
 

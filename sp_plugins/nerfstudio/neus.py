@@ -38,7 +38,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
-from sp_plugins.nerfstudio import hash_encoding
+from sp_plugins.nerfstudio.host import hash_encoding
 from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig

@@ -21,7 +21,7 @@ from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.hash_encoding import NerfactoHashGridModel, NerfactoHashGridModelConfig
+from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModel, NerfactoHashGridModelConfig
 from sp_plugins.nerfstudio.mipnerf import SPNeRFField
 from sp_plugins.patches.nerfstudio_host_fields import host_builds
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig

@@ -108,7 +108,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     from nerfstudio.plugins.types import MethodSpecification
 
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-    from sp_plugins.nerfstudio.schedulers import with_float_schedulers
+    from sp_plugins.nerfstudio.host.schedulers import with_float_schedulers
     from sp_plugins.nerfstudio.variants import variant
 
     config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner, finite_differences
-from sp_plugins.nerfstudio.errors import InputError
+from sp_plugins.adapter.errors import InputError
 
 LAPLACIAN = "sdf_laplacian"
 """Key of the stencil Laplacian in the field outputs (numerical gradients, training only)."""

@@ -10,8 +10,8 @@ from nerfstudio.field_components.encodings import HashEncoding
 from radiance_tiny import tiny_radiance_config  # type: ignore[import-not-found]
 
 from sp_plugins.encodings import HashGrid
-from sp_plugins.nerfstudio import hash_encoding
-from sp_plugins.nerfstudio.errors import InputError
+from sp_plugins.nerfstudio.host import hash_encoding
+from sp_plugins.adapter.errors import InputError
 
 BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
 

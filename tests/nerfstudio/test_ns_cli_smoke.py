@@ -35,7 +35,7 @@ def test_ns_train_cli_trains_sp_neus_hashgrid_on_blender_data(tiny_scene, tmp_pa
     assert len(ckpts) == 1
     state = torch.load(ckpts[0], map_location="cpu", weights_only=False)["pipeline"]
     assert int(state["_model.sp.total_steps"]) == 2 and float(state["_model.field.fd_step"]) >= 0
-    from sp_plugins.nerfstudio.lpips import lpips_available
+    from sp_plugins.nerfstudio.host.lpips import lpips_available
 
     if not lpips_available():  # offline: one clear line, no download attempt, no crash
         assert (proc.stdout + proc.stderr).count("LPIPS skipped") == 1
@@ -55,7 +55,7 @@ def test_ns_train_reports_a_missing_data_folder_in_one_line(tmp_path):
 
 
 def test_input_error_hook_prints_one_line_and_leaves_other_errors_alone(capsys, monkeypatch):
-    from sp_plugins.nerfstudio.errors import InputError, install_input_error_hook
+    from sp_plugins.adapter.errors import InputError, install_input_error_hook
 
     seen = []
     monkeypatch.setattr(sys, "excepthook", lambda *exc: seen.append(exc[0]))

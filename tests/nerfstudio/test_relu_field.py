@@ -11,8 +11,8 @@ from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
 
 from sp_plugins.core import AlphaSchedule
-from sp_plugins.nerfstudio.relu_field import ReLUField, upsample_grid
-from sp_plugins.nerfstudio.relu_field_model import stage_at, stage_resolutions
+from sp_plugins.nerfstudio.relu_field.field import ReLUField, upsample_grid
+from sp_plugins.nerfstudio.relu_field.model import stage_at, stage_resolutions
 
 RELU_METHODS = ("relu-field", "relu-field-flat", "sp-relu-field")
 BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
@@ -170,7 +170,7 @@ def test_sp_and_grid_flags_parse_through_ns_train_cli(tiny_scene):
 
 
 def test_bad_settings_are_clear_errors():
-    from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig
+    from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
 
     with pytest.raises(ValueError, match="sh_degree"):
         ReLUFieldModelConfig(sh_degree=5)
@@ -236,7 +236,7 @@ def _samples_at(x):
 
 
 def test_sp_offsets_in_world_units_are_alpha_voxels_reflected_and_training_only(tiny_scene, tmp_path):
-    from sp_plugins.nerfstudio.relu_field_model import voxel_size
+    from sp_plugins.nerfstudio.relu_field.model import voxel_size
 
     box = SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3]))  # the bench's box and grid: 129^3, voxel 3/128
     voxels = 2.0

@@ -15,10 +15,10 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
 
-from sp_plugins.nerfstudio.errors import InputError
-from sp_plugins.nerfstudio.relu_field import DIFFUSE_RGB, ReLUField
-from sp_plugins.nerfstudio.relu_field_lr import StagedStepDecaySchedulerConfig, staged_lr_factor
-from sp_plugins.nerfstudio.relu_field_model import ReLUFieldModelConfig, stage_resolutions, voxel_size
+from sp_plugins.adapter.errors import InputError
+from sp_plugins.nerfstudio.relu_field.field import DIFFUSE_RGB, ReLUField
+from sp_plugins.nerfstudio.relu_field.lr import StagedStepDecaySchedulerConfig, staged_lr_factor
+from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig, stage_resolutions, voxel_size
 
 BOX = SceneBox(aabb=torch.tensor([[-1.5] * 3, [1.5] * 3]))
 

@@ -94,7 +94,7 @@ def matrix_config(name, scene, out, *, steps, **sp):
 
 def refused_at_build(config, match):
     """Building the trainer (pipeline, model) raises an ``InputError`` that matches ``match``."""
-    from sp_plugins.nerfstudio.errors import InputError
+    from sp_plugins.adapter.errors import InputError
 
     with pytest.raises(InputError, match=match):
         config.setup(local_rank=0, world_size=1).setup()
@@ -209,7 +209,7 @@ def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_
 @pytest.mark.parametrize("name", BASELINES)
 @pytest.mark.parametrize("flag", [dict(alpha_grid=True), dict(num_samples=2)])
 def test_baselines_refuse_options_that_only_act_through_sp(name, flag, tiny_scene, tmp_path):
-    from sp_plugins.nerfstudio.errors import InputError
+    from sp_plugins.adapter.errors import InputError
 
     build = _tiny_config if name in ("neus-hashgrid", "neuralangelo-lite") else tiny_radiance_config
     config = build(name, tiny_scene, tmp_path, steps=2, **flag)

@@ -218,7 +218,7 @@ def test_a_field_sp_cannot_reach_is_refused_when_the_model_is_built(toy_importab
 
     from sp_plugins.adapter.variants import convert
     from sp_plugins.nerfstudio import with_sp
-    from sp_plugins.nerfstudio.errors import InputError
+    from sp_plugins.adapter.errors import InputError
     from sp_plugins.nerfstudio.runs import configure_run, train
 
     base = toy_method.config
@@ -263,7 +263,7 @@ def test_config_yml_of_the_former_hand_built_classes_still_loads():
     with their former class names loads as the generic variants (same fields, same host modules)."""
     from nerfstudio.models.tensorf import TensoRFModel
 
-    from sp_plugins.nerfstudio.hash_encoding import NerfactoHashGridModel
+    from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModel
 
     for name, host, extra in (("SPNerfactoModel", NerfactoHashGridModel, "num_nerf_samples_per_ray: 12"),
                               ("SPTensoRFModel", TensoRFModel, "num_samples: 12")):

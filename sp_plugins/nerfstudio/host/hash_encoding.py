@@ -36,7 +36,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 from torch import nn
 
 from sp_plugins.encodings import HashGrid, tcnn_usable
-from sp_plugins.nerfstudio.errors import InputError
+from sp_plugins.adapter.errors import InputError
 
 log = logging.getLogger(__name__)
 
