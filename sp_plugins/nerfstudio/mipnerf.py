@@ -38,9 +38,7 @@ class SPNeRFField(SPFieldMixin, NeRFField):
     def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
         """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
         plain = super().forward
-        if not self.sp_active():
-            return plain(ray_samples, compute_normals=compute_normals)
-        return self.perturbed(lambda: plain(ray_samples, compute_normals=compute_normals))
+        return self.over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         sp = self.sp

@@ -146,9 +146,7 @@ class ReLUField(SPFieldMixin, Field):
     def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
         """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
         plain = super().forward
-        if not self.sp_active():
-            return plain(ray_samples, compute_normals=compute_normals)
-        return self.perturbed(lambda: plain(ray_samples, compute_normals=compute_normals))
+        return self.over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         shape = ray_samples.frustums.shape
