@@ -70,4 +70,4 @@ def test_a_configuration_error_in_model_construction_is_one_line(fox, tmp_path):
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith("ns-train: error: sp-nerfacto: --pipeline.model.sp.boundary reflect needs a bounded scene")
+    assert last.startswith("ns-train: error: --pipeline.model.sp.boundary reflect needs a bounded scene") and "contraction" in last
