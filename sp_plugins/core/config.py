@@ -51,7 +51,10 @@ class SPConfig:
     alpha_grid_lr: float = 1e-3
     """Adam learning rate of the alpha grid."""
     seed: Optional[int] = None
-    """Seed of the perturbation noise; None draws from torch's global generator."""
+    """Seed of the perturbation noise (each distributed rank uses seed + rank). None draws the
+    seed from torch's global generator at the first perturbation. Either way the noise
+    generator's state is in the checkpoint, so a resumed run draws the noise an uninterrupted
+    run would have drawn."""
 
     def __post_init__(self) -> None:
         self.validate()

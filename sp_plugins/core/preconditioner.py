@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
-from typing import Callable, Optional, TypeVar
+from typing import Any, Callable, Optional, TypeVar
 
 import torch
 from jaxtyping import Float
@@ -19,6 +20,8 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
+_EXTRA_STATE_KEY = "_extra_state"  # torch.nn.Module's key for get_extra_state()
+
 
 class StochasticPreconditioner(nn.Module):
     """Perturbs positions while training and while alpha > 0; otherwise returns its input.
@@ -30,6 +33,17 @@ class StochasticPreconditioner(nn.Module):
     A training step never synchronises with an accelerator: the step, total and alpha live as
     Python numbers (the buffers only mirror them for checkpoints and are read back on load).
     With ``seed`` set, each distributed rank draws its own noise (``seed + rank``).
+
+    The noise comes from this module's own ``torch.Generator`` (one per device), and the
+    generators' states are in the ``state_dict`` (its ``_extra_state``, keyed by device type and
+    restored when this module next draws on a device of that type), so a run resumed from a
+    checkpoint draws the same noise as one that was never interrupted. With ``seed=None`` the
+    generator's seed is drawn from torch's global generator at the first draw (plus the rank), so
+    an unseeded run is still random per run and still resumes to the same noise. Checkpoints
+    without the generator state (written before it was saved) load, also strictly; such a resume
+    starts a new noise stream. A state saved by another distributed rank (a multi-process run
+    saves rank 0's) or under another ``seed`` is not restored: that rank starts a new stream,
+    seeded from ``(seed, rank, step)`` (seeded runs) or the global generator (``seed=None``).
 
     Args:
         config: the shared :class:`SPConfig`.
@@ -70,7 +84,9 @@ class StochasticPreconditioner(nn.Module):
         self._schedule: Optional[AlphaSchedule] = None
         self._schedule_key: Optional[tuple] = None
         self._alpha = 0.0
-        self._generators: dict = {}
+        self._generators: dict = {}  # str(device) -> torch.Generator, built at the first draw there
+        self._saved_generator_states: dict = {}  # device type -> a loaded state, applied at the next draw there
+        self._reseed_at: Optional[int] = None  # set when a loaded state was another rank's or seed's
         # alpha0 in scene units, known without the schedule (whose fractional end needs the total)
         self._alpha0 = config.alpha0 * (self.scene_diagonal if self.scene_diagonal is not None else 1.0)
         self.alpha_grid: Optional[AlphaGrid] = None
@@ -121,23 +137,81 @@ class StochasticPreconditioner(nn.Module):
     def active(self) -> bool:
         return self.training and self._alpha > 0.0
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
+        extra_key = prefix + _EXTRA_STATE_KEY
+        had_extra = extra_key in state_dict
+        self._reseed_at = None
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
+        if not had_extra and extra_key in missing_keys:
+            # a checkpoint written before the generator state was saved: it loads (also strictly);
+            # the noise after it is a new stream
+            missing_keys.remove(extra_key)
+            self._saved_generator_states = {}
         self._total = int(self.total_steps)  # a sync, but only when a checkpoint loads
         self._step = int(self.step)
         if self._total >= 0 or self.config.schedule == "constant":
             self.set_step(self._step)
+        if self._reseed_at is not None:
+            self._reseed_at = self._step
+
+    # -- generator state in checkpoints ---------------------------------------------------------
+    def get_extra_state(self) -> dict:
+        """The noise generators' states (CPU byte tensors), keyed by device type, with the seed
+        and the rank that drew them. Read only when a checkpoint is written."""
+        states = {}
+        for key, g in self._generators.items():
+            states.setdefault(torch.device(key).type, g.get_state().clone())
+        for kind, state in self._saved_generator_states.items():  # loaded, not drawn from yet
+            states.setdefault(kind, state)
+        return {"version": 1, "seed": self.config.seed, "rank": distributed_rank(), "generators": states}
+
+    def set_extra_state(self, state: Any) -> None:
+        if not isinstance(state, dict) or not isinstance(state.get("generators"), dict):
+            raise ValueError(f"the preconditioner's saved state is not a generator state (got {type(state).__name__})")
+        rank = distributed_rank()
+        if state.get("seed") != self.config.seed or state.get("rank", 0) != rank:
+            log.info(
+                "SP noise: the checkpoint's generator state (seed %s, rank %s) is not this process's "
+                "(seed %s, rank %s); starting a new noise stream", state.get("seed"), state.get("rank"),
+                self.config.seed, rank,
+            )
+            self._saved_generator_states = {}
+            self._generators = {}
+            self._reseed_at = self._step  # replaced by the loaded step in _load_from_state_dict
+            return
+        saved = {str(kind): value.detach().to("cpu", torch.uint8).clone() for kind, value in state["generators"].items()}
+        for key, g in self._generators.items():  # generators already built here take theirs now
+            kind = torch.device(key).type
+            if kind in saved:
+                g.set_state(saved.pop(kind))
+        self._saved_generator_states = saved
 
     # -- perturbation -----------------------------------------------------------------------
-    def _generator(self, device: torch.device) -> Optional[torch.Generator]:
-        if self.config.seed is None:
-            return None
+    def _generator(self, device: torch.device) -> torch.Generator:
         key = str(device)
-        if key not in self._generators:
+        g = self._generators.get(key)
+        if g is None:
             g = torch.Generator(device=device)
-            g.manual_seed(self.config.seed + distributed_rank())
+            state = self._saved_generator_states.pop(torch.device(device).type, None)
+            if state is not None:
+                g.set_state(state)
+            else:
+                g.manual_seed(self._fresh_seed())
             self._generators[key] = g
-        return self._generators[key]
+        return g
+
+    def _fresh_seed(self) -> int:
+        """Seed of a generator with no saved state: ``seed + rank`` (as always), a draw from the
+        global generator plus the rank with ``seed=None``, or, after a checkpoint whose state
+        could not be this process's, one mixed from ``(seed, rank, step)``."""
+        rank = distributed_rank()
+        if self.config.seed is None:
+            drawn = int(torch.empty((), dtype=torch.int64).random_())  # the CPU's global generator
+            return (drawn + rank) % (1 << 63)
+        if self._reseed_at is None:
+            return self.config.seed + rank
+        digest = hashlib.sha256(f"{self.config.seed}:{rank}:{self._reseed_at}".encode()).digest()
+        return int.from_bytes(digest[:8], "little") >> 1
 
     def alpha_at(self, x: Float[Tensor, "*batch dim"]):
         """Alpha used at ``x``: the scheduled float, or the grid's values times the schedule's

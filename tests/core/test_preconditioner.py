@@ -184,3 +184,111 @@ def test_seeded_noise_differs_per_distributed_rank(monkeypatch):
         sp.train()
         draws.append(sp(x))
     assert torch.equal(draws[0], draws[1]) and not torch.equal(draws[0], draws[2])
+
+
+def _draws(sp, n=3, shape=(64, 3)):
+    return [sp(torch.zeros(*shape)) for _ in range(n)]
+
+
+@pytest.mark.parametrize("seed", [5, None])
+def test_resumed_preconditioner_draws_the_noise_of_an_uninterrupted_one(seed):
+    """The generator state is in the state dict: a run that saves after k draws and resumes in a fresh
+    module (after unrelated use of the global generator) continues the same noise stream."""
+    cfg = dict(alpha0=0.1, schedule="constant", boundary="none", seed=seed)
+    torch.manual_seed(0)
+    whole = make(**cfg).train()
+    expected = _draws(whole, 5)
+    torch.manual_seed(0)
+    first = make(**cfg).train()
+    assert all(torch.equal(a, b) for a, b in zip(_draws(first, 2), expected[:2]))
+    state = first.state_dict()
+    assert set(state["_extra_state"]["generators"]) == {"cpu"}
+    torch.manual_seed(123)  # a resumed process: its global generator is somewhere else
+    resumed = make(**cfg).train()
+    resumed.load_state_dict(state)  # strict
+    assert all(torch.equal(a, b) for a, b in zip(_draws(resumed, 3), expected[2:]))
+    # the state survives torch.save / the weights-only torch.load that nerfstudio and ns-eval use
+    import io
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    buf.seek(0)
+    again = make(**cfg).train()
+    again.load_state_dict(torch.load(buf, weights_only=True))
+    assert torch.equal(again(torch.zeros(64, 3)), expected[2])
+    # and without the restore the stream would differ (the check above is not vacuous)
+    fresh = make(**cfg).train()
+    fresh._generators.clear()
+    assert not torch.equal(fresh(torch.zeros(64, 3)), expected[2])
+
+
+def test_a_checkpoint_without_generator_state_loads_strictly():
+    """Checkpoints written before the generator state was saved (no ``_extra_state``) still load with
+    strict=True (nerfstudio loads pipelines strictly), restore the step, and draw a new stream."""
+    sp = make(alpha0=0.1, schedule="exponential", end=0.5, total_steps=100, seed=2)
+    sp.set_step(17)
+    old = {k: v for k, v in sp.state_dict().items() if not k.endswith("_extra_state")}
+    assert set(old) == {"step", "total_steps"}
+    parent = torch.nn.Module()
+    parent.sp = make(alpha0=0.1, schedule="exponential", end=0.5, total_steps=100, seed=2)
+    result = parent.load_state_dict({f"sp.{k}": v for k, v in old.items()}, strict=True)
+    assert not result.missing_keys and not result.unexpected_keys
+    assert parent.sp._step == 17 and parent.sp.alpha == pytest.approx(sp.alpha)
+    parent.sp.train()
+    assert parent.sp(torch.zeros(8, 3)).abs().sum() > 0
+    # a genuinely missing buffer is still reported
+    with pytest.raises(RuntimeError, match="total_steps"):
+        make(alpha0=0.1, seed=2).load_state_dict({"step": old["step"]}, strict=True)
+
+
+def test_generator_state_is_keyed_by_device_type_and_applied_at_the_first_draw_there():
+    sp = make(alpha0=0.1, schedule="constant", boundary="none", seed=9).train()
+    sp(torch.zeros(4, 3))
+    state = sp.state_dict()
+    fake = {"cuda": torch.zeros(16, dtype=torch.uint8)}
+    state["_extra_state"] = dict(state["_extra_state"], generators={**state["_extra_state"]["generators"], **fake})
+    other = make(alpha0=0.1, schedule="constant", boundary="none", seed=9).train()
+    other.load_state_dict(state)
+    assert set(other._saved_generator_states) == {"cpu", "cuda"}  # nothing built yet: kept until used
+    assert set(other.state_dict()["_extra_state"]["generators"]) == {"cpu", "cuda"}  # and saved again
+    assert torch.equal(other(torch.zeros(4, 3)), sp(torch.zeros(4, 3)))
+    assert set(other._saved_generator_states) == {"cuda"}  # the CPU's went to the CPU generator
+    # a module that already drew takes the loaded state at once
+    third = make(alpha0=0.1, schedule="constant", boundary="none", seed=9).train()
+    third(torch.zeros(50, 3))
+    third.load_state_dict(sp.state_dict())
+    assert torch.equal(third(torch.zeros(4, 3)), sp(torch.zeros(4, 3)))
+
+
+def test_another_ranks_or_seeds_state_starts_a_new_stream(monkeypatch):
+    """A multi-process run saves rank 0's state: rank 1 must not take it (the ranks would then draw the
+    same noise); nor does a resume with another seed keep the old seed's stream."""
+    import sp_plugins.core.preconditioner as pre
+
+    cfg = dict(alpha0=0.1, schedule="constant", boundary="none", seed=4)
+    saved = make(**cfg).train()
+    saved(torch.zeros(4, 3))
+    state = saved.state_dict()
+    expected = saved(torch.zeros(32, 3))
+    monkeypatch.setattr(pre, "distributed_rank", lambda: 1)
+    rank1 = make(**cfg).train()
+    rank1.load_state_dict(state)
+    draw1 = rank1(torch.zeros(32, 3))
+    assert not torch.equal(draw1, expected)
+    plain1 = make(**cfg).train()
+    assert not torch.equal(draw1, plain1(torch.zeros(32, 3)))  # nor a replay of rank 1's first draws
+    monkeypatch.setattr(pre, "distributed_rank", lambda: 0)
+    other_seed = make(**dict(cfg, seed=5)).train()
+    other_seed.load_state_dict(state)
+    assert not torch.equal(other_seed(torch.zeros(32, 3)), expected)
+
+
+def test_unseeded_noise_is_seeded_from_the_global_generator():
+    cfg = dict(alpha0=0.1, schedule="constant", boundary="none")
+    torch.manual_seed(11)
+    a = make(**cfg).train()(torch.zeros(16, 3))
+    torch.manual_seed(11)
+    b = make(**cfg).train()(torch.zeros(16, 3))
+    torch.manual_seed(12)
+    c = make(**cfg).train()(torch.zeros(16, 3))
+    assert torch.equal(a, b) and not torch.equal(a, c)
