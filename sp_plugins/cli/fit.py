@@ -4,6 +4,8 @@
     sp-fit pointcloud bunny.ply --no-sp --out runs/bunny-baseline     # the baseline
     sp-fit image photo.png --adaptive-alpha --out runs/photo          # image + alpha map
     sp-fit sdf bunny.ply --out runs/bunny-sdf                         # direct SDF supervision
+    sp-fit pointcloud bunny.ply --checkpoint-every 200 --out runs/b   # checkpoints in runs/b ...
+    sp-fit pointcloud bunny.ply --resume --out runs/b                 # ... and a killed run continued
 
 Every option of the fit is a flag (``--steps``, ``--lr``, ``--encoding.kind``, ...), and the SP
 options are those of :class:`sp_plugins.SPConfig` under ``--sp.*`` (``--sp.alpha0``,
@@ -58,6 +60,14 @@ class _Output:
     device: str = "auto"
     """Where to train: auto (CUDA when available, else the CPU), cpu, cuda, cuda:N or mps. The hash
     grid runs tiny-cuda-nn on CUDA when it is installed, its torch backend elsewhere."""
+    checkpoint_every: Optional[int] = None
+    """Write --out/checkpoint.pt every N steps and after the last one (atomically: a killed run
+    leaves the previous checkpoint intact), for --resume. Default: none for a new run; a resumed
+    run keeps its checkpoint's interval. 0: none."""
+    resume: tyro.conf.FlagCreatePairsOff[bool] = False
+    """Continue the run whose checkpoint is in --out, with the same settings (refused, naming the
+    flag, when they differ); it ends as the uninterrupted run would have (on the CPU: the same
+    parameters and losses, the same metrics.json apart from the timings)."""
 
 
 @dataclass(kw_only=True)
@@ -97,7 +107,7 @@ class SDFCommand(SDFFitConfig, _Output):
     """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
 
 
-_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "device", "gt", "estimate_normals"}
+_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "device", "gt", "estimate_normals", "checkpoint_every", "resume"}
 
 
 def _task_config(cmd, cls):
@@ -168,6 +178,95 @@ def _loss_plot(trainer, path: Path, terms: tuple[str, ...]) -> None:
     plot_curves(curves, path, title=f"training loss (running mean over {window} steps)", marks=marks)
 
 
+def _flag_name(setting: str) -> str:
+    """The flag behind a checkpointed setting (``config.sp.num_samples`` -> ``--sp.num-samples``)."""
+    if setting == "config.sp.enabled":
+        return "--sp.enabled (or --no-sp)"
+    if setting == "files.input":
+        return "INPUT"
+    name = setting.split(".", 1)[1] if setting.startswith(("config.", "files.", "run.")) else setting
+    return "--" + name.replace("_", "-")
+
+
+class _Checkpoints:
+    """``--checkpoint-every`` / ``--resume`` of one sp-fit command: the checks before any work (a
+    refusal is one line, exit status 2, nothing written), the resume, and the writes."""
+
+    def __init__(self, cmd, task: str, config, device, run_settings: dict, files: dict) -> None:
+        from sp_plugins.tasks import checkpoint as io
+
+        self.cmd, self.task, self.io = cmd, task, io
+        self.path = io.checkpoint_path(cmd.out)
+        if cmd.checkpoint_every is not None and cmd.checkpoint_every < 0:
+            raise ValueError(f"--checkpoint-every {cmd.checkpoint_every}: give a number of steps >= 1 (or 0 for none)")
+        # what the trajectory (and the results) depend on; --out, --quiet and the interval do not count
+        self.settings = {"config": _jsonable(config), "run": {"device": device.type, **run_settings}, "files": {}}
+        self.files = files
+        self.saved: Optional[dict] = None
+        self.every = cmd.checkpoint_every or 0
+        self.seconds_before = 0.0
+        if cmd.resume:
+            self.saved = io.load(self.path, task)
+            self._refuse_differences(self.saved["settings"], only=("config", "run"))
+            if cmd.checkpoint_every is None:
+                self.every = int(self.saved.get("checkpoint_every") or 0)
+            self.seconds_before = float(self.saved.get("seconds", 0.0))
+        elif self.path.exists() and not cmd.overwrite:
+            raise ValueError(f"--out {cmd.out}: holds the checkpoint of an earlier run ({self.path.name}); pass --resume to "
+                             "continue it, --overwrite to start anew, or choose another --out")
+
+    def _refuse_differences(self, saved: dict, only: tuple) -> None:
+        current = {k: v for k, v in self.settings.items() if k in only}
+        diffs = self.io.differences({k: v for k, v in saved.items() if k in only}, current)
+        if not diffs:
+            return
+        parts = []
+        for name, here, there in diffs:
+            if name.startswith("files."):
+                parts.append(f"{_flag_name(name)} is not the file the checkpoint was trained on (its contents differ)"
+                             if here is not None and there is not None else
+                             f"{_flag_name(name)} is {'given' if here is not None else 'not given'} here but "
+                             f"{'was' if there is not None else 'was not'} in the checkpoint")
+            else:
+                parts.append(f"{_flag_name(name)} is {here!r} here but {there!r} in the checkpoint")
+        raise ValueError(f"--resume: {'; '.join(parts)} ({self.path}); a resume needs the checkpoint's settings: "
+                         "give the same flags, or start anew with --overwrite")
+
+    def check_files(self) -> None:
+        """After the inputs loaded (so a missing file is the loader's error): their contents."""
+        if self.every or self.saved is not None:
+            self.settings["files"] = {name: self.io.file_digest(path) for name, path in self.files.items()}
+        if self.saved is not None:
+            self._refuse_differences(self.saved["settings"], only=("files",))
+
+    def prepare(self, out: Path) -> None:
+        """After ``--out`` is ready: drop what a killed writer left, and with --overwrite the old checkpoint."""
+        self.io.remove_stale(out, checkpoint_too=self.saved is None)
+
+    def restore(self, trainer) -> None:
+        if self.saved is None:
+            return
+        trainer.load_state_dict(self.saved["trainer"])
+        if not self.cmd.quiet:
+            print(f"sp-fit: resuming from step {trainer.step_index} of {trainer.config.steps} ({self.path})",
+                  file=sys.stderr, flush=True)
+        self.saved = None  # free the tensors
+
+    def fit(self, trainer) -> float:
+        """Train to the end, writing checkpoints; the training seconds, those before a resume included."""
+        start = time.perf_counter()
+
+        def write(trainer, record) -> None:
+            if self.every and (trainer.step_index % self.every == 0 or trainer.done):
+                self.io.save(self.path, {
+                    "task": self.task, "settings": self.settings, "checkpoint_every": self.every,
+                    "seconds": self.seconds_before + time.perf_counter() - start, "trainer": trainer.state_dict(),
+                })
+
+        trainer.fit(callback=write, progress=not self.cmd.quiet)
+        return self.seconds_before + time.perf_counter() - start
+
+
 def _warn_if_empty(mesh) -> None:
     if len(mesh.faces) == 0:
         print("sp-fit: warning: the field has no zero crossing in the domain: the mesh is empty (train longer "
@@ -182,13 +281,16 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
     from sp_plugins.tasks.common import prepare_output_dir, resolve_device, stage
 
     device = resolve_device(cmd.device)
+    checkpoints = _Checkpoints(cmd, "pointcloud", config, device, {"estimate_normals": cmd.estimate_normals},
+                               {"input": cmd.input, "gt": cmd.gt})
     data = load_oriented_points(cmd.input, config.n_points, config.seed, cmd.estimate_normals)
     gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)  # after the inputs: a bad file leaves no empty --out
+    checkpoints.check_files()
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)  # after the inputs: a bad file leaves no empty --out
+    checkpoints.prepare(out)
     trainer = config.setup(data, device=device)
-    start = time.perf_counter()
-    trainer.fit(progress=not cmd.quiet)
-    seconds = time.perf_counter() - start
+    checkpoints.restore(trainer)
+    seconds = checkpoints.fit(trainer)
     if gt is not None:
         mesh, metrics = trainer.evaluate(gt, progress=not cmd.quiet)
     else:
@@ -221,14 +323,16 @@ def run_image(cmd: ImageCommand) -> dict:
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
     config = _task_config(cmd, ImageFitConfig)
     device = resolve_device(cmd.device)
+    checkpoints = _Checkpoints(cmd, "image", config, device, {}, {"input": cmd.input})
     image = load_image(cmd.input)
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
+    checkpoints.check_files()
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
+    checkpoints.prepare(out)
     if not config.adaptive_alpha:
         (out / "alpha_map.png").unlink(missing_ok=True)  # an earlier --adaptive-alpha run's map would mislead
     trainer = config.setup(image, device=device)
-    start = time.perf_counter()
-    trainer.fit(progress=not cmd.quiet)
-    seconds = time.perf_counter() - start
+    checkpoints.restore(trainer)
+    seconds = checkpoints.fit(trainer)
     fitted = trainer.render()
     save_image(fitted, out / "fitted.png")
     from sp_plugins.tasks.image import psnr
@@ -259,12 +363,14 @@ def run_sdf(cmd: SDFCommand) -> dict:
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
     device = resolve_device(cmd.device)
+    checkpoints = _Checkpoints(cmd, "sdf", config, device, {}, {"input": cmd.input})
     gt = load_mesh(cmd.input)
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite)
+    checkpoints.check_files()
+    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
+    checkpoints.prepare(out)
     trainer = config.setup(gt, device=device)
-    start = time.perf_counter()
-    trainer.fit(progress=not cmd.quiet)
-    seconds = time.perf_counter() - start
+    checkpoints.restore(trainer)
+    seconds = checkpoints.fit(trainer)
     mesh, metrics = trainer.evaluate(progress=not cmd.quiet)
     _warn_if_empty(mesh)
     save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")

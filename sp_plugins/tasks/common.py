@@ -164,3 +164,46 @@ def run_to_end(trainer, desc: str, callback=None, progress: bool = False) -> Non
         if callback is not None:
             callback(trainer, record)
     bar.close()
+
+
+class ResumableTrainer:
+    """``state_dict`` / ``load_state_dict`` for the task trainers: everything a fit's trajectory
+    depends on that is not rebuilt from its config and data (those are rebuilt identically on
+    resume: the network's initialisation, the sample pool, the frame). A trainer has ``field``,
+    ``sp``, ``optimizer``, ``generator`` (the batches), ``step_index``, ``history``, ``timer`` and
+    optionally ``scheduler``; :meth:`_extra_state` / :meth:`_load_extra_state` add its own."""
+
+    def state_dict(self) -> dict:
+        state = {
+            "step": self.step_index,
+            "field": self.field.state_dict(),
+            "sp": self.sp.state_dict(),  # schedule position, alpha grid, noise generator state
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "history": {k: list(v) for k, v in self.history.items()},
+            "step_times": list(self.timer.times),
+        }
+        if getattr(self, "scheduler", None) is not None:
+            state["scheduler"] = self.scheduler.state_dict()
+        state.update(self._extra_state())
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        from collections import defaultdict
+
+        self.field.load_state_dict(state["field"])
+        self.sp.load_state_dict(state["sp"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        if getattr(self, "scheduler", None) is not None:
+            self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+        self.step_index = int(state["step"])
+        self.history = defaultdict(list, {k: list(v) for k, v in state["history"].items()})
+        self.timer.times = list(state.get("step_times", []))
+        self._load_extra_state(state)
+
+    def _extra_state(self) -> dict:
+        return {}
+
+    def _load_extra_state(self, state: dict) -> None:
+        pass

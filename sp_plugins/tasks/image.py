@@ -36,7 +36,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
-from sp_plugins.tasks.common import StepTimer, run_to_end
+from sp_plugins.tasks.common import ResumableTrainer, StepTimer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -185,7 +185,7 @@ def pixel_centres(h: int, w: int) -> Float[Tensor, "hw 2"]:
     return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
 
 
-class ImageFitTrainer:
+class ImageFitTrainer(ResumableTrainer):
     """One image fit; :meth:`step` runs one iteration (interleavable, like the SDF trainer)."""
 
     def __init__(self, config: ImageFitConfig, image: Float[np.ndarray, "h w 3"], *, device: str = "cpu") -> None:
@@ -253,10 +253,11 @@ class ImageFitTrainer:
         return levels_from_alpha(self.sp.alpha_grid(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
 
     @torch.no_grad()
-    def start_phase2(self) -> None:
-        """Freeze the alpha map and switch on the techniques it guides."""
+    def start_phase2(self, step: Optional[int] = None) -> None:
+        """Freeze the alpha map and switch on the techniques it guides (at ``step``, default the
+        current one; a resumed fit calls it again with the saved step, on the frozen map)."""
         c = self.config
-        self.phase2_step = self.step_index
+        self.phase2_step = self.step_index if step is None else int(step)
         self.sp.alpha_grid.requires_grad_(False)
         if c.importance_sampling:
             self._pixel_cdf = torch.cumsum(importance_weights(self.pixel_alpha(), c.importance_uniform).double(), 0)
@@ -300,6 +301,14 @@ class ImageFitTrainer:
     @property
     def done(self) -> bool:
         return self.step_index >= self.config.steps
+
+    def _extra_state(self) -> dict:
+        return {"phase2_step": self.phase2_step}
+
+    def _load_extra_state(self, state: dict) -> None:
+        # the map was frozen at phase2_step, so the loaded map is the one phase 2 read then
+        if state.get("phase2_step") is not None:
+            self.start_phase2(state["phase2_step"])
 
     @torch.no_grad()
     def render(self, chunk: int = 65536) -> Float[np.ndarray, "h w 3"]:

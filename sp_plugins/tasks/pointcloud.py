@@ -38,7 +38,7 @@ from sp_plugins.geometry import (
     mesh_from_grid,
     mesh_metrics,
 )
-from sp_plugins.tasks.common import StepTimer, counting_bar, run_to_end, stage
+from sp_plugins.tasks.common import ResumableTrainer, StepTimer, counting_bar, run_to_end, stage
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -144,7 +144,7 @@ def siren_sdf_losses(
     )
 
 
-class PointCloudSDFTrainer:
+class PointCloudSDFTrainer(ResumableTrainer):
     """Holds the field, optimiser and data of one fit; :meth:`step` runs one iteration, so
     several trainers can be interleaved step by step in one process (paired benchmarks)."""
 

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, evaluate_grid, largest_component, mesh_from_grid, mesh_metrics, sample_surface
-from sp_plugins.tasks.common import StepTimer, counting_bar, run_to_end, stage
+from sp_plugins.tasks.common import ResumableTrainer, StepTimer, counting_bar, run_to_end, stage
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -90,7 +90,7 @@ def mape(pred: Tensor, target: Tensor, eps: float = 0.01) -> Tensor:
     return ((pred - target).abs() / (target.abs() + eps)).mean()
 
 
-class SDFFitTrainer:
+class SDFFitTrainer(ResumableTrainer):
     """One direct SDF fit; :meth:`step` runs one iteration."""
 
     def __init__(self, config: SDFFitConfig, mesh: trimesh.Trimesh, *, device: str = "cpu") -> None:
