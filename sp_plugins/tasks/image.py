@@ -127,8 +127,19 @@ class ImageFitConfig:
         return self._target(self, image, **kwargs)
 
 
+_SIXTEEN_BIT_GREY = ("I;16", "I;16L", "I;16B", "I;16N")
+_EIGHT_BIT = ("1", "L", "LA", "La", "P", "PA", "RGB", "RGBX", "RGBA", "RGBa", "CMYK", "YCbCr")
+
+
 def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
-    """RGB in [0, 1] (grey is replicated, an alpha channel is composited on white)."""
+    """RGB in [0, 1], scaled from the file's own bit depth.
+
+    8-bit images (bilevel, grey, palette, RGB, CMYK, ...) are divided by 255; 16-bit grey (PIL's
+    ``I;16`` modes, or ``I`` read from a PNG, whose only source is 16-bit grey) by 65535. PIL reads
+    16-bit RGB(A) PNGs as their high byte, so those are exact to 1/255. Grey is replicated; an alpha
+    channel (or a palette's transparency) is composited on white. 32-bit integer and float images,
+    and images smaller than 2x2, are refused with a ValueError naming the file.
+    """
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
@@ -137,11 +148,22 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
     try:
         with Image.open(path) as im:
             im.load()
-            if im.mode in ("RGBA", "LA", "P"):
-                im = im.convert("RGBA")
-                background = Image.new("RGBA", im.size, (255, 255, 255, 255))
-                im = Image.alpha_composite(background, im)
-            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+            mode, fmt = im.mode, im.format
+            if mode in _SIXTEEN_BIT_GREY or (mode == "I" and fmt == "PNG"):
+                grey = np.asarray(im, dtype=np.float64)
+                if grey.ndim != 2 or grey.min() < 0 or grey.max() > 65535:
+                    raise ValueError(f"{path}: a {mode} image with values outside 0..65535; expected 8- or 16-bit pixels")
+                rgb = np.repeat((grey / 65535.0).astype(np.float32)[..., None], 3, axis=2)
+            elif mode in _EIGHT_BIT:
+                if mode in ("LA", "La", "P", "PA", "RGBA", "RGBa") or "transparency" in im.info:
+                    im = im.convert("RGBA")
+                    background = Image.new("RGBA", im.size, (255, 255, 255, 255))
+                    im = Image.alpha_composite(background, im)
+                rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+            else:
+                raise ValueError(
+                    f"{path}: a {mode} image ({fmt or 'unknown format'}); expected 8- or 16-bit grey, palette, RGB or RGBA"
+                )
     except (UnidentifiedImageError, OSError) as exc:
         raise ValueError(f"{path}: cannot be read as an image ({exc})") from exc
     if rgb.shape[0] < 2 or rgb.shape[1] < 2:
