@@ -79,7 +79,22 @@ def test_gpu_layout_grid_weights_load_and_fused_tcnn_is_refused(tiny_scene, tmp_
         fresh.load_state_dict(fused)
 
 
-def test_where_tcnn_runs_the_host_modules_stay(monkeypatch):
-    monkeypatch.setattr(hash_encoding, "tcnn_usable", lambda device: torch.device(device).type == "cuda")
-    assert not hash_encoding.use_sp_hash_grids("cuda")
-    assert hash_encoding.use_sp_hash_grids("cpu")
+def test_where_tcnn_runs_the_host_modules_stay(tiny_scene, tmp_path, monkeypatch):
+    from sp_plugins.encodings import tcnn_usable
+
+    # the real decision, unmocked: our grids exactly where tiny-cuda-nn cannot run (never on the CPU)
+    for device in ("cpu", "cuda", "cuda:0", None):
+        expected = not tcnn_usable(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
+        assert hash_encoding.use_sp_hash_grids(device) is expected, device
+    assert hash_encoding.use_sp_hash_grids("cpu") is True
+    if torch.cuda.is_available() and tcnn_usable("cuda"):  # a CUDA machine with tinycudann: the real thing
+        config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path).pipeline.model
+        model = config.setup(scene_box=BOX, num_train_data=8, metadata={}, device="cuda", grad_scaler=None)
+    else:  # elsewhere: the model as it is built where that decision says tcnn runs
+        monkeypatch.setattr(hash_encoding, "use_sp_hash_grids", lambda device: False)
+        config, model = build(tiny_scene, tmp_path)
+    assert config.implementation == "tcnn"  # not switched to torch
+    assert not grids(model)  # nothing swapped: nerfstudio's own modules
+    encodings = {n for n, m in model.named_modules(remove_duplicate=False) if isinstance(m, HashEncoding)}
+    assert {"proposal_networks.0.encoding", "proposal_networks.1.encoding"} <= encodings  # nerfstudio's own
+    assert all(model.get_submodule(n).tcnn_encoding is not None for n in encodings) or not tcnn_usable("cuda")
