@@ -139,6 +139,11 @@ class StochasticPreconditioner(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
         extra_key = prefix + _EXTRA_STATE_KEY
+        if not any(key.startswith(prefix) for key in state_dict):
+            # a pass with none of this module's entries: nothing to load, keep what an earlier pass
+            # set (nerfstudio's pipeline loads its model, then itself non-strictly without the model's keys)
+            super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
+            return
         had_extra = extra_key in state_dict
         self._reseed_at = None
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
