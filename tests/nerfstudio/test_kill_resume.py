@@ -104,6 +104,8 @@ for run in spec["runs"]:
         except BaseException as err:
             print(f"{run['name']} failed: {err!r}", file=sys.stderr, flush=True)
         finally:
+            if not os.path.exists(run["ready"]):  # ended without its checkpoint at K: tell the test now
+                Path(run["ready"]).write_text("ended")
             os._exit(3)
     _, status = os.waitpid(pid, 0)
     print("killed-run " + json.dumps({"name": run["name"], "signal": os.WTERMSIG(status) if os.WIFSIGNALED(status) else None}), flush=True)
@@ -214,7 +216,11 @@ def killed(tiny_scene, tmp_path_factory):
                 assert proc.poll() is None and time.monotonic() < deadline, (
                     f"{run['name']}: no checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}")
                 time.sleep(0.05)
-            os.kill(int(ready.read_text()), signal.SIGKILL)
+            pid = ready.read_text()
+            if pid == "ended":
+                proc.kill()
+                pytest.fail(f"{run['name']} ended before its checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}")
+            os.kill(int(pid), signal.SIGKILL)
             line = proc.stdout.readline()
             while line and not line.startswith("killed-run "):  # skip what the trainer prints
                 line = proc.stdout.readline()
