@@ -14,8 +14,24 @@ from typing import Optional
 FOX = Path(os.environ.get("SP_FOX_CAPTURE", "/work/shared/data/real/fox"))
 
 
+def fox_missing(source: Optional[Path] = None) -> Optional[str]:
+    """Why the capture cannot be used (a skip reason naming the path), or None when it can."""
+    source = source or FOX
+    where = "set SP_FOX_CAPTURE to a copy" if "SP_FOX_CAPTURE" not in os.environ else "SP_FOX_CAPTURE is set"
+    if not (source / "transforms.json").is_file():
+        return f"the fox capture is not here: no {source / 'transforms.json'} ({where})"
+    try:
+        frames = json.loads((source / "transforms.json").read_text())["frames"]
+    except (ValueError, KeyError) as exc:
+        return f"the fox capture at {source} has an unreadable transforms.json ({exc})"
+    absent = [f["file_path"] for f in frames if not (source / f["file_path"]).is_file()]
+    if absent or len(frames) < 2:
+        return f"the fox capture at {source} is incomplete: {len(absent)} of {len(frames)} images missing ({where})"
+    return None
+
+
 def fox_available() -> bool:
-    return (FOX / "transforms.json").is_file()
+    return fox_missing() is None
 
 
 def make_fox_crop(out: Path, views: int = 6, factor: int = 5, source: Optional[Path] = None) -> Path:

@@ -15,14 +15,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from fox_crop import fox_available, make_fox_crop
+from fox_crop import fox_missing, make_fox_crop
 from ns_commands import NERFACTO_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
-
-pytestmark = pytest.mark.skipif(not fox_available(), reason="the fox capture is not here (set SP_FOX_CAPTURE)")
 
 
 @pytest.fixture(scope="module")
 def fox(tmp_path_factory):
+    """Every test here takes this fixture: without the capture each one is a visible skip naming the
+    path that was looked for (``pytest -rs`` lists them), never a silent pass."""
+    reason = fox_missing()
+    if reason is not None:
+        pytest.skip(reason)
     return make_fox_crop(tmp_path_factory.mktemp("fox"), views=7, factor=5)
 
 
@@ -71,3 +74,14 @@ def test_a_configuration_error_in_model_construction_is_one_line(fox, tmp_path):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("ns-train: error: --pipeline.model.sp.boundary reflect needs a bounded scene") and "contraction" in last
+
+
+def test_an_absent_or_incomplete_capture_is_a_skip_reason_naming_it(tmp_path):
+    """What the ``fox`` fixture skips with (runs without the capture)."""
+    assert "no " + str(tmp_path / "transforms.json") in fox_missing(tmp_path)
+    (tmp_path / "transforms.json").write_text('{"frames": [{"file_path": "images/a.jpg"}, {"file_path": "images/b.jpg"}]}')
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "a.jpg").write_bytes(b"x")
+    assert "incomplete: 1 of 2 images missing" in fox_missing(tmp_path)
+    (tmp_path / "images" / "b.jpg").write_bytes(b"x")
+    assert fox_missing(tmp_path) is None
