@@ -6,3 +6,40 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 
 torch.set_num_threads(int(os.environ.get("SP_TEST_THREADS", "1")))
+
+
+# -- disk: a test's large checkpoints go when the test is done ------------------------------------
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+LARGE_BYTES = 16 * 2**20
+"""Checkpoint-like files above this size are removed from a test's ``tmp_path`` after the test (the
+257^3 ReLU-field presets write about 2.6 GB per checkpoint; one suite run used to leave ~6.4 GB)."""
+LARGE_SUFFIXES = (".ckpt", ".pt", ".pth", ".npy", ".npz", ".safetensors")
+
+
+def remove_large_files(root: Path, limit: int = LARGE_BYTES, suffixes=LARGE_SUFFIXES) -> list:
+    """Delete files under ``root`` ending in one of ``suffixes`` and larger than ``limit`` bytes; the removed paths."""
+    removed = []
+    if not root.is_dir():
+        return removed
+    for path in root.rglob("*"):
+        try:
+            if path.suffix in suffixes and path.is_file() and not path.is_symlink() and path.stat().st_size > limit:
+                path.unlink()
+                removed.append(path)
+        except OSError:  # a file that went meanwhile, or one we may not remove: leave it
+            pass
+    return removed
+
+
+@pytest.fixture(autouse=True)
+def _remove_large_checkpoints_after_the_test(request):
+    """Runs after every test that has a ``tmp_path`` (all its assertions are done by then): its large
+    checkpoints are removed, the small files stay for inspection. ``SP_TEST_KEEP_LARGE=1`` keeps them."""
+    # the test asks for tmp_path anyway; asking here first only fixes the order (ours is torn down last)
+    tmp_path = request.getfixturevalue("tmp_path") if "tmp_path" in request.fixturenames else None
+    yield
+    if tmp_path is not None and not os.environ.get("SP_TEST_KEEP_LARGE"):
+        remove_large_files(Path(tmp_path))
