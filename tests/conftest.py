@@ -13,7 +13,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-LARGE_BYTES = 16 * 2**20
+LARGE_BYTES = 4 * 2**20
 """Checkpoint-like files above this size are removed from a test's ``tmp_path`` after the test (the
 257^3 ReLU-field presets write about 2.6 GB per checkpoint; one suite run used to leave ~6.4 GB)."""
 LARGE_SUFFIXES = (".ckpt", ".pt", ".pth", ".npy", ".npz", ".safetensors")
