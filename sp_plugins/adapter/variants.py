@@ -137,6 +137,12 @@ def field_default(cls: type, name: str) -> Any:
     raise ValueError(f"{cls.__name__}.{name} has no default")
 
 
+def target_class(config: Any) -> Any:
+    """The class a host config instantiates (its ``_target``), or None when it names none."""
+    target = getattr(config, "_target", None)
+    return target if isinstance(target, type) else None
+
+
 def convert(config: Any, cls: type, **changes: Any) -> Any:
     """``config`` as an instance of ``cls`` (a subclass of its class): every init field copied
     except ``_target`` (unless given in ``changes``), then ``changes`` applied."""

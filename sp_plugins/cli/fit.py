@@ -107,9 +107,6 @@ class SDFCommand(SDFFitConfig, _Output):
     """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
 
 
-_OWN_FIELDS = {"input", "out", "overwrite", "no_sp", "quiet", "device", "gt", "estimate_normals", "checkpoint_every", "resume"}
-
-
 def _task_config(cmd, cls):
     """The task config inside a command (drops the command's own flags)."""
     kwargs = {f.name: getattr(cmd, f.name) for f in dataclasses.fields(cls) if f.init}

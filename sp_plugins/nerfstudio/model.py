@@ -18,13 +18,14 @@ train where SP would reach nothing.
 
 from __future__ import annotations
 
-from typing import Any, Dict, List
+from typing import List
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
+from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.host.lpips import detach_lpips, drop_missing_lpips, offline_lpips
@@ -105,8 +106,7 @@ class AnyMethodSPModel(SPModel):
             super().populate_modules()
 
     def sp_host_name(self) -> str:
-        host = next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins."))
-        return f"{host.__module__}.{host.__qualname__}"
+        return class_path(next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins.")))
 
     def sp_fields(self) -> List[torch.nn.Module]:
         from sp_plugins.nerfstudio.frustum_sp import FrustumSPField
@@ -125,7 +125,7 @@ class AnyMethodSPModel(SPModel):
                 )
         if sp.enabled and sp.alpha_grid:
             for cls in type(self).__mro__:
-                unreachable = ALPHA_GRID_UNREACHABLE.get(f"{cls.__module__}.{cls.__qualname__}")
+                unreachable = ALPHA_GRID_UNREACHABLE.get(class_path(cls))
                 if unreachable:
                     raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
                                      "use a global alpha (the default)")

@@ -27,7 +27,7 @@ import sys
 from typing import Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter.variants import class_path, convert
+from sp_plugins.adapter.variants import class_path, convert, target_class
 from sp_plugins.core import SPConfig
 
 PROG = "sp-train"
@@ -61,11 +61,6 @@ OUR_BASELINES = {
 """Our baselines (SP off) and the method that is the same with SP on."""
 
 
-def _model_class(model_config: Any) -> Optional[type]:
-    target = getattr(model_config, "_target", None)
-    return target if isinstance(target, type) else None
-
-
 def _cuda_available() -> bool:
     import torch
 
@@ -80,7 +75,7 @@ def refusal(config: Any) -> Optional[str]:
     if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
         return "it is an external method that is not installed; install it, then it is listed here"
     model_config = getattr(getattr(config, "pipeline", None), "model", None)
-    model = _model_class(model_config)
+    model = target_class(model_config)
     if model is None:
         return "its model config has no model class (_target) to subclass"
     if hasattr(model_config, "sp"):
@@ -122,7 +117,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     else:
         sp_config = copy.deepcopy(sp) if sp is not None else dataclasses.replace(presets.DEFAULT)
         config_cls = variant("ModelConfig", type(model))
-        config.pipeline.model = convert(model, config_cls, _target=variant("Model", _model_class(model)), sp=sp_config)
+        config.pipeline.model = convert(model, config_cls, _target=variant("Model", target_class(model)), sp=sp_config)
     config.method_name = name or (config.method_name if config.method_name.startswith("sp-") else f"sp-{config.method_name}")
     config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
     with_float_schedulers(config.optimizers)  # the host's numpy learning rates break torch.load in ns-eval

@@ -31,7 +31,7 @@ from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
 from sp_plugins.adapter.field import SPFieldMixin
-from sp_plugins.core import StochasticPreconditioner, finite_differences
+from sp_plugins.core import finite_differences
 from sp_plugins.adapter.errors import InputError
 
 LAPLACIAN = "sdf_laplacian"

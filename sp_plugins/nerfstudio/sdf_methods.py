@@ -27,7 +27,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
-from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.host.data import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
@@ -68,7 +68,7 @@ def sdf_trainer_config(method_name: str, model, steps: int, lr: float, warm_up_e
             "fields": _optimizer(lr, steps, warm_up_end),
             GRID_GROUP: _optimizer(lr, steps, warm_up_end),  # the hash-grid tables: same settings unless swept
             "field_background": _optimizer(lr, steps, warm_up_end),
-            ALPHA_GRID_GROUP: {"optimizer": AdamOptimizerConfig(lr=sp.alpha_grid_lr, eps=1e-15), "scheduler": None},
+            ALPHA_GRID_GROUP: alpha_grid_optimizer(sp),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
         vis="viewer",

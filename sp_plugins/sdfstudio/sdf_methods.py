@@ -33,10 +33,9 @@ import dataclasses
 from typing import Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter.variants import class_path
-from sp_plugins.adapter.variants import convert as _convert
+from sp_plugins.adapter.variants import class_path, convert, target_class
 from sp_plugins.core import SPConfig
-from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.sdfstudio.registration import MethodSpecification
 
 NEUS_SP = presets.NEUS
@@ -61,21 +60,11 @@ REFUSED_MODELS: Dict[str, str] = {
 """Host model classes (and subclasses) with an ``sdf_field`` that SP still does not apply to, and why."""
 
 
-def convert(config: Any, cls: type, **changes: Any) -> Any:
-    """``config`` as an instance of its subclass ``cls`` (see :func:`sp_plugins.adapter.variants.convert`)."""
-    return _convert(config, cls, **changes)
-
-
 def host_method_config(name: str):
     """A deep copy of sdfstudio's own config of method ``name``."""
     from nerfstudio.configs.method_configs import method_configs
 
     return copy.deepcopy(method_configs[name])
-
-
-def _model_class(model_config: Any) -> Optional[type]:
-    target = getattr(model_config, "_target", None)
-    return target if isinstance(target, type) else None
 
 
 def refusal(config: Any) -> Optional[str]:
@@ -85,7 +74,7 @@ def refusal(config: Any) -> Optional[str]:
     from nerfstudio.models.base_surface_model import SurfaceModel
 
     model_config = getattr(getattr(config, "pipeline", None), "model", None)
-    model = _model_class(model_config)
+    model = target_class(model_config)
     if model is None:
         return "its model config has no model class (_target) to subclass"
     for cls in model.__mro__:
@@ -130,7 +119,7 @@ def sp_model_config(model_config: Any, sp: SPConfig) -> Any:
     from sp_plugins.sdfstudio.sdf_field import SPSDFFieldConfig
     from sp_plugins.sdfstudio.variants import variant
 
-    model = _model_class(model_config)
+    model = target_class(model_config)
     assert model is not None
     field_changes: Dict[str, Any] = {}
     model_changes: Dict[str, Any] = {}
@@ -161,8 +150,6 @@ def with_sp(config: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] =
 
     ``sp`` defaults to :func:`preset_for` the model; ``name`` to ``sp-<method name>``. Raises
     ``ValueError`` naming the reason when SP cannot be put on the method (:func:`refusal`)."""
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
-
     config = copy.deepcopy(config)
     base = config.method_name
     if hasattr(config.pipeline.model, "sp"):
@@ -174,7 +161,7 @@ def with_sp(config: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] =
     sp = copy.deepcopy(sp) if sp is not None else preset_for(host_model)
     config.pipeline.model = sp_model_config(host_model, sp)
     config.method_name = name or f"{PREFIX}{base}"
-    config.optimizers[ALPHA_GRID_GROUP] = {"optimizer": AdamOptimizerConfig(lr=sp.alpha_grid_lr, eps=1e-15), "scheduler": None}
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(sp)
     text = description or f"sdfstudio {base} {describe(sp, replaces_coarse_to_fine(host_model))}."
     return MethodSpecification(config=config, description=text)
 

@@ -33,7 +33,6 @@ from torch import Tensor, nn
 
 from sp_plugins.adapter.field import SPFieldMixin
 
-from sp_plugins.core import StochasticPreconditioner
 
 ColorMode = Literal["sh", "rgb"]
 DIFFUSE_RGB = "rgb_diffuse"
