@@ -73,26 +73,46 @@ def write_blender(root: Path, views: SplitViews, fov_x: float) -> List[Path]:
     return written
 
 
-def sdfstudio_frames(root: Path, split: str, c2w: np.ndarray, images: np.ndarray, K: np.ndarray) -> List[dict]:
-    """Write one split's images and masks under `root`; return its ``meta_data.json`` frames."""
+def sdfstudio_frames(
+    root: Path, split: str, c2w: np.ndarray, images: np.ndarray, K: np.ndarray, foreground_masks: bool = True
+) -> List[dict]:
+    """Write one split's images (and masks) under `root`; return its ``meta_data.json`` frames."""
     (root / "rgb").mkdir(parents=True, exist_ok=True)
-    (root / "mask").mkdir(parents=True, exist_ok=True)
+    if foreground_masks:
+        (root / "mask").mkdir(parents=True, exist_ok=True)
     intrinsics = np.eye(4)
     intrinsics[:3, :3] = K
     frames = []
     for index, (pose, image) in enumerate(zip(c2w, images)):
         rgb_path, mask_path = f"rgb/{split}_{index:03d}.png", f"mask/{split}_{index:03d}.png"
         imageio.imwrite(root / rgb_path, to_uint8(composite_white(image)))
-        imageio.imwrite(root / mask_path, np.where(image[..., 3] >= 0.5, 255, 0).astype(np.uint8))
-        frames.append(
-            {
-                "rgb_path": rgb_path,
-                "camtoworld": opengl_to_opencv(pose).tolist(),
-                "intrinsics": intrinsics.tolist(),
-                "foreground_mask": mask_path,
-            }
-        )
+        frame = {"rgb_path": rgb_path, "camtoworld": opengl_to_opencv(pose).tolist(), "intrinsics": intrinsics.tolist()}
+        if foreground_masks:
+            imageio.imwrite(root / mask_path, np.where(image[..., 3] >= 0.5, 255, 0).astype(np.uint8))
+            frame["foreground_mask"] = mask_path
+        frames.append(frame)
     return frames
+
+
+def object_mask_path(layout: str, split: str, index: int) -> str:
+    """Where `write_object_masks` puts view `index` of `split`, relative to the layout's root."""
+    if layout == "blender":
+        return f"object_mask/{split}/r_{index}.png"
+    if layout == "sdfstudio":
+        return f"object_mask/{split}_{index:03d}.png"
+    raise ValueError(f"unknown layout {layout!r}: 'blender' or 'sdfstudio'.")
+
+
+def write_object_masks(root: Path, masks: Dict[str, Float[np.ndarray, "n h w"]], layout: str) -> None:
+    """Object masks for metrics (255 where a pixel is at least half object), beside a layout's images.
+
+    They are not training masks: a DTU-like scene trains on opaque images, as DTU does without masks.
+    """
+    for split, split_masks in masks.items():
+        for index, mask in enumerate(split_masks):
+            path = root / object_mask_path(layout, split, index)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            imageio.imwrite(path, np.where(mask >= 0.5, 255, 0).astype(np.uint8))
 
 
 def write_sdfstudio(
@@ -105,8 +125,12 @@ def write_sdfstudio(
     near: float,
     far: float,
     world_to_gt: Float[np.ndarray, "4 4"],
+    foreground_masks: bool = True,
 ) -> List[Path]:
-    """Write the SDFStudio layout under `root`; returns the meta-data paths (train first)."""
+    """Write the SDFStudio layout under `root`; returns the meta-data paths (train first).
+
+    Without `foreground_masks` (a DTU-like scene) the frames name no mask and training sees none.
+    """
     root.mkdir(parents=True, exist_ok=True)
     written = []
     for split, (c2w, images) in views.items():
@@ -115,7 +139,7 @@ def write_sdfstudio(
             "height": int(height),
             "width": int(width),
             "has_mono_prior": False,
-            "has_foreground_mask": True,
+            "has_foreground_mask": bool(foreground_masks),
             "pairs": None,
             "worldtogt": np.asarray(world_to_gt).tolist(),
             "scene_box": {
@@ -125,7 +149,7 @@ def write_sdfstudio(
                 "radius": 1.0,
                 "collider_type": "near_far",
             },
-            "frames": sdfstudio_frames(root, split, c2w, images, K),
+            "frames": sdfstudio_frames(root, split, c2w, images, K, foreground_masks),
         }
         path = root / ("meta_data.json" if split == "train" else f"meta_data_{split}.json")
         _write_json(path, meta)

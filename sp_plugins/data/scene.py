@@ -31,7 +31,8 @@ from sp_plugins.data.cameras import (
     look_at_origin,
     random_directions,
 )
-from sp_plugins.data.layouts import write_blender, write_sdfstudio
+from sp_plugins.data.dtu_like import CapCameras, default_dtu_resolution, dtu_like_fov, render_dtu_views, surroundings
+from sp_plugins.data.layouts import write_blender, write_object_masks, write_sdfstudio
 from sp_plugins.data.mesh import MeshSource, load_mesh, normalize_mesh, up_rotation
 from sp_plugins.data.render import ray_intersector, render_views
 
@@ -96,7 +97,7 @@ def make_scene(
     n_train: int = 24,
     n_val: int = 4,
     n_test: int = 4,
-    resolution: Union[int, Tuple[int, int]] = 64,
+    resolution: Optional[Union[int, Tuple[int, int]]] = None,
     layouts: Sequence[str] = LAYOUTS,
     seed: int = 0,
     hemisphere: bool = False,
@@ -108,6 +109,8 @@ def make_scene(
     backend: str = "auto",
     overwrite: bool = False,
     progress: bool = False,
+    dtu_like: bool = False,
+    cap: Optional[CapCameras] = None,
 ) -> ScenePaths:
     """Render `mesh` from cameras on a sphere into `out_dir` in the requested `layouts`.
 
@@ -116,7 +119,7 @@ def make_scene(
             (``"sphere"``, ``"box"``, ``"torus"``, ``"capsule"``).
         n_train, n_val, n_test: views per split. Training cameras come in opposite-azimuth pairs
             (see `balanced_directions`); held-out cameras are drawn independently.
-        resolution: image width = height, or ``(width, height)``.
+        resolution: image width = height, or ``(width, height)`` (default 64, or 96x72 with `dtu_like`).
         seed: all cameras are a deterministic function of it.
         hemisphere: keep cameras above the horizon (z >= 0) instead of the whole sphere.
         up_axis: the mesh axis that becomes +Z ('y' for most Y-up models).
@@ -128,16 +131,28 @@ def make_scene(
         backend: ray caster, 'auto' | 'embree' | 'triangle' (see `render.ray_intersector`).
         overwrite: replace a scene already in `out_dir` (only the files this function writes).
         progress: show a tqdm bar while rendering.
+        dtu_like: the object stands on a textured ground inside a textured backdrop, seen by cameras
+            on a frontal cap (`cap`); images are opaque (no masks for training) and each layout gets
+            ``object_mask/`` for metrics (see `sp_plugins.data.dtu_like`). `hemisphere` does not apply.
+        cap: where the DTU-like cameras sit (default `CapCameras()`: 100 degrees of azimuth, 12-55
+            degrees of elevation).
     """
     layouts = tuple(layouts)
     unknown = sorted(set(layouts) - set(LAYOUTS))
     if unknown or not layouts:
         raise ValueError(f"layouts must be a non-empty subset of {LAYOUTS}, got {layouts}.")
     _check_counts(n_train, n_val, n_test)
-    width, height = _resolution(resolution)
+    if cap is not None and not dtu_like:
+        raise ValueError("cap (the DTU-like camera cap) applies only with dtu_like=True (sp-scene --dtu-like).")
+    if dtu_like and hemisphere:
+        raise ValueError("hemisphere does not apply to a DTU-like scene: its cameras are on a frontal cap (see cap).")
+    width, height = _resolution(default_dtu_resolution(resolution) if dtu_like else (64 if resolution is None else resolution))
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}.")
-    fov = default_fov(radius, camera_distance) if fov_x is None else float(fov_x)
+    if fov_x is not None:
+        fov = float(fov_x)
+    else:
+        fov = dtu_like_fov(radius, camera_distance, width, height) if dtu_like else default_fov(radius, camera_distance)
     if not 0.0 < fov < math.pi:
         raise ValueError(f"fov_x must be in (0, pi) radians, got {fov}.")
     source = load_mesh(mesh)
@@ -146,19 +161,29 @@ def make_scene(
     _prepare(out_dir, overwrite)
 
     rng = np.random.default_rng(seed)
-    directions = {
-        "train": balanced_directions(n_train, rng, hemisphere),
-        "val": random_directions(n_val, rng, hemisphere),
-        "test": random_directions(n_test, rng, hemisphere),
-    }
+    if dtu_like:
+        cap = cap or CapCameras()
+        directions = {"train": cap.grid(n_train, rng), "val": cap.random(n_val, rng), "test": cap.random(n_test, rng)}
+    else:
+        directions = {
+            "train": balanced_directions(n_train, rng, hemisphere),
+            "val": random_directions(n_val, rng, hemisphere),
+            "test": random_directions(n_test, rng, hemisphere),
+        }
     K = intrinsics(width, height, fov)
-    caster = ray_intersector(normalised, backend)
-    views = {}
+    caster = None if dtu_like else ray_intersector(normalised, backend)
+    views, object_masks = {}, {}
     for split, dirs in directions.items():
         c2w = look_at_origin(camera_distance * dirs)
-        images = render_views(
-            normalised, c2w, K, width, height, supersample, progress=progress, intersector=caster, desc=f"rendering {split}"
-        )
+        if dtu_like:
+            rgb, object_masks[split] = render_dtu_views(
+                normalised, c2w, K, width, height, supersample, backend, progress=progress, desc=f"rendering {split}"
+            )
+            images = np.concatenate([rgb, np.ones_like(rgb[..., :1])], axis=-1)  # opaque: nothing to mask out
+        else:
+            images = render_views(
+                normalised, c2w, K, width, height, supersample, progress=progress, intersector=caster, desc=f"rendering {split}"
+            )
         views[split] = (c2w, images)
 
     # x_dataset = (R_up x_mesh - center) * scale  <=>  x_mesh = R_up^T (x_dataset / scale + center)
@@ -178,11 +203,17 @@ def make_scene(
         write_blender(paths["blender"], views, fov)
     if "sdfstudio" in layouts:
         paths["sdfstudio"] = out_dir / "sdfstudio"
-        write_sdfstudio(paths["sdfstudio"], views, K, width, height, SCENE_BOX, near, far, dataset_to_mesh)
+        write_sdfstudio(
+            paths["sdfstudio"], views, K, width, height, SCENE_BOX, near, far, dataset_to_mesh, foreground_masks=not dtu_like
+        )
+    for layout, root in paths.items():
+        if dtu_like and root is not None:
+            write_object_masks(root, object_masks, layout)
 
     scene = {
         "format": "sp-plugins synthetic scene",
         "version": 1,
+        "kind": "dtu-like" if dtu_like else "object on white",
         "source": str(mesh) if not hasattr(mesh, "faces") else "trimesh.Trimesh",
         "gt_mesh": GT_MESH_FILE,
         "normalization": {
@@ -209,6 +240,7 @@ def make_scene(
             "supersample": supersample,
         },
         "splits": {split: len(dirs) for split, dirs in directions.items()},
+        **({"dtu_like": _dtu_like_record(normalised, cap)} if dtu_like else {}),
         "layouts": {name: name for name in layouts},
         "nerfstudio": {
             "blender": "blender-data: x_nerfstudio = scale_factor * x_dataset (scale_factor defaults to 1.0); "
@@ -220,6 +252,21 @@ def make_scene(
     scene_json = out_dir / SCENE_FILE
     scene_json.write_text(json.dumps(scene, indent=2))
     return ScenePaths(out_dir, scene_json, gt_mesh, paths["blender"], paths["sdfstudio"])
+
+
+def _dtu_like_record(normalised, cap: CapCameras) -> dict:
+    from sp_plugins.data.dtu_like import BACKDROP_RADIUS, GROUND_HALF_SIZE
+
+    _, ground_z = surroundings(normalised)
+    return {
+        "ground_z": ground_z,
+        "ground_half_size": GROUND_HALF_SIZE,
+        "backdrop_radius": BACKDROP_RADIUS,
+        "cap": {"azimuth_span_deg": cap.azimuth_span, "elevation_deg": list(cap.elevation), "front": "-Y"},
+        "object_masks": "object_mask/ in each layout: blender object_mask/<split>/r_<i>.png, sdfstudio "
+        "object_mask/<split>_<i>.png; 255 where a pixel's first hit is the object (coverage >= 0.5)",
+        "training_masks": "none: images are opaque (ground and backdrop behind the object)",
+    }
 
 
 def make_tiny_scene(out_dir: Union[str, Path], mesh: MeshSource = "torus", **overrides) -> ScenePaths:
