@@ -34,9 +34,11 @@ def trainer_total_steps(attributes: Any) -> Optional[int]:
     return None if total is None else int(total)
 
 
-def start_step(attributes: Any) -> int:
-    """The step training starts at (a resumed run: the checkpoint's step + 1)."""
-    return int(getattr(getattr(attributes, "trainer", None), "_start_step", 0))
+def start_step(attributes: Any) -> Optional[int]:
+    """The step training starts at (a resumed run: the checkpoint's step + 1), or None when the
+    attributes do not say (sdfstudio's carry no trainer)."""
+    start = getattr(getattr(attributes, "trainer", None), "_start_step", None)
+    return None if start is None else int(start)
 
 
 def schedule_problem(config: SPConfig, total_steps: int, steps_flag: str = "--max-num-iterations") -> Optional[str]:
@@ -82,6 +84,9 @@ def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, steps_flag: str 
         problem = schedule_problem(sp.config, total, steps_flag)
         if problem:
             raise InputError(problem)
-        sp.set_step(start_step(attributes), total)
+        start = start_step(attributes)
+        # without a start step (sdfstudio), stay at the step the checkpoint loaded (0 on a fresh run);
+        # the schedule callback moves to the trainer's step before every iteration either way
+        sp.set_step(int(sp.step) if start is None else start, total)
     sync_alpha_grid_lr(sp, attributes)
     return [schedule_callback(sp, total)]
