@@ -127,6 +127,7 @@ def install_all(register_methods: bool = False) -> None:
     """Every sdfstudio compatibility patch, plus (``register_methods``) our methods in ns-train's
     method list. Call before sdfstudio is imported; safe to call again."""
     from sp_plugins.patches import (
+        sdfstudio_checkpoint_load,
         sdfstudio_cuda,
         sdfstudio_dataclasses,
         sdfstudio_lpips,
@@ -140,6 +141,7 @@ def install_all(register_methods: bool = False) -> None:
     sdfstudio_lpips.install()
     sdfstudio_cuda.install()
     sdfstudio_tcnn.install()
+    sdfstudio_checkpoint_load.install()
     if register_methods:
         from sp_plugins.sdfstudio.registration import add_methods
 

@@ -56,6 +56,7 @@ pytestmark = pytest.mark.usefixtures("patched")
 ROOT = Path(__file__).resolve().parents[2]
 METHOD, BASE = "sp-neus", "neus"
 STEPS, KILL_AT = 8, 4
+WARM_UP = 2
 
 # The child: sp-sdfstudio-train's own entry point with the user's argv; once step K's checkpoint is
 # written it saves the global RNG states (only for the test's control resume), writes the ready file
@@ -95,9 +96,14 @@ finally:
 
 def argv(scene: Path, out: Path, *extra) -> list:
     """The user's command line (after ``sp-sdfstudio-train``): SP on to the end (alpha > 0 across the
-    kill), checkpoints at K and at the end, all kept."""
+    kill), checkpoints at K and at the end, all kept, and the learning-rate warm-up (5000 steps in
+    sp-neus) over by step 2, as in a real run resumed after it: the checkpoint's learning rates are
+    then numpy float64 (sdfstudio's NeuSScheduler), which torch >= 2.6 refused to load until
+    ``sp_plugins.patches.sdfstudio_checkpoint_load``."""
     args = train_args(METHOD, BASE, scene, out, STEPS, "--pipeline.model.sp.end", "1.0", "--trainer.steps-per-save",
-                      KILL_AT, "--trainer.save-only-latest-checkpoint", "False", *extra)
+                      KILL_AT, "--trainer.save-only-latest-checkpoint", "False",
+                      "--optimizers.fields.scheduler.warm-up-end", WARM_UP, "--optimizers.field-background.scheduler.warm-up-end",
+                      WARM_UP, *extra)
     return [str(a) for a in args]
 
 
@@ -242,6 +248,9 @@ def test_killed_sp_neus_resumes_to_the_same_schedule_and_sp_stream_and_drifts_on
     for key in ("step", "pipeline", "optimizers", "schedulers", "scalers"):
         assert_same(killed_k[key], at_k[key], key)
     assert killed_k["pipeline"]["_model.sp._extra_state"]["generators"], "no SP generator state in the checkpoint"
+    # past the warm-up, sdfstudio's scheduler leaves numpy learning rates in the checkpoint (what the
+    # resume below must load weights-only)
+    assert isinstance(killed_k["schedulers"]["fields"]["_last_lr"][0], np.float64)
 
     def resume(out, rng=None):
         config = parse(argv(sdf_scene, out, "--trainer.load-dir", killed_run / "sdfstudio_models"))

@@ -8,6 +8,7 @@ import importlib.util
 import inspect
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -186,3 +187,54 @@ def test_opt_in_hook_waits_for_sdfstudio_and_can_be_switched_off():
     assert active.stdout.strip() == "['SdfstudioFinder']", active.stdout + active.stderr[-500:]
     off = unpatched_python(names)
     assert off.stdout.strip() == "[]", off.stdout + off.stderr[-500:]
+
+
+def test_checkpoints_with_numpy_learning_rates_load_in_sdfstudio_and_nowhere_else(tmp_path):
+    """Past its warm-up sdfstudio's NeuSScheduler (and MultiStepWarmupScheduler, and
+    ExponentialDecaySchedule from the start) leaves numpy float64 learning rates in every checkpoint;
+    torch >= 2.6 loads weights-only by default and refused them in both of sdfstudio's loads
+    (--trainer.load-dir, eval_setup): a real run could be neither resumed nor evaluated after 5000
+    steps. The patch allows numpy scalars there and only there (found by issue 22's kill and resume test)."""
+    import numpy as np
+    from nerfstudio.engine.schedulers import NeuSScheduler
+    from nerfstudio.engine.trainer import Trainer
+    from nerfstudio.utils import eval_utils
+
+    # the host still loads weights-only by default and still makes numpy learning rates (fails loudly when either changes)
+    for fn in (Trainer._load_checkpoint, eval_utils.eval_load_checkpoint):
+        assert 'torch.load(load_path, map_location="cpu")' in inspect.getsource(fn.__wrapped__), fn.__name__
+    optimizer = torch.optim.Adam([torch.nn.Parameter(torch.zeros(2))], lr=1e-3)
+    scheduler = NeuSScheduler(optimizer, warm_up_end=1, learning_rate_alpha=0.05, max_steps=10)
+    optimizer.step()
+    scheduler.step()
+    assert isinstance(scheduler.get_last_lr()[0], np.float64)
+
+    class Pipeline:
+        loaded = None
+
+        def load_pipeline(self, state):
+            self.loaded = state
+
+    state = {"step": 7, "pipeline": {"w": torch.ones(2)}, "optimizers": {"fields": optimizer.state_dict()},
+             "schedulers": {"fields": scheduler.state_dict()}, "scalers": {}}
+    (tmp_path / "sdfstudio_models").mkdir()
+    path = tmp_path / "sdfstudio_models" / "step-000000007.ckpt"
+    torch.save(state, path)
+    with pytest.raises(Exception, match="Weights only load failed"):  # elsewhere torch's default stays
+        torch.load(path, map_location="cpu")
+    with pytest.raises(Exception, match="Weights only load failed"):  # what sdfstudio did unpatched
+        eval_utils.eval_load_checkpoint.__wrapped__(SimpleNamespace(load_dir=tmp_path / "sdfstudio_models", load_step=None), Pipeline())
+
+    pipeline = Pipeline()
+    assert eval_utils.eval_load_checkpoint(SimpleNamespace(load_dir=tmp_path / "sdfstudio_models", load_step=None), pipeline) == path
+    assert torch.equal(pipeline.loaded["w"], torch.ones(2))
+
+    optimizers = SimpleNamespace(loaded=None)
+    optimizers.load_optimizers = lambda s: setattr(optimizers, "loaded", s)
+    optimizers.load_schedulers = lambda s: None
+    trainer = SimpleNamespace(config=SimpleNamespace(trainer=SimpleNamespace(load_dir=tmp_path / "sdfstudio_models", load_step=None, load_scheduler=True)),
+                              pipeline=Pipeline(), optimizers=optimizers, grad_scaler=SimpleNamespace(load_state_dict=lambda s: None))
+    Trainer._load_checkpoint(trainer)
+    assert trainer._start_step == 8 and optimizers.loaded["fields"]["param_groups"][0]["lr"] == scheduler.get_last_lr()[0]
+    with pytest.raises(Exception, match="Weights only load failed"):  # and after it, torch's default again
+        torch.load(path, map_location="cpu")

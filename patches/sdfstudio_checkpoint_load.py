@@ -1,0 +1,83 @@
+"""sdfstudio's checkpoint loads on torch >= 2.6: numpy learning rates allowed, nothing else.
+
+Targets sdfstudio commit 370902a. Its two checkpoint loads, ``Trainer._load_checkpoint`` (``ns-train
+--trainer.load-dir``) and ``eval_utils.eval_load_checkpoint`` (``eval_setup``: ``ns-eval``,
+``ns-extract-mesh``, ``ns-render``, our ``sp-sdfstudio-extract-mesh``), call
+``torch.load(path, map_location="cpu")``. torch >= 2.6 loads weights-only by default, and
+sdfstudio's ``LambdaLR`` schedulers compute their factor with numpy: ``NeuSScheduler`` and
+``MultiStepWarmupScheduler`` once past their warm-up (5000 steps for neus and most methods, 500 for
+some), ``ExponentialDecaySchedule`` (``SchedulerConfig``, e.g. the camera optimizer's) from the first
+step. From then on the optimizers' ``lr`` and the schedulers' ``_last_lr`` are numpy float64 in every
+checkpoint, weights-only unpickling refuses them (``Unsupported global: numpy.core.multiarray.scalar``),
+and the run can be neither resumed nor evaluated nor meshed: our methods' runs and sdfstudio's own.
+
+While those two functions run, ``torch.load`` also accepts numpy's scalar and dtype
+reconstructors (``torch.serialization.safe_globals``): still weights-only (no code runs from a
+checkpoint), and only there; every other ``torch.load`` in the process keeps torch's default.
+(The nerfstudio adapter meets the same host bug by keeping our methods' learning rates Python
+floats, :mod:`sp_plugins.nerfstudio.host.schedulers`, because a nerfstudio checkpoint may be loaded
+where the plugin is not imported; sdfstudio at 370902a runs on torch 2.x only with these patches,
+and this way checkpoints already written, and sdfstudio's own methods', load too.) A torch
+without ``safe_globals`` (< 2.5) loads without weights-only by default: nothing to do there.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from typing import Callable, List
+
+import torch
+
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, after_exec
+
+__all__ = ["HOST_COMMIT", "install", "numpy_scalar_globals"]
+
+_MARK = "_sp_numpy_scalars_allowed"
+
+
+def numpy_scalar_globals() -> List[object]:
+    """What a pickled numpy scalar needs: ``numpy.dtype``, the dtype's class (``numpy.dtypes``,
+    numpy >= 1.25: ``Float64DType`` for a learning rate) and ``multiarray.scalar`` (under
+    ``numpy.core`` in numpy 1.x, ``numpy._core`` in 2.x)."""
+    import numpy as np
+
+    found: List[object] = [np.dtype]
+    dtypes = getattr(np, "dtypes", None)
+    if dtypes is not None:
+        found += [cls for name, cls in sorted(vars(dtypes).items()) if name.endswith("DType") and isinstance(cls, type)]
+    for module in ("numpy._core.multiarray", "numpy.core.multiarray"):
+        try:
+            scalar = importlib.import_module(module).scalar
+        except (ImportError, AttributeError):
+            continue
+        found.append(scalar)
+        break  # numpy 2 keeps numpy.core as a deprecated alias of numpy._core
+    return found
+
+
+def allow_numpy_scalars(fn: Callable) -> Callable:
+    """``fn`` with numpy scalars allowed in its weights-only ``torch.load`` calls."""
+    if getattr(fn, _MARK, False) or not hasattr(torch.serialization, "safe_globals"):
+        return fn
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with torch.serialization.safe_globals(numpy_scalar_globals()):
+            return fn(*args, **kwargs)
+
+    setattr(wrapper, _MARK, True)
+    return wrapper
+
+
+def _patch_trainer(module) -> None:
+    module.Trainer._load_checkpoint = allow_numpy_scalars(module.Trainer._load_checkpoint)
+
+
+def _patch_eval_utils(module) -> None:  # eval_setup calls it through the module's globals
+    module.eval_load_checkpoint = allow_numpy_scalars(module.eval_load_checkpoint)
+
+
+def install() -> None:
+    after_exec("nerfstudio.engine.trainer", _patch_trainer)
+    after_exec("nerfstudio.utils.eval_utils", _patch_eval_utils)
