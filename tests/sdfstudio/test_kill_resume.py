@@ -28,6 +28,13 @@ What is exactly equal, and what is not (the numbers are printed and recorded as 
   sdfstudio) reproduces the uninterrupted run's losses, loss terms, metrics, alpha, SP state, final
   parameters and optimizer state to the bit.
 
+This test found two bugs on sdfstudio's load path (both fixed, both pinned here): a resumed model's
+preconditioner was reset to step 0 (alpha0) after the trainer's setup, until the first iteration
+(sdfstudio's callback attributes carry no trainer, hence no start step; ``sp_callbacks`` now keeps
+the loaded step); and a checkpoint written after the learning-rate warm-up did not load at all on
+torch >= 2.6 (numpy learning rates; ``sp_plugins.patches.sdfstudio_checkpoint_load``): the runs
+here end their warm-up at step 2 so that the resume loads such a checkpoint.
+
 Also: sdfstudio's resumed loop runs ``--trainer.max-num-iterations`` *more* steps (K+1 .. K+N) and has
 no way to stop earlier; our schedule keeps the original total N, so the test stops the resumed runs
 after step N-1 (a user would stop the run there, or let it go on at the final alpha).
