@@ -40,6 +40,7 @@ from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
 from sp_plugins.nerfstudio.host import hash_encoding
 from sp_plugins.adapter.callbacks import trainer_total_steps
+from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
 
@@ -62,6 +63,12 @@ class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
     """The SDF field (NeuS: frequency encoding only; hash grid with use_grid_feature)."""
     cos_anneal_end: float = 0.5
     """NeuS cosine annealing reaches 1 here: a fraction of training (<= 1) or a step count."""
+    background_mlp_layers: int = 8
+    """Layers of the NeRF++ background MLP (``background_model mlp``; nerfstudio's is 8 x 256)."""
+    background_mlp_width: int = 256
+    """Width of the NeRF++ background MLP. On a CPU the 8 x 256 background costs more than the whole
+    foreground of a small hash-grid NeuS (measured: about 40% of a step in matrix products); a
+    narrower one (e.g. 4 x 64) keeps a background model affordable."""
 
 
 class SPNeuSModel(SPModel, NeuSModel):
@@ -73,10 +80,31 @@ class SPNeuSModel(SPModel, NeuSModel):
 
         super().populate_modules()
         claim_for_cpu_marching_cubes(self)  # ns-export marching-cubes builds this model, then meshes it
+        self._size_background_mlp()
         device = self.kwargs.get("device")
         if self.config.background_model == "grid" and hash_encoding.use_sp_hash_grids(device):
             # the host's background grid is nerfstudio's slow torch HashEncoding without tcnn
             hash_encoding.setup_host_modules(self.field_background, self.__class__.__name__, device)
+
+    def _size_background_mlp(self) -> None:
+        """Rebuild the host's NeRF++ background MLP at the configured size (the host's own when unchanged)."""
+        layers, width = self.config.background_mlp_layers, self.config.background_mlp_width
+        if self.config.background_model != "mlp" or (layers, width) == (8, 256):
+            return
+        if layers < 1 or width < 1:
+            raise InputError(f"background_mlp_layers and background_mlp_width must be >= 1, got {layers} and {width}.")
+        from nerfstudio.fields.vanilla_nerf_field import NeRFField
+
+        host = self.field_background
+        self.field_background = NeRFField(
+            position_encoding=host.position_encoding,
+            direction_encoding=host.direction_encoding,
+            base_mlp_num_layers=layers,
+            base_mlp_layer_width=width,
+            head_mlp_layer_width=min(128, width),
+            skip_connections=(4,) if layers > 4 else (),
+            spatial_distortion=host.spatial_distortion,
+        )
 
     def attach_sp(self) -> None:
         self.field.use_preconditioner(self.sp)

@@ -8,6 +8,7 @@ import pytest
 import torch
 from ns_tiny import SDF_METHODS, _tiny_config, run_recording  # type: ignore[import-not-found]
 
+from nerfstudio.field_components.field_heads import FieldHeadNames
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.neus import NeuralangeloLiteModel, SPNeuSModel
 from sp_plugins.nerfstudio.runs import train
@@ -287,3 +288,34 @@ def test_a_schedule_longer_than_training_names_the_flags(tiny_scene, tmp_path):
     trainer = config.setup(local_rank=0, world_size=1)
     with pytest.raises(ValueError, match=r"--pipeline.model.sp.end 500 does not fit --max-num-iterations 20"):
         trainer.setup()
+
+
+def test_background_mlp_size_is_configurable_and_defaults_to_the_hosts(tiny_scene, tiny_config, tmp_path):
+    """``background_mlp_layers/width`` rebuild the NeRF++ background at that size; the default is nerfstudio's 8 x 256."""
+    sizes = {}
+    for layers, width in ((8, 256), (3, 32)):
+        config = tiny_config("neus-hashgrid", tiny_scene, tmp_path)
+        model_config = config.pipeline.model
+        model_config.background_model = "mlp"
+        model_config.background_mlp_layers, model_config.background_mlp_width = layers, width
+        model = model_config.setup(scene_box=_box(), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
+        linears = [m for m in model.field_background.mlp_base.modules() if isinstance(m, torch.nn.Linear)]
+        sizes[(layers, width)] = (len(linears), {m.out_features for m in linears})
+        out = model.field_background(_bg_samples())
+        assert out[FieldHeadNames.RGB].shape == (4, 5, 3)
+    assert sizes[(8, 256)] == (8, {256})
+    assert sizes[(3, 32)] == (3, {32})
+    config = tiny_config("neus-hashgrid", tiny_scene, tmp_path)
+    config.pipeline.model.background_model = "mlp"
+    config.pipeline.model.background_mlp_layers = 0
+    with pytest.raises(ValueError, match="background_mlp_layers"):
+        config.pipeline.model.setup(scene_box=_box(), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
+
+
+def _bg_samples():
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    shape = (4, 5)
+    frustums = Frustums(origins=torch.zeros(*shape, 3), directions=torch.nn.functional.normalize(torch.randn(*shape, 3), dim=-1),
+                        starts=torch.rand(*shape, 1) + 2, ends=torch.rand(*shape, 1) + 3, pixel_area=torch.ones(*shape, 1))
+    return RaySamples(frustums=frustums)
