@@ -17,7 +17,7 @@ processes trains every family below for two steps on the tiny scene; then, per f
 
 from __future__ import annotations
 
-from pathlib import Path
+import shutil
 
 import pytest
 import torch
@@ -62,7 +62,8 @@ def ddp_runs(tiny_scene, tmp_path_factory):
     resumed.load_dir = configs["sp-mipnerf"].get_checkpoint_dir()
     configs[RESUMED] = resumed
     results = run_ddp(configs, root / "record", world_size=2)
-    return results, root / "record", configs
+    yield results, root / "record", configs
+    shutil.rmtree(root, ignore_errors=True)  # ~50 MB of per-step states and checkpoints per test session
 
 
 @pytest.mark.parametrize("family", list(FAMILIES))
