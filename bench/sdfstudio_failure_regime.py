@@ -1,0 +1,230 @@
+"""The failure search of `bench.failure_regime` in sdfstudio, the host the paper used for NeuS (issue 21).
+
+Run it in the sdfstudio environment::
+
+    .venv-sdfstudio/bin/python -m bench.sdfstudio_failure_regime --settings dtu-paper
+    .venv-sdfstudio/bin/python -m bench.sdfstudio_failure_regime --list
+
+sdfstudio's own ``neus`` with a hash encoding (``use_grid_feature``, the paper's grid unless the
+setting says otherwise) against our ``sp-neus`` at the same settings, on the same DTU-like scenes
+(SDFStudio layout; no masks), trained side by side in one process from the same weights on the
+same rays (`bench.sdfstudio_neus_facto.Run`). Test PSNR (whole image and object mask) is computed
+on the scene's held-out test views (``meta_data_test.json``; sdfstudio's parser has no test
+split); Chamfer as in `bench.failure_regime`.
+
+Both runs' NeRF++ background MLPs are built at the setting's size (4 x 64 by default) while the
+trainers are set up: a benchmark-only substitution of sdfstudio's ``NeRFField`` defaults, the same
+for both runs, because its 8 x 256 background dominated a CPU step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import functools
+import json
+import logging
+import os
+import shutil
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bench.common import OUT_DIR, machine_info
+from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _crop, _psnr
+
+PAIR = ("neus", "sp-neus")
+
+
+def scene_dir(setting: Setting, out: Path) -> Path:
+    from sp_plugins.data import make_scene
+
+    name = Path(setting.mesh).stem
+    key = f"{name}_{'dtu' if setting.dtu_like else 'white'}_{setting.views}v_{setting.resolution[0]}x{setting.resolution[1]}"
+    root = out / "scenes" / key
+    if not (root / "scene.json").is_file():
+        make_scene(setting.mesh, root, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
+                   layouts=("sdfstudio",), seed=0, dtu_like=setting.dtu_like, overwrite=True)
+    test = root / "sdfstudio_test"
+    if not (test / "meta_data.json").is_file():  # the held-out views as a dataset of their own
+        test.mkdir(exist_ok=True)
+        shutil.copy(root / "sdfstudio" / "meta_data_test.json", test / "meta_data.json")
+        for sub in ("rgb", "object_mask", "mask"):
+            if (root / "sdfstudio" / sub).is_dir() and not (test / sub).exists():
+                (test / sub).symlink_to(root / "sdfstudio" / sub)
+    return root
+
+
+def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
+    import nerfstudio.configs.method_configs as host
+    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+
+    config = __import__("copy").deepcopy(host.method_configs[name])
+    config.machine.num_gpus = 0
+    config.machine.seed = setting.seed
+    config.vis = "tensorboard"
+    config.output_dir = out
+    config.experiment_name = f"{name}-{tag}"
+    config.timestamp = "bench"
+    config.trainer.max_num_iterations = setting.steps
+    config.trainer.steps_per_save = 10**9
+    config.trainer.steps_per_eval_batch = config.trainer.steps_per_eval_image = 10**9
+    dm = config.pipeline.datamanager
+    dm.dataparser = SDFStudioDataParserConfig(data=data)
+    dm.train_num_rays_per_batch = setting.rays
+    dm.eval_num_rays_per_batch = 1024
+    model = config.pipeline.model
+    model.num_samples = setting.num_samples
+    model.num_samples_importance = setting.num_samples_importance
+    model.num_up_sample_steps = 2
+    model.background_model = setting.background_model
+    if not setting.dtu_like:
+        model.background_color = "white"
+    model.eval_num_rays_per_chunk = 1024
+    f = model.sdf_field
+    f.use_grid_feature = True
+    f.encoding_type = "hash"
+    f.num_layers, f.num_layers_color = 2, 2
+    f.hidden_dim, f.hidden_dim_color, f.geo_feat_dim = setting.hidden_dim, setting.hidden_dim, setting.hidden_dim - 1
+    f.num_levels, f.max_res, f.log2_hashmap_size = setting.num_levels, setting.max_res, setting.log2_hashmap_size
+    f.inside_outside = False  # an object seen from outside
+    f.geometric_init = setting.geometric_init
+    f.bias = 0.5
+    if hasattr(model, "sp"):
+        model.sp.seed = setting.seed
+    for group in ("fields", "field_background"):
+        entry = config.optimizers[group]
+        entry["optimizer"].lr = setting.lr
+        entry["scheduler"].warm_up_end = setting.warm_up_end
+        entry["scheduler"].max_steps = setting.steps
+    return config
+
+
+@contextlib.contextmanager
+def background_mlp(layers: int, width: int):
+    """While trainers are set up, sdfstudio's surface models build their NeRF++ background at this size."""
+    import nerfstudio.models.base_surface_model as surface
+
+    original = surface.NeRFField
+    surface.NeRFField = functools.partial(original, base_mlp_num_layers=layers, base_mlp_layer_width=width,
+                                          head_mlp_layer_width=min(128, width), skip_connections=(4,) if layers > 4 else ())
+    try:
+        yield
+    finally:
+        surface.NeRFField = original
+
+
+def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
+    import imageio.v2 as imageio
+    import trimesh
+    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+
+    from sp_plugins.data import read_scene
+    from sp_plugins.geometry import extract_mesh, mesh_metrics
+
+    pipeline = run.trainer.pipeline
+    pipeline.eval()
+    test = SDFStudioDataParserConfig(data=scene / "sdfstudio_test").setup().get_dataparser_outputs("train")
+    cameras = test.cameras
+    whole, masked, first = [], [], None
+    for index in range(len(cameras)):
+        bundle = cameras.generate_rays(camera_indices=index)
+        with torch.no_grad():
+            outputs = pipeline.model.get_outputs_for_camera_ray_bundle(bundle)
+        pred = outputs["rgb"].clamp(0, 1).cpu().numpy()
+        target = imageio.imread(test.image_filenames[index])[..., :3].astype(np.float32) / 255.0
+        mask_path = scene / "sdfstudio" / "object_mask" / f"test_{index:03d}.png"
+        mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else np.any(target < 0.999, axis=-1)
+        whole.append(_psnr(pred, target))
+        masked.append(_psnr(pred[mask], target[mask]))
+        first = pred if first is None else first
+    field = pipeline.model.field
+    with torch.no_grad():
+        mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=setting.mesh_resolution)
+    gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
+    floor = read_scene(scene)["dtu_like"]["ground_z"] + 0.03 if setting.dtu_like else -np.inf
+    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
+    low[2] = max(low[2], floor)
+    geometry = mesh_metrics(_crop(mesh, low, high), _crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf)), n_points=50_000)
+    render_out.parent.mkdir(parents=True, exist_ok=True)
+    mesh.export(render_out.with_suffix(".ply"))
+    np.save(render_out.with_suffix(".npy"), first.astype(np.float16))
+    return {"psnr": statistics.mean(whole), "psnr_object": statistics.mean(masked), "psnr_views": whole,
+            "psnr_object_views": masked, "chamfer": geometry["chamfer"], "normal_consistency": geometry["normal_consistency"],
+            "fscore": geometry["fscore"], "area_ratio": geometry["area_ratio"]}
+
+
+def run_pair(setting: Setting, out: Path, tag: str) -> dict:
+    from bench.sdfstudio_neus_facto import Run
+
+    scene = scene_dir(setting, out)
+    with background_mlp(*setting.background_mlp):
+        runs = {name: Run(make_config(name, scene / "sdfstudio", setting, out / "runs", tag), setting.seed) for name in PAIR}
+    start = time.time()
+    for step in range(setting.steps):
+        for name in PAIR if step % 2 == 0 else PAIR[::-1]:
+            runs[name].step(step, setting.seed)
+        if step % 100 == 0 or step == setting.steps - 1:
+            logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
+                         ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
+    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start}
+    for name, run in runs.items():
+        metrics = evaluate(run, scene, setting, out / "renders" / tag / name)
+        metrics["median_step_s"] = statistics.median(run.times[min(10, len(run.times) // 10):])
+        metrics["final_loss"] = statistics.mean(run.losses[-20:])
+        metrics["losses"] = run.losses
+        metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
+        result[name] = metrics
+    result["machine"] = machine_info()
+    return result
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--settings", nargs="+", default=["dtu-paper"], choices=sorted(SETTINGS))
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--list", action="store_true")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=OUT_DIR / "sdfstudio_failure_regime")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    if args.list:
+        for name, setting in SETTINGS.items():
+            print(f"{name}: {dataclasses.asdict(setting)}")
+        return
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    torch.set_num_threads(args.threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    for noisy in ("nerfstudio", "PIL", "trimesh"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    from sp_plugins.patches.sdfstudio_import_hook import install_all
+
+    install_all()
+    import scripts.train  # noqa: F401  (sdfstudio's import order)
+
+    from sp_plugins.sdfstudio.registration import add_methods
+
+    add_methods()
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in args.settings:
+        setting = SETTINGS[name] if args.steps is None else dataclasses.replace(SETTINGS[name], steps=args.steps)
+        tag = f"{name}_steps{setting.steps}"
+        path = args.out / f"{tag}.json"
+        if path.is_file() and not args.overwrite:
+            logging.info("done already: %s", path.name)
+            continue
+        result = run_pair(setting, args.out, tag)
+        path.write_text(json.dumps(result, indent=1))
+        b, s = result[PAIR[0]], result[PAIR[1]]
+        print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {b['chamfer']:.4f}); "
+              f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {s['chamfer']:.4f})", flush=True)
+    print(f"machine: {machine_info()}")
+
+
+if __name__ == "__main__":
+    main()
