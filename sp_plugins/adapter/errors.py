@@ -3,25 +3,124 @@
 nerfstudio's commands have no error handler, so an exception raised while the trainer sets up
 prints a deep traceback. Our own input checks raise :class:`InputError` (a ``ValueError``); an
 exception hook prints an uncaught ``InputError`` as ``<command>: error: ...`` and exits with
-status 2. Every other exception keeps Python's (or the host's) usual report. The hook goes in
-when one of our methods is built or in our own commands, never at import: a process that trains
-only other methods keeps its hook.
+status 2. The same hook recognizes a few failures the host's own code hits on bad files, from
+where they were raised (:func:`describe_failure`): a checkpoint that ``torch.load`` cannot read
+(truncated, damaged, not a checkpoint), a checkpoint that ``torch.save`` could not write (full
+disk; the partial file is removed), and an ``OSError`` writing a file (read-only folder, full
+disk, no permission). Every other exception keeps Python's (or the host's) usual report. The hook
+goes in when one of our methods is built or in our own commands, never at import: a process that
+trains only other methods keeps its hook.
 """
 
 from __future__ import annotations
 
+import errno
+import os
+import re
 import sys
 from pathlib import Path
+from types import TracebackType
+from typing import Optional
 
 
 class InputError(ValueError):
     """Input a user can fix (a missing folder, a wrong layout, a flag that does not fit)."""
 
 
+WRITE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+"""``OSError`` numbers that mean "this place cannot take the file": permissions, a read-only file
+system, a full disk or quota, a file-size limit."""
+
+
+def first_line(exc: BaseException, limit: int = 200) -> str:
+    """The first line of ``exc``'s message (its type's name when it has none), at most ``limit`` characters."""
+    text = str(exc).strip()
+    if isinstance(exc, KeyError) or not text:
+        text = f"{type(exc).__name__}{': ' + text if text else ''}"
+    line = text.splitlines()[0]
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def write_failure(exc: OSError, what: Optional[str] = None, name: Optional[str] = None) -> str:
+    """One line for an ``OSError`` that stopped a write (``what``: the place to name, default the
+    error's file name; ``name``: the file that was being written there)."""
+    where = what or exc.filename or "the output"
+    reason = f"{name}: {exc.strerror or first_line(exc)}" if name else (exc.strerror or first_line(exc))
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        hint = "the disk is full (or a quota or file-size limit is reached): free space or write elsewhere"
+    elif exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        hint = "the folder is read-only or not yours: choose a writable output folder"
+    else:
+        hint = "choose another output folder"
+    return f"{where}: cannot write ({reason}); {hint}"
+
+
+def _frames(tb: Optional[TracebackType]):
+    while tb is not None:
+        yield tb.tb_frame
+        tb = tb.tb_next
+
+
+def _torch_frame(tb: Optional[TracebackType], name: str):
+    """The frame of ``torch.serialization.<name>`` in traceback ``tb`` (the outermost), or None."""
+    for frame in _frames(tb):
+        code = frame.f_code
+        if code.co_name == name and code.co_filename.replace(os.sep, "/").endswith("torch/serialization.py"):
+            return frame
+    return None
+
+
+def _path_of(handle) -> Optional[str]:
+    if isinstance(handle, (str, os.PathLike)):
+        return os.fspath(handle)
+    name = getattr(handle, "name", None)
+    return name if isinstance(name, str) else None
+
+
+def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> Optional[str]:
+    """One line for a failure a user can fix that host code raised on a bad file, or None.
+
+    - raised inside ``torch.load``: the checkpoint (named) is truncated, damaged or not a checkpoint;
+    - raised inside ``torch.save``: the checkpoint could not be written (its partial file is
+      deleted, so a later resume does not pick it up as the latest);
+    - an ``OSError`` of :data:`WRITE_ERRNOS` with a file name: that file could not be written.
+    """
+    tb = tb if tb is not None else exc.__traceback__
+    if isinstance(exc, InputError):
+        return str(exc)
+    load = _torch_frame(tb, "load")
+    if load is not None:
+        path = _path_of(load.f_locals.get("f")) or "the checkpoint"
+        if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
+            return f"{path}: checkpoint not found"
+        refused = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(exc))
+        if refused:
+            return (f"{path}: holds a {refused.group(1)} object, which torch's weights-only loading refuses; it was written "
+                    "by another version (e.g. nerfstudio's schedulers stored numpy learning rates): retrain with this version")
+        return (f"{path}: cannot be read as a PyTorch checkpoint ({first_line(exc, 120)}); the file is truncated or "
+                "damaged (an interrupted copy or save?) or is not a checkpoint: copy it again, or load another step")
+    save = _torch_frame(tb, "save")
+    if save is not None:
+        path = _path_of(save.f_locals.get("f"))
+        if path is not None and os.path.isfile(path):
+            try:
+                os.unlink(path)  # a partial checkpoint would be taken for the latest one by a resume
+            except OSError:
+                pass
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else first_line(exc, 120)
+        return (f"{path or 'the checkpoint'}: writing the checkpoint failed ({reason}); the disk is probably full or the "
+                "folder read-only (the partial file was removed): free space or choose another output folder")
+    if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename:
+        return write_failure(exc)
+    return None
+
+
 def _one_line_input_errors(previous):
     def hook(kind, value, traceback):
-        if issubclass(kind, InputError):
-            print(f"{Path(sys.argv[0]).name}: error: {value}", file=sys.stderr)
+        message = describe_failure(value, traceback) if isinstance(value, Exception) else None
+        if message is not None:
+            print(f"{Path(sys.argv[0]).name}: error: {message}", file=sys.stderr)
+            sys.stderr.flush()
             raise SystemExit(2)
         previous(kind, value, traceback)
 

@@ -12,6 +12,7 @@ callable nerfstudio meshes) coarse to fine, only near the surface
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -34,26 +35,92 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Refused(Exception):
+    """One line for the user; exit status 2."""
+
+
+def _load_saved_config(path: Path):
+    """The ``TrainerConfig`` in ``path``, or :class:`_Refused` naming the file and why (a class path
+    this installation lacks: the file was written by another version)."""
+    import yaml
+
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise _Refused(f"--load-config {path}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        config = yaml.load(text, Loader=yaml.Loader)
+    except yaml.constructor.ConstructorError as exc:
+        detail = " ".join(str(exc.problem or exc).split())
+        raise _Refused(f"--load-config {path}: {detail}; it was written by another version of sp-plugins or nerfstudio "
+                       f"(this is {_versions()}): load it with the version that wrote it, or retrain") from None
+    except yaml.YAMLError as exc:
+        raise _Refused(f"--load-config {path}: not a valid config.yml ({' '.join(str(exc).split())[:160]})") from None
+    except (ImportError, AttributeError) as exc:
+        raise _Refused(f"--load-config {path}: names {exc} (a class this installation lacks); it was written by another "
+                       f"version of sp-plugins or nerfstudio (this is {_versions()}): load it with that version, or retrain") from None
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    if not isinstance(config, TrainerConfig):
+        raise _Refused(f"--load-config {path}: holds a {type(config).__name__}, not the TrainerConfig ns-train writes "
+                       "(config.yml in the run folder)")
+    return config
+
+
+def _versions() -> str:
+    from sp_plugins.adapter.checks import _versions as versions
+
+    return versions()
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not args.load_config.is_file():
-        parser.error(f"{args.load_config}: config file not found; pass the config.yml that ns-train wrote")
-    if args.resolution < 2:
-        parser.error(f"--resolution {args.resolution}: need at least 2 cells per axis (128 and up for a useful mesh)")
-    if (args.box_min is None) != (args.box_max is None):
-        parser.error("give both --box-min and --box-max, or neither (the model's scene box)")
+    try:
+        return _export(args)
+    except _Refused as refused:
+        print(f"sp-export-mesh: error: {refused}", file=sys.stderr)
+        return 2
 
+
+def _export(args) -> int:
+    if not args.load_config.is_file():
+        raise _Refused(f"--load-config {args.load_config}: config file not found; pass the config.yml that ns-train wrote")
+    if args.resolution < 2:
+        raise _Refused(f"--resolution {args.resolution}: need at least 2 cells per axis (128 and up for a useful mesh)")
+    if (args.box_min is None) != (args.box_max is None):
+        raise _Refused("give both --box-min and --box-max, or neither (the model's scene box)")
+
+    from sp_plugins.adapter.checks import check_checkpoint_file, check_writable_dir
+    from sp_plugins.adapter.errors import InputError, describe_failure, install_input_error_hook, write_failure
+
+    try:
+        check_writable_dir(args.output_dir, "--output-dir")  # before minutes of meshing
+    except InputError as err:
+        raise _Refused(str(err)) from None
+    install_input_error_hook()  # our command: our models' input errors print as one line here too
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
 
     from sp_plugins.geometry import save_mesh, sparse_extract_mesh
+    from sp_plugins.nerfstudio.host.trainer import checkpoint_to_load
 
-    _, pipeline, _, _ = eval_setup(args.load_config, test_mode="inference")
+    config = _load_saved_config(args.load_config)
+    try:
+        config.load_dir, config.load_checkpoint = config.get_checkpoint_dir(), None
+        target = checkpoint_to_load(config, dir_flag=f"--load-config {args.load_config}: its checkpoint folder")
+        if target is not None:
+            check_checkpoint_file(*target)
+        _, pipeline, _, _ = eval_setup(args.load_config, test_mode="inference")
+    except Exception as exc:  # noqa: BLE001  (only the failures describe_failure knows become one line)
+        message = describe_failure(exc)
+        if message is None:
+            raise
+        raise _Refused(message) from None
     model = pipeline.model
     if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):
-        parser.error(f"{args.load_config}: {type(model).__name__} has no SDF field; sp-export-mesh meshes SDF methods "
-                     "(for density fields use ns-export pointcloud or poisson)")
+        raise _Refused(f"--load-config {args.load_config}: {type(model).__name__} has no SDF field; sp-export-mesh meshes "
+                       "SDF methods (for density fields use ns-export pointcloud or poisson)")
     if args.box_min is None:
         aabb = model.scene_box.aabb.detach().cpu().double().numpy()
         lo, hi = aabb[0], aabb[1]
@@ -70,16 +137,20 @@ def main(argv: Optional[List[str]] = None) -> int:
         mesh = sparse_extract_mesh(sdf, (lo, hi), args.resolution, level=args.level, margin=args.margin,
                                    coarse=args.coarse, device=device)
     except ValueError as err:
-        print(f"sp-export-mesh: error: {err}", file=sys.stderr)
-        return 2
+        raise _Refused(str(err)) from None
     seconds = time.perf_counter() - start
     if len(mesh.faces) == 0:
-        print(f"sp-export-mesh: error: the SDF does not cross {args.level} inside the box {list(lo)}..{list(hi)}: "
-              "no surface (train longer, or check the box)", file=sys.stderr)
-        return 2
-    args.output_dir.mkdir(parents=True, exist_ok=True)
+        raise _Refused(f"the SDF does not cross {args.level} inside the box {list(lo)}..{list(hi)}: no surface (train "
+                       "longer, or check the box)")
     out = args.output_dir / "mesh.ply"
-    save_mesh(mesh, out)
+    tmp = args.output_dir / f".mesh.ply.tmp-{os.getpid()}"
+    try:  # a complete mesh.ply or none: an earlier one is replaced only by a finished file
+        args.output_dir.mkdir(parents=True, exist_ok=True)
+        save_mesh(mesh, tmp)
+        os.replace(tmp, out)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise _Refused(write_failure(exc, f"--output-dir {args.output_dir}")) from None
     print(f"wrote {out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {args.resolution}^3 in {seconds:.1f} s")
     return 0
 

@@ -255,13 +255,50 @@ class _Checkpoints:
 
         def write(trainer, record) -> None:
             if self.every and (trainer.step_index % self.every == 0 or trainer.done):
-                self.io.save(self.path, {
-                    "task": self.task, "settings": self.settings, "checkpoint_every": self.every,
-                    "seconds": self.seconds_before + time.perf_counter() - start, "trainer": trainer.state_dict(),
-                })
+                try:
+                    self.io.save(self.path, {
+                        "task": self.task, "settings": self.settings, "checkpoint_every": self.every,
+                        "seconds": self.seconds_before + time.perf_counter() - start, "trainer": trainer.state_dict(),
+                    })
+                except (OSError, RuntimeError) as exc:  # torch's writer reports a failed write as a RuntimeError
+                    from sp_plugins.adapter.errors import first_line, write_failure
+
+                    if isinstance(exc, OSError):
+                        raise ValueError(write_failure(exc, f"--out {self.cmd.out}") + f" (step {trainer.step_index} "
+                                         "checkpoint; the previous one is intact)") from None
+                    raise ValueError(f"--out {self.cmd.out}: cannot write the step {trainer.step_index} checkpoint "
+                                     f"({first_line(exc, 120)}); the disk may be full (the previous checkpoint is intact)") from None
 
         trainer.fit(callback=write, progress=not self.cmd.quiet)
         return self.seconds_before + time.perf_counter() - start
+
+
+def _warn_about_topology(path: Path, mesh, task: str) -> None:
+    """The input mesh is used as it is; say what its shape means for this task (stderr, one line each)."""
+    from sp_plugins.geometry.io import mesh_topology
+
+    topo = mesh_topology(mesh)
+    notes = []
+    if not topo.closed:
+        holes = []
+        if topo.boundary_edges:
+            holes.append(f"{topo.boundary_edges} boundary edges: it is open")
+        if topo.nonmanifold_edges:
+            holes.append(f"{topo.nonmanifold_edges} edges shared by more than two faces: it is non-manifold")
+        if task == "sdf":
+            notes.append(f"not watertight ({'; '.join(holes)}): the sign of each distance comes from the closest face's "
+                         "normal, which is unreliable near the holes; close them for exact signs")
+        else:
+            notes.append(f"not watertight ({'; '.join(holes)}): an SDF's zero set is closed, so expect the fit to close or "
+                         "thicken the surface there; the metrics compare with the mesh as it is")
+    if not topo.consistent_winding:
+        notes.append("its faces are not consistently oriented: the face normals flip between neighbours, so "
+                     f"{'the normals sampled for the fit' if task == 'pointcloud' else 'the signs of the distances'} disagree; "
+                     "re-orient the faces coherently first (e.g. trimesh.repair.fix_normals, or MeshLab)")
+    if topo.parts > 1:
+        notes.append(f"{topo.parts} separate parts: all are fitted; the clean_* metrics keep only the largest part of the result")
+    for note in notes:
+        print(f"sp-fit: warning: {path}: {note}", file=sys.stderr)
 
 
 def _warn_if_empty(mesh) -> None:
@@ -275,13 +312,15 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, PointCloudSDFConfig)
-    from sp_plugins.tasks.common import prepare_output_dir, resolve_device, stage
+    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device, stage
 
     device = resolve_device(cmd.device)
     checkpoints = _Checkpoints(cmd, "pointcloud", config, device, {"estimate_normals": cmd.estimate_normals},
                                {"input": cmd.input, "gt": cmd.gt})
     data = load_oriented_points(cmd.input, config.n_points, config.seed, cmd.estimate_normals)
     gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
+    if data.mesh is not None:
+        _warn_about_topology(cmd.input, data.mesh, "pointcloud")
     checkpoints.check_files()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)  # after the inputs: a bad file leaves no empty --out
     checkpoints.prepare(out)
@@ -295,16 +334,16 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
         metrics = dict(info, chamfer=None, normal_consistency=None, fscore=None,
                        note="no ground-truth mesh: pass --gt MESH for chamfer, normal consistency and F-score")
     _warn_if_empty(mesh)
-    with stage(f"writing {out / 'mesh.ply'}", not cmd.quiet):
-        save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
         device=str(device), sp=_sp_summary(config.sp), normals=data.source, input=str(cmd.input),
         gt=str(cmd.gt) if cmd.gt is not None else (str(cmd.input) if gt is not None else None),
         final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
-    _write_json(out / "metrics.json", metrics)
-    _loss_plot(trainer, out / "loss.png", ("loss", "surface", "normal", "eikonal", "offsurface"))
+    with StagedOutputs(out) as staged, stage(f"writing {out / 'mesh.ply'}", not cmd.quiet):
+        save_mesh(trainer.frame.mesh_from_frame(mesh), staged.path("mesh.ply"))
+        _write_json(staged.path("metrics.json"), metrics)
+        _loss_plot(trainer, staged.path("loss.png"), ("loss", "surface", "normal", "eikonal", "offsurface"))
     if metrics.get("chamfer") is not None:
         print(f"chamfer {metrics['chamfer']:.5f} (clean {metrics['clean_chamfer']:.5f})  normal consistency "
               f"{metrics['normal_consistency']:.4f}  F-score {metrics['fscore']:.4f}  ({seconds:.0f} s) -> {out}")
@@ -314,7 +353,7 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
 
 def run_image(cmd: ImageCommand) -> dict:
-    from sp_plugins.tasks.common import prepare_output_dir, resolve_device
+    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device
     from sp_plugins.tasks.image import load_image, save_image
 
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
@@ -325,13 +364,10 @@ def run_image(cmd: ImageCommand) -> dict:
     checkpoints.check_files()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
     checkpoints.prepare(out)
-    if not config.adaptive_alpha:
-        (out / "alpha_map.png").unlink(missing_ok=True)  # an earlier --adaptive-alpha run's map would mislead
     trainer = config.setup(image, device=device)
     checkpoints.restore(trainer)
     seconds = checkpoints.fit(trainer)
     fitted = trainer.render()
-    save_image(fitted, out / "fitted.png")
     from sp_plugins.tasks.image import psnr
 
     metrics = dict(
@@ -342,26 +378,31 @@ def run_image(cmd: ImageCommand) -> dict:
         level_masking=config.level_masking, phase2_step=trainer.phase2_step, width=trainer.width, height=trainer.height,
         input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
-    if trainer.sp.alpha_grid is not None:
-        path = trainer.sp.alpha_grid.export(out / "alpha_map.png")
-        values = trainer.sp.alpha_grid.values()
-        metrics.update(alpha_map=path.name, alpha_map_min=float(values.min()), alpha_map_max=float(values.max()),
-                       alpha_map_resolution=list(values.shape[::-1]))
-    _write_json(out / "metrics.json", metrics)
-    _loss_plot(trainer, out / "loss.png", ("loss",))
+    with StagedOutputs(out) as staged:
+        save_image(fitted, staged.path("fitted.png"))
+        if trainer.sp.alpha_grid is not None:
+            trainer.sp.alpha_grid.export(staged.path("alpha_map.png"))
+            values = trainer.sp.alpha_grid.values()
+            metrics.update(alpha_map="alpha_map.png", alpha_map_min=float(values.min()), alpha_map_max=float(values.max()),
+                           alpha_map_resolution=list(values.shape[::-1]))
+        else:
+            staged.remove("alpha_map.png")  # an earlier --adaptive-alpha run's map would mislead
+        _write_json(staged.path("metrics.json"), metrics)
+        _loss_plot(trainer, staged.path("loss.png"), ("loss",))
     print(f"PSNR {metrics['psnr']:.2f} dB ({seconds:.0f} s) -> {out}")
     return metrics
 
 
 def run_sdf(cmd: SDFCommand) -> dict:
     from sp_plugins.geometry import load_mesh, save_mesh
-    from sp_plugins.tasks.common import prepare_output_dir, resolve_device
+    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
     device = resolve_device(cmd.device)
     checkpoints = _Checkpoints(cmd, "sdf", config, device, {}, {"input": cmd.input})
     gt = load_mesh(cmd.input)
+    _warn_about_topology(cmd.input, gt, "sdf")
     checkpoints.check_files()
     out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
     checkpoints.prepare(out)
@@ -370,13 +411,14 @@ def run_sdf(cmd: SDFCommand) -> dict:
     seconds = checkpoints.fit(trainer)
     mesh, metrics = trainer.evaluate(progress=not cmd.quiet)
     _warn_if_empty(mesh)
-    save_mesh(trainer.frame.mesh_from_frame(mesh), out / "mesh.ply")
     metrics.update(
         steps=trainer.step_index, seconds=seconds, seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
         device=str(device), sp=_sp_summary(config.sp), input=str(cmd.input), final_loss=trainer.history["loss"][-1], config=_jsonable(config),
     )
-    _write_json(out / "metrics.json", metrics)
-    _loss_plot(trainer, out / "loss.png", ("loss",))
+    with StagedOutputs(out) as staged:
+        save_mesh(trainer.frame.mesh_from_frame(mesh), staged.path("mesh.ply"))
+        _write_json(staged.path("metrics.json"), metrics)
+        _loss_plot(trainer, staged.path("loss.png"), ("loss",))
     print(f"chamfer {metrics['chamfer']:.5f} (clean {metrics['clean_chamfer']:.5f})  F-score {metrics['fscore']:.4f} "
           f"({seconds:.0f} s) -> {out}")
     return metrics
@@ -400,9 +442,12 @@ def main(argv: Optional[list[str]] = None) -> int:
         args=argv,
     )
     run = next(fn for cls, fn in COMMANDS.values() if isinstance(cmd, cls))
+    created = not cmd.out.exists()
     try:
         run(cmd)
     except (ValueError, FloatingPointError) as exc:
+        if created and cmd.out.is_dir() and not any(cmd.out.iterdir()):
+            cmd.out.rmdir()  # a refused or diverged run leaves nothing behind, not even the --out it made
         print(f"sp-fit: error: {exc}", file=sys.stderr)
         return 2
     return 0

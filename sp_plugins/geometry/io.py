@@ -27,9 +27,15 @@ def _load_any(path: PathLike):
         raise ValueError(f"{path}: cannot be read as a mesh or point cloud ({type(exc).__name__}: {exc})") from exc
     if isinstance(loaded, trimesh.Scene):
         geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
-        if not geoms:
-            raise ValueError(f"{path}: the file holds no triangle mesh")
-        loaded = trimesh.util.concatenate(geoms)
+        clouds = [g for g in loaded.geometry.values() if isinstance(g, trimesh.PointCloud)]
+        if geoms:
+            loaded = trimesh.util.concatenate(geoms)
+        elif clouds:
+            loaded = trimesh.PointCloud(np.vstack([np.asarray(c.vertices) for c in clouds]))
+        elif not loaded.geometry:
+            raise ValueError(f"{path}: the file is empty (no points, no faces); expected a mesh or an oriented point cloud")
+        else:
+            raise ValueError(f"{path}: the file holds no triangle mesh or point cloud")
     return loaded
 
 
@@ -40,14 +46,50 @@ def _check_finite(points: np.ndarray, path: PathLike) -> None:
 
 
 def load_mesh(path: PathLike) -> trimesh.Trimesh:
-    """A triangle mesh with at least one face and finite vertices, else a ValueError saying why."""
+    """A triangle mesh with at least one face and finite vertices, else a ValueError saying why.
+    Degenerate faces (zero area: repeated or collinear corners) are dropped with a warning: they
+    hold no surface, and their zero normals would mislead signs and normals."""
     loaded = _load_any(path)
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ValueError(f"{path}: the file has no faces; a mesh is needed here (a point cloud cannot serve as ground truth)")
     _check_finite(np.asarray(loaded.vertices), path)
     if loaded.area <= 0:
-        raise ValueError(f"{path}: every face is degenerate (zero total area)")
+        raise ValueError(f"{path}: every face is degenerate (zero total area: its corners coincide or are collinear); "
+                         "expected a mesh with a surface")
+    keep = loaded.area_faces > 0
+    if not keep.all():
+        log.warning("warning: %s: dropped %d degenerate faces (zero area) of %d", path, int((~keep).sum()), len(keep))
+        loaded = trimesh.Trimesh(vertices=loaded.vertices, faces=np.asarray(loaded.faces)[keep], process=False)
     return loaded
+
+
+@dataclass
+class MeshTopology:
+    """What an SDF fit of a mesh should know about it (computed on a copy with merged vertices)."""
+
+    boundary_edges: int
+    """Edges with one face: the mesh is open (not watertight)."""
+    nonmanifold_edges: int
+    """Edges shared by more than two faces."""
+    parts: int
+    """Connected pieces."""
+    consistent_winding: bool
+    """Neighbouring faces agree on their orientation (so their normals agree on outside)."""
+
+    @property
+    def closed(self) -> bool:
+        return self.boundary_edges == 0 and self.nonmanifold_edges == 0
+
+
+def mesh_topology(mesh: trimesh.Trimesh) -> MeshTopology:
+    merged = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=True)  # merges duplicate vertices
+    _, counts = np.unique(merged.edges_sorted, axis=0, return_counts=True)
+    return MeshTopology(
+        boundary_edges=int((counts == 1).sum()),
+        nonmanifold_edges=int((counts > 2).sum()),
+        parts=int(merged.body_count),
+        consistent_winding=bool(merged.is_winding_consistent),
+    )
 
 
 @dataclass
@@ -64,8 +106,10 @@ class OrientedPoints:
 
 def _ply_normals(cloud) -> Optional[np.ndarray]:
     raw = cloud.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-    if raw is not None and raw.dtype.names and all(k in raw.dtype.names for k in ("nx", "ny", "nz")):
-        return np.stack([raw["nx"], raw["ny"], raw["nz"]], axis=-1).astype(np.float64)
+    names = raw.keys() if isinstance(raw, dict) else (getattr(getattr(raw, "dtype", None), "names", None) or ())
+    # binary PLY: a structured array; ASCII PLY: a dict of columns
+    if all(k in names for k in ("nx", "ny", "nz")):
+        return np.stack([np.asarray(raw[k]).reshape(-1) for k in ("nx", "ny", "nz")], axis=-1).astype(np.float64)
     return None
 
 
@@ -104,8 +148,11 @@ def load_oriented_points(
     else:
         raise ValueError(f"{path}: not a mesh or point cloud ({type(loaded).__name__})")
     if len(pts) == 0:
-        raise ValueError(f"{path}: the file has no points")
+        raise ValueError(f"{path}: the file has no points; expected an oriented point cloud (x, y, z, nx, ny, nz) or a mesh")
     _check_finite(pts, path)
+    if not np.ptp(pts, axis=0).max() > 0:
+        raise ValueError(f"{path}: all {len(pts)} points coincide at {[round(float(v), 6) for v in pts[0]]}: there is no "
+                         "shape to fit; expected points spread over a surface")
     source = "file"
     if nrm is None:
         if not estimate_missing_normals:
@@ -116,8 +163,10 @@ def load_oriented_points(
         log.warning("%s: no normals in the file; estimating them from 10 neighbours (pymeshlab), oriented away from the centroid", path)
         nrm, source = estimate_normals(pts), "estimated"
     length = np.linalg.norm(nrm, axis=1, keepdims=True)
-    if not np.all(np.isfinite(nrm)) or np.any(length < 1e-8):
-        raise ValueError(f"{path}: some normals are zero, NaN or inf; fix them or drop those points")
+    bad = ~np.isfinite(nrm).all(axis=1) | ~(length[:, 0] >= 1e-8)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(nrm)} normals are zero, NaN or inf (the first at point "
+                         f"{int(np.argmax(bad))}); expected a direction at every point: fix them or drop those points")
     return OrientedPoints(pts, nrm / length, source, None)
 
 

@@ -18,7 +18,7 @@ train where SP would reach nothing.
 
 from __future__ import annotations
 
-from typing import List
+from typing import Callable, Dict, List
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
@@ -27,6 +27,7 @@ from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import SPConfig, StochasticPreconditioner
+from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.host.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
@@ -55,12 +56,38 @@ def install_process_settings() -> None:
     filter_host_warnings()
 
 
+def check_finite_losses(losses: Dict[str, torch.Tensor], step: int, groups: Callable[[], List[str]]) -> None:
+    """Stop a run whose loss turned NaN or infinite, naming the step and what to try: training on
+    would only write NaN checkpoints. (One device sync per step for the check.)"""
+    total = sum(v.detach().float().sum() for v in losses.values())
+    if bool(torch.isfinite(total)):
+        return
+    bad = [f"{name}={float(v.detach().float().sum()):g}" for name, v in losses.items() if not bool(torch.isfinite(v.detach()).all())]
+    flags = ", ".join(f"--optimizers.{g.replace('_', '-')}.optimizer.lr" for g in groups()[:3]) or "--optimizers.<group>.optimizer.lr"
+    raise InputError(
+        f"training step {step}: the loss became {' and '.join(bad) or 'NaN'}; the run diverged and stopped (nothing from this step "
+        f"was saved): lower the learning rate ({flags}, e.g. 10x smaller) or resume from an earlier checkpoint with --load-dir"
+    )
+
+
 class SPModel(adapter_model.SPModel):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
     def populate_modules(self) -> None:
         install_process_settings()
+        check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
         super().populate_modules()
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        losses = super().get_loss_dict(outputs, batch, metrics_dict)  # type: ignore[misc]
+        if self.training:  # type: ignore[attr-defined]
+            check_finite_losses(losses, int(getattr(self.sp, "_step", 0)), self._lr_groups)
+        return losses
+
+    def _lr_groups(self) -> List[str]:
+        from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+
+        return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]
 
     def build_preconditioner(self) -> StochasticPreconditioner:
         refuse_inert_options(self.config.sp)  # type: ignore[attr-defined]

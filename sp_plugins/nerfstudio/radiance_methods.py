@@ -40,6 +40,7 @@ from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModelConfig
 from sp_plugins.nerfstudio.radiance_models import SPMipNerfModelConfig
 from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
 from sp_plugins.nerfstudio.host.schedulers import FloatExponentialDecaySchedulerConfig
+from sp_plugins.nerfstudio.host.trainer import CheckedTrainerConfig
 
 
 @dataclass
@@ -72,7 +73,7 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         eval_num_rays_per_chunk=4096,
         sp=dataclasses.replace(RELU_FIELD_SP, enabled=sp),
     )
-    config = TrainerConfig(
+    config = CheckedTrainerConfig(
         method_name=name,
         steps_per_eval_batch=500,
         steps_per_eval_image=500,
@@ -100,7 +101,7 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
         eval_num_rays_per_chunk=1024,
     )
     model.sp = dataclasses.replace(model.sp, enabled=sp)
-    config = TrainerConfig(
+    config = CheckedTrainerConfig(
         method_name=name,
         max_num_iterations=MIPNERF_STEPS,
         pipeline=VanillaPipelineConfig(
@@ -120,7 +121,7 @@ def _generic(config: TrainerConfig, sp: SPConfig, description: str) -> MethodSpe
 
 
 def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
-    config = TrainerConfig(
+    config = CheckedTrainerConfig(
         method_name=name,
         pipeline=VanillaPipelineConfig(
             datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig()),
@@ -136,7 +137,7 @@ def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
     decay = FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000)
-    config = TrainerConfig(
+    config = CheckedTrainerConfig(
         method_name=name,
         steps_per_eval_batch=500,
         steps_per_save=2000,
@@ -167,7 +168,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
 
 
 def tensorf_method(name: str, description: str) -> MethodSpecification:
-    config = TrainerConfig(
+    config = CheckedTrainerConfig(
         method_name=name,
         steps_per_eval_batch=500,
         steps_per_save=2000,

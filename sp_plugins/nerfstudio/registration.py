@@ -106,7 +106,9 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     from sp_plugins.nerfstudio.host.schedulers import with_float_schedulers
     from sp_plugins.nerfstudio.variants import variant
 
-    config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
+    from sp_plugins.nerfstudio.host.trainer import checked
+
+    config = checked(copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec))  # ns-train checks before writing
     base_description = getattr(spec, "description", "") or config.method_name
     reason = refusal(config)
     if reason:

@@ -32,6 +32,7 @@ from sp_plugins.nerfstudio.host.data import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
 from sp_plugins.nerfstudio.host.schedulers import FloatCosineDecaySchedulerConfig
+from sp_plugins.nerfstudio.host.trainer import CheckedTrainerConfig
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
@@ -50,7 +51,7 @@ def sdf_trainer_config(method_name: str, model, steps: int, lr: float, warm_up_e
     """A NeuS-style trainer: vanilla (checked) data manager, SDFStudio data by default, and an
     optimizer entry for the SP alpha grid (used only when ``sp.alpha_grid`` is on)."""
     sp: SPConfig = model.sp
-    return TrainerConfig(
+    return CheckedTrainerConfig(
         method_name=method_name,
         steps_per_eval_image=500,
         steps_per_eval_batch=5000,

@@ -64,7 +64,11 @@ def counting_bar(fn: Callable, total: int, desc: str, enabled: bool = True):
 
 
 def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite: bool) -> Path:
-    """Create ``out`` or check that it holds none of ``outputs`` (unless ``overwrite``)."""
+    """Create ``out`` or check that it holds none of ``outputs`` (unless ``overwrite``), and that
+    files can be written there (a read-only folder or a full disk is named before any training)."""
+    from sp_plugins.adapter.checks import check_writable_dir
+    from sp_plugins.adapter.errors import write_failure
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder; choose another --out")
@@ -74,8 +78,70 @@ def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite:
             f"--out {out}: already holds results ({', '.join(existing)}); pass --overwrite to replace "
             "them or choose another --out"
         )
-    out.mkdir(parents=True, exist_ok=True)
+    check_writable_dir(out, "--out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(write_failure(exc, f"--out {out}")) from None
     return out
+
+
+class StagedOutputs:
+    """A command's result files, all or none: each is written to a temporary name in ``out``
+    (same suffix, so writers pick the format), and :meth:`commit` renames them into place together.
+    A write that fails (full disk, read-only folder) removes the temporary files and raises one
+    ``ValueError`` naming ``--out``: results of an earlier run stay as they were.
+
+        with StagedOutputs(out) as staged:
+            save_mesh(mesh, staged.path("mesh.ply"))
+            staged.remove("alpha_map.png")   # an earlier run's file that would mislead
+    """
+
+    def __init__(self, out: Union[str, Path], flag: str = "--out") -> None:
+        import os
+
+        self.out, self.flag = Path(out), flag
+        self._tag = f".tmp-{os.getpid()}-"
+        self._staged: dict = {}
+        self._removed: list = []
+
+    def path(self, name: str) -> Path:
+        tmp = self.out / f"{self._tag}{name}"
+        self._staged[name] = tmp
+        return tmp
+
+    def remove(self, name: str) -> None:
+        """Delete ``out/name`` at commit (not before: a failed run leaves it)."""
+        self._removed.append(name)
+
+    def __enter__(self) -> "StagedOutputs":
+        return self
+
+    def __exit__(self, kind, exc, tb) -> bool:
+        import os
+
+        from sp_plugins.adapter.errors import write_failure
+
+        if exc is None:
+            try:
+                for name, tmp in self._staged.items():
+                    os.replace(tmp, self.out / name)
+                for name in self._removed:
+                    (self.out / name).unlink(missing_ok=True)
+                return False
+            except OSError as err:
+                exc = err
+        for tmp in self._staged.values():
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+        if isinstance(exc, OSError):
+            failed = next((name for name, tmp in self._staged.items() if exc.filename and Path(exc.filename).name == tmp.name),
+                          next(reversed(self._staged), None))  # else the file being written: the last one staged
+            raise ValueError(write_failure(exc, f"{self.flag} {self.out}", failed)
+                             + "; nothing was written (results already there are unchanged)") from None
+        return False
 
 
 def plot_curves(

@@ -309,6 +309,9 @@ class ImageFitTrainer(ResumableTrainer):
                 idx = torch.randint(n, (c.batch,), generator=self.generator, device=self.device)
             pred = self.sp.blurred(self.rgb, self.positions[idx])
             loss = (pred - self.colours[idx]).square().mean()
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr "
+                                         f"(now {c.lr:g}, e.g. 10x smaller){' or --alpha-map-lr' if c.adaptive_alpha else ''}")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()

@@ -206,7 +206,8 @@ class PointCloudSDFTrainer(ResumableTrainer):
             )
             if not torch.isfinite(loss):
                 raise FloatingPointError(
-                    f"step {self.step_index}: the loss became {float(loss)}; lower --lr or raise --grad-clip"
+                    f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr (now {c.lr:g}, "
+                    "e.g. 10x smaller) or clip harder (--grad-clip)"
                 )
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -145,6 +145,9 @@ class SDFFitTrainer(ResumableTrainer):
             x, d = torch.cat(xs), torch.cat(ds)
             pred = self.sp.blurred(self.field, x).squeeze(-1)
             loss = mape(pred, d)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr "
+                                         f"(now {c.lr:g}, e.g. 10x smaller)")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()

@@ -23,7 +23,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Type
+from typing import Dict, List, Optional, Sequence, Tuple, Type
 
 import torch
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
@@ -35,6 +35,7 @@ from nerfstudio.data.datasets.sdf_dataset import SDFDataset
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
+from sp_plugins.adapter.checks import check_device
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.host.views import ViewSelection, select_views
 
@@ -61,11 +62,32 @@ class SurfaceDataset(SDFDataset):
 _LAYOUT_MARKERS = {"sdfstudio-data": "meta_data.json", "blender-data": "transforms_train.json"}
 
 
+_COLMAP_MODELS = ("sparse/0", "colmap/sparse/0", "sparse", "colmap/sparse")
+
+
+def _colmap_model(data: Path) -> Optional[Path]:
+    """The COLMAP reconstruction (cameras.bin / cameras.txt) in ``data`` or where nerfstudio keeps one."""
+    for sub in ("", *_COLMAP_MODELS):
+        folder = data / sub if sub else data
+        if (folder / "cameras.bin").is_file() or (folder / "cameras.txt").is_file():
+            return folder
+    return None
+
+
 def _layout_hint(data: Path) -> str:
-    """What ``data`` looks like instead: the other layout, or a scene root with layout sub-folders."""
+    """What ``data`` looks like instead: the other layout, a nerfstudio or COLMAP capture, or a scene
+    root with layout sub-folders."""
     found = [parser for parser, marker in _LAYOUT_MARKERS.items() if (data / marker).is_file()]
     if found:
         return f"; this folder holds {_LAYOUT_MARKERS[found[0]]}, so it reads with {found[0]} --data {data}"
+    if (data / "transforms.json").is_file():
+        return (f"; this folder holds transforms.json, a nerfstudio capture: it reads with nerfstudio-data --data {data} "
+                "(sp-nerfacto's default), or for the SDF methods after conversion to the SDFStudio layout")
+    colmap = _colmap_model(data)
+    if colmap is not None:
+        return (f"; this folder holds a COLMAP reconstruction ({colmap.relative_to(data).as_posix() or '.'}/cameras."
+                f"{'bin' if (colmap / 'cameras.bin').is_file() else 'txt'}): convert it with ns-process-data images "
+                f"(or read it with colmap-data --data {data})")
     folders = sorted(p for p in data.iterdir() if p.is_dir()) if data.is_dir() else []
     subs = [(sub, parser) for sub in folders for parser, marker in _LAYOUT_MARKERS.items() if (sub / marker).is_file()]
     if subs:
@@ -81,6 +103,29 @@ def _load_json(path: Path, expected: str) -> dict:
             return json.load(f)
     except json.JSONDecodeError as err:
         raise InputError(f"{path}: not valid JSON ({err}); expected {expected}") from None
+
+
+_READABLE: Dict[Path, Tuple[int, int]] = {}
+"""Images already found readable in this process, with their (size, mtime_ns): ns-train checks the
+data before it writes the run folder and again when the data manager is built."""
+
+
+def check_image_readable(path: Path, what: str) -> None:
+    """``path`` is an image PIL can identify and whose data is complete (``verify``: the PNG chunks'
+    CRCs, JPEG markers); a damaged one is named here instead of failing while images are cached."""
+    from PIL import Image
+
+    try:
+        stat = path.stat()
+        key = (stat.st_size, stat.st_mtime_ns)
+        if _READABLE.get(path) == key:
+            return
+        with Image.open(path) as im:
+            im.verify()
+    except Exception as err:  # noqa: BLE001  (PIL raises many kinds: UnidentifiedImageError, SyntaxError, OSError...)
+        raise InputError(f"{path}: cannot be read as an image ({type(err).__name__}: {str(err).strip() or 'damaged data'}; "
+                         f"{what}); the file is truncated or damaged: replace it or drop its frame") from None
+    _READABLE[path] = key
 
 
 def _check_sdfstudio(data: Path) -> None:
@@ -99,6 +144,7 @@ def _check_sdfstudio(data: Path) -> None:
                 raise InputError(f"{data / 'meta_data.json'}: frame {i} has no {key!r}")
         if not (data / frame["rgb_path"]).is_file():
             raise InputError(f"{data / frame['rgb_path']}: image not found (frame {i} of meta_data.json)")
+        check_image_readable(data / frame["rgb_path"], f"frame {i} of meta_data.json")
 
 
 def _check_blender(data: Path, splits: Sequence[str]) -> None:
@@ -115,6 +161,7 @@ def _check_blender(data: Path, splits: Sequence[str]) -> None:
             image = data / (frame["file_path"].replace("./", "") + ".png")
             if not image.is_file():
                 raise InputError(f"{image}: image not found (frame {i} of {name}; file_path + '.png')")
+            check_image_readable(image, f"frame {i} of {name}")
 
 
 def check_data_layout(dataparser: object, data: Optional[Path], test_split: str = "val") -> None:
@@ -145,6 +192,7 @@ def check_image_sizes(outputs: DataparserOutputs, source: str = "its camera") ->
 
     cams = outputs.cameras
     for i, path in enumerate(outputs.image_filenames):
+        check_image_readable(Path(path), f"image {i} of the dataparser's split")
         with Image.open(path) as im:
             w, h = im.size
         want_w, want_h = int(cams.width[i]), int(cams.height[i])
@@ -211,6 +259,7 @@ class CheckedDataManager(VanillaDataManager):
         from sp_plugins.nerfstudio.model import install_process_settings
 
         install_process_settings()  # our method is being built: its input errors print as one line
+        check_device(torch.device(device).type, flag="--machine.device-type")
         self._checks = config.check_data and test_mode != "inference"
         if self._checks:
             data = config.data if config.data is not None else config.dataparser.data
