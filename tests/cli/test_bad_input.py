@@ -221,3 +221,58 @@ def test_ascii_ply_normals_are_read(tmp_path):
     ico = trimesh.creation.icosphere(1)
     data = load_oriented_points(write_cloud(tmp_path / "ascii.ply", ico.vertices, ico.vertex_normals))
     assert data.source == "file" and np.allclose(data.normals, ico.vertex_normals / np.linalg.norm(ico.vertex_normals, axis=1, keepdims=True), atol=1e-5)
+
+
+# -- what the input-error hook recognizes in host code (ns-eval / ns-train run it; in-process here) ---
+
+
+def _raised(fn):
+    try:
+        fn()
+    except Exception as exc:  # noqa: BLE001
+        return exc
+    raise AssertionError("did not raise")
+
+
+def test_hook_names_a_checkpoint_torch_cannot_read(tmp_path):
+    from sp_plugins.adapter.errors import describe_failure
+
+    path = tmp_path / "step-000000003.ckpt"
+    torch.save({"w": torch.zeros(1000)}, path)
+    path.write_bytes(path.read_bytes()[:700])
+    message = describe_failure(_raised(lambda: torch.load(path, map_location="cpu")))
+    assert message.startswith(f"{path}: cannot be read as a PyTorch checkpoint (") and "truncated or damaged" in message
+    assert "\n" not in message
+
+
+def test_hook_names_a_checkpoint_torch_could_not_write_and_removes_it(tmp_path):
+    from sp_plugins.adapter.errors import describe_failure
+
+    path = tmp_path / "step-000000004.ckpt"
+    pid = os.fork()
+    if pid == 0:  # a child with a file-size limit: the write fails as on a full disk
+        import resource
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1000, 1000))
+        exc = _raised(lambda: torch.save({"w": torch.zeros(10000)}, path))
+        message = describe_failure(exc)
+        ok = message is not None and message.startswith(f"{path}: writing the checkpoint failed (") and not path.exists()
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0 and not path.exists()
+
+
+def test_hook_names_a_file_it_could_not_write(tmp_path):
+    import errno
+
+    from sp_plugins.adapter.errors import describe_failure
+
+    full = OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "eval.json"))
+    assert describe_failure(full) == (f"{tmp_path / 'eval.json'}: cannot write (No space left on device); the disk is full "
+                                      "(or a quota or file-size limit is reached): free space or write elsewhere")
+    read_only = OSError(errno.EROFS, "Read-only file system", "/mnt/ro/eval.json")
+    assert "the folder is read-only or not yours" in describe_failure(read_only)
+    assert describe_failure(OSError(errno.ENOENT, "No such file or directory", "x")) is None  # not a write problem
+    assert describe_failure(KeyError("x")) is None  # everything else keeps its traceback
