@@ -143,7 +143,7 @@ def _export(args) -> int:
         raise _Refused(f"the SDF does not cross {args.level} inside the box {list(lo)}..{list(hi)}: no surface (train "
                        "longer, or check the box)")
     out = args.output_dir / "mesh.ply"
-    tmp = args.output_dir / f".mesh.ply.tmp-{os.getpid()}"
+    tmp = args.output_dir / f".tmp-{os.getpid()}-mesh.ply"  # the suffix picks the format
     try:  # a complete mesh.ply or none: an earlier one is replaced only by a finished file
         args.output_dir.mkdir(parents=True, exist_ok=True)
         save_mesh(mesh, tmp)
