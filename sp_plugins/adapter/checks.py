@@ -129,6 +129,9 @@ def check_device(device_type: str, count: int = 1, flag: str = "--machine.device
     elif device_type == "mps":
         if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
             raise InputError(f"{flag} mps: Apple's MPS is not available on this machine; pass {flag} cpu")
+    if device_type != "cuda" and count > 1:  # nerfstudio's launcher asserts CUDA for more than one device
+        raise InputError(f"--machine.num-devices {count}: nerfstudio trains on more than one device only with "
+                         f"{flag} cuda; pass --machine.num-devices 1 (README: Multi-process training)")
 
 
 def check_writable_dir(path: Path, flag: str) -> None:

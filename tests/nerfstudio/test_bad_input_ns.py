@@ -125,6 +125,7 @@ def cases(tiny_scene, tmp_path_factory):
         "train-ns-capture": train("capture", ["sdfstudio-data", "--data", str(capture)]),
         "train-damaged-image": train("damaged", ["blender-data", "--data", str(damaged)]),
         "train-cuda": train("cuda", blender, "--machine.device-type", "cuda"),
+        "train-cpu-two-devices": train("cpu-2", blender, "--machine.device-type", "cpu", "--machine.num-devices", "2"),
         "train-nan": train("nan", blender, "--max-num-iterations", "8", "--steps-per-save", "1000",
                            *[a for g in ("fields", "field-grid", "field-background") for a in (f"--optimizers.{g}.optimizer.lr", "1e30")]),
         "train-full-disk-config": train("full-config", blender, fsize=0),
@@ -206,6 +207,12 @@ def test_ns_train_cuda_on_a_machine_without_it(cases):
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     check(cases, "train-cuda", "--machine.device-type cuda", "CUDA is not available", "--machine.device-type cpu", prog="ns-train")
+
+
+def test_ns_train_two_cpu_devices(cases):
+    """nerfstudio's launcher asserts CUDA for more than one device (a traceback after writing the run folder)."""
+    check(cases, "train-cpu-two-devices", "--machine.num-devices 2", "--machine.device-type cuda", "--machine.num-devices 1",
+          prog="ns-train")
 
 
 def test_ns_train_loss_turning_nan_stops_naming_the_step(cases):
