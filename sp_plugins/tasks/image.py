@@ -136,7 +136,8 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
 
     8-bit images (bilevel, grey, palette, RGB, CMYK, ...) are divided by 255; 16-bit grey (PIL's
     ``I;16`` modes, or ``I`` read from a PNG, whose only source is 16-bit grey) by 65535. PIL reads
-    16-bit RGB(A) PNGs as their high byte, so those are exact to 1/255. Grey is replicated; an alpha
+    16-bit RGB(A) PNGs as their high byte, so those are read with OpenCV instead (all 16 bits; without
+    OpenCV, to 1/255 with a warning). Grey is replicated; an alpha
     channel (or a palette's transparency) is composited on white. 32-bit integer and float images,
     and images smaller than 2x2, are refused with a ValueError naming the file.
     """
@@ -154,6 +155,8 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
                 if grey.ndim != 2 or grey.min() < 0 or grey.max() > 65535:
                     raise ValueError(f"{path}: a {mode} image with values outside 0..65535; expected 8- or 16-bit pixels")
                 rgb = np.repeat((grey / 65535.0).astype(np.float32)[..., None], 3, axis=2)
+            elif fmt == "PNG" and _png_bit_depth_and_colour(path) in ((16, 2), (16, 6)):
+                rgb = _sixteen_bit_colour_png(path, im)
             elif mode in _EIGHT_BIT:
                 if mode in ("LA", "La", "P", "PA", "RGBA", "RGBa") or "transparency" in im.info:
                     im = im.convert("RGBA")
@@ -169,6 +172,42 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
     if rgb.shape[0] < 2 or rgb.shape[1] < 2:
         raise ValueError(f"{path}: the image is {rgb.shape[1]}x{rgb.shape[0]}; need at least 2x2 pixels")
     return rgb
+
+
+def _png_bit_depth_and_colour(path: Path):
+    """(bit depth, colour type) from a PNG's IHDR chunk (PIL does not report 16-bit colour)."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    return (head[24], head[25]) if len(head) == 26 and head[12:16] == b"IHDR" else None
+
+
+def _sixteen_bit_colour_png(path: Path, fallback) -> np.ndarray:
+    """A 16-bit RGB(A) PNG at full precision (OpenCV: BGR(A) uint16), alpha composited on white."""
+    try:
+        import cv2
+    except ImportError:
+        import warnings
+
+        warnings.warn(f"{path}: a 16-bit colour PNG, read to 1/255 (its high byte): install opencv-python-headless "
+                      "to read all 16 bits", stacklevel=3)
+        im = fallback.convert("RGBA")
+        im = _alpha_on_white(im)
+        return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if pixels is None or pixels.dtype != np.uint16 or pixels.ndim != 3 or pixels.shape[2] not in (3, 4):
+        raise ValueError(f"{path}: a 16-bit colour PNG OpenCV could not read; expected 16-bit RGB or RGBA")
+    values = pixels[..., [2, 1, 0, 3][: pixels.shape[2]]].astype(np.float64) / 65535.0
+    rgb = values[..., :3]
+    if values.shape[2] == 4:
+        alpha = values[..., 3:]
+        rgb = rgb * alpha + (1.0 - alpha)
+    return rgb.astype(np.float32)
+
+
+def _alpha_on_white(im):
+    from PIL import Image
+
+    return Image.alpha_composite(Image.new("RGBA", im.size, (255, 255, 255, 255)), im)
 
 
 def save_image(rgb: Float[np.ndarray, "h w 3"], path: Union[str, Path]) -> Path:

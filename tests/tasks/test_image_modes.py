@@ -43,15 +43,17 @@ def test_16_bit_grey_png_loads_its_real_values(tmp_path):
         assert rgb.mean() < 0.6  # not the ~99.6% white the 8-bit conversion gave
 
 
-def test_16_bit_rgb_and_rgba_pngs_load_to_within_one_8_bit_step(tmp_path):
-    rgb16 = np.array([[[65535, 0, 30000], [1000, 2000, 40000]], [[12345, 54321, 100], [0, 0, 0]]], dtype=np.uint16)
+def test_16_bit_rgb_and_rgba_pngs_load_all_16_bits(tmp_path):
+    # 1000 and 1001 share their high byte: a reader of the high byte alone gives them the same value
+    rgb16 = np.array([[[65535, 0, 30000], [1000, 1001, 40000]], [[12345, 54321, 100], [0, 0, 0]]], dtype=np.uint16)
     rgb = load_image(write_png16(tmp_path / "rgb.png", rgb16))
-    np.testing.assert_allclose(rgb, rgb16 / 65535.0, atol=1.0 / 255 + 1e-6)
+    np.testing.assert_allclose(rgb, rgb16 / 65535.0, atol=1e-6)
     assert rgb[0, 0, 0] == 1.0 and rgb[1, 1].tolist() == [0.0, 0.0, 0.0]
+    assert rgb[0, 1, 1] > rgb[0, 1, 0]
     alpha = np.array([[65535, 0], [32768, 65535]], dtype=np.uint16)[..., None]
     rgba = load_image(write_png16(tmp_path / "rgba.png", np.concatenate([rgb16, alpha], axis=2)))
     a = alpha / 65535.0
-    np.testing.assert_allclose(rgba, rgb16 / 65535.0 * a + (1 - a), atol=2.0 / 255 + 1e-6)  # composited on white
+    np.testing.assert_allclose(rgba, rgb16 / 65535.0 * a + (1 - a), atol=1e-6)  # composited on white
     assert rgba[0, 1].tolist() == [1.0, 1.0, 1.0]  # fully transparent: white
 
 
