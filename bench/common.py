@@ -29,6 +29,19 @@ def machine_info() -> dict:
     }
 
 
+def seed_everything(seed: int) -> None:
+    """Seed torch, numpy and Python's `random`: the hosts' data loaders draw from all three (nerfstudio's
+    CacheDataloader orders its cached images with ``random.sample``), so a pair of runs sees the same
+    rays only when every one of them is seeded."""
+    import random
+
+    import numpy as np
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
 def paired_timing(steps: Dict[str, Callable[[], None]], repeats: int, warmup: int = 3) -> Dict[str, List[float]]:
     """Run the given step functions in alternation (A B A B ...), so that load spikes on a
     shared machine hit all of them alike. Returns seconds per call for each name."""

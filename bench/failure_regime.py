@@ -224,7 +224,8 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         if step % 100 == 0 or step == setting.steps - 1:
             logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
                          ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start}
+    result = {"tag": tag, "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start,
+              "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         t0 = time.time()
         metrics = evaluate(run, scene, setting, out / "renders" / tag / name)
@@ -273,6 +274,7 @@ def summarise(results: List[dict], out: Path) -> str:
 def quick(mesh: str, out: Path) -> str:
     setting = dataclasses.replace(QUICK, mesh=mesh)
     result = run_pair(setting, out, f"quick-{Path(mesh).stem}")
+    (out / f"quick-{Path(mesh).stem}.json").write_text(json.dumps(result, indent=1))
     b, s = result[PAIR[0]], result[PAIR[1]]
     yes = {True: "yes", False: "no"}
     return (f"baseline PSNR {b['psnr_object']:.2f}, SP PSNR {s['psnr_object']:.2f}, "

@@ -36,7 +36,7 @@ from typing import Dict, List
 
 import torch
 
-from bench.common import OUT_DIR, machine_info
+from bench.common import OUT_DIR, machine_info, seed_everything
 
 PAIRS = {"neus": ("neus-hashgrid", "sp-neus-hashgrid"), "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite")}
 SCENES = {"spot": "spot", "bunny": "/work/shared/data/meshes/bunny.ply", "torus": "torus"}
@@ -104,7 +104,7 @@ class Run:
         from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
         self.where = TrainingCallbackLocation
-        torch.manual_seed(seed)
+        seed_everything(seed)  # the cached image order comes from Python's random (host's CacheDataloader)
         self.trainer = config.setup(local_rank=0, world_size=1)
         self.trainer.setup(test_mode="test")
         self.losses: List[float] = []
@@ -115,7 +115,7 @@ class Run:
         trainer.pipeline.train()
         for cb in trainer.callbacks:
             cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
-        torch.manual_seed(seed * 1_000_003 + step)  # same rays and jitter for both runs of a pair
+        seed_everything(seed * 1_000_003 + step)  # same rays and jitter for both runs of a pair
         t0 = time.perf_counter()
         loss, _, _ = trainer.train_iteration(step)
         self.times.append(time.perf_counter() - t0)

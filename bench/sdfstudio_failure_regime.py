@@ -171,7 +171,8 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         if step % 100 == 0 or step == setting.steps - 1:
             logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
                          ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start}
+    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start,
+              "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         metrics = evaluate(run, scene, setting, out / "renders" / tag / name)
         metrics["median_step_s"] = statistics.median(run.times[min(10, len(run.times) // 10):])

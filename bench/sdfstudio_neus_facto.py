@@ -35,7 +35,7 @@ from typing import Dict, List
 
 import torch
 
-from bench.common import OUT_DIR, machine_info
+from bench.common import OUT_DIR, machine_info, seed_everything
 
 PAIR = ("neus-facto", "sp-neus-facto")
 
@@ -109,7 +109,7 @@ class Run:
         from nerfstudio.engine.trainer import Trainer
 
         self.where = TrainingCallbackLocation
-        torch.manual_seed(seed)
+        seed_everything(seed)  # the cached image order comes from Python's random (host's CacheDataloader)
         self.trainer = Trainer(config, local_rank=0, world_size=0)
         self.trainer.setup(test_mode="val")
         self.losses: List[float] = []
@@ -120,7 +120,7 @@ class Run:
         trainer.pipeline.train()
         for cb in trainer.callbacks:
             cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
-        torch.manual_seed(seed * 1_000_003 + step)
+        seed_everything(seed * 1_000_003 + step)
         t0 = time.perf_counter()
         loss, _, _ = trainer.train_iteration(step)
         self.times.append(time.perf_counter() - t0)

@@ -1,0 +1,83 @@
+"""bench/failure_regime.py end to end at a toy size: a DTU-like scene, a paired baseline/SP run, the
+metrics it reports, and the one-line summary of ``--quick``."""
+
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: bench/ is not an installed package
+import bench.failure_regime as fr  # noqa: E402
+
+TINY = fr.Setting(mesh="box", steps=3, views=6, test_views=1, resolution=(24, 18), rays=32, num_samples=8,
+                  num_samples_importance=4, hidden_dim=16, num_levels=4, max_res=32, log2_hashmap_size=10,
+                  background_mlp=(2, 16), mesh_resolution=32, warm_up_end=1)
+
+
+@pytest.fixture(scope="module")
+def quick_line(tmp_path_factory):
+    out = tmp_path_factory.mktemp("failure_regime")
+    saved = fr.QUICK
+    fr.QUICK = TINY
+    try:
+        line = fr.quick("box", out)
+    finally:
+        fr.QUICK = saved
+    return line, out
+
+
+def test_quick_prints_the_promised_line(quick_line):
+    line, _ = quick_line
+    match = re.fullmatch(r"baseline PSNR (\S+), SP PSNR (\S+), baseline failed: (yes|no), SP failed: (yes|no)", line)
+    assert match, line
+    base, sp = float(match[1]), float(match[2])
+    assert 0 < base < 60 and 0 < sp < 60
+    assert (match[3] == "yes") == (base < fr.FAILED_PSNR) and (match[4] == "yes") == (sp < fr.FAILED_PSNR)
+
+
+def test_pair_result_holds_both_runs_with_their_metrics(quick_line):
+    _, out = quick_line
+    folder = out / "renders" / "quick-box"
+    assert (folder / "test0_gt_baseline_sp.png").is_file()
+    for name in fr.PAIR:
+        assert (folder / f"{name}.ply").is_file() and (folder / f"{name}.npy").is_file()
+    scene = next((out / "scenes").iterdir())
+    info = json.loads((scene / "scene.json").read_text())
+    assert info["kind"] == "dtu-like"
+
+
+def test_sp_changes_the_trajectory_and_the_result_is_json(quick_line):
+    """With SP on from step 0 the first losses differ (a hook that perturbed nothing would tie them)."""
+    _, out = quick_line
+    result = json.loads((out / "quick-box.json").read_text())
+    base, sp = result[fr.PAIR[0]], result[fr.PAIR[1]]
+    for m in (base, sp):
+        assert math.isfinite(m["psnr"]) and math.isfinite(m["psnr_object"]) and len(m["losses"]) == TINY.steps
+        assert isinstance(m["failed"], bool) and m["psnr_object"] != m["psnr"]
+    assert base["losses"][0] != sp["losses"][0]
+
+
+def test_cli_refuses_mesh_without_quick(capsys):
+    with pytest.raises(SystemExit) as stop:
+        fr.main(["box"])
+    assert stop.value.code == 2 and "--quick" in capsys.readouterr().err
+
+
+def test_pairs_are_paired_same_weights_and_rays(tmp_path, monkeypatch):
+    """With SP switched off in both runs, the pair's losses are identical step for step: same initial
+    weights and the same rays (the host's cached image order comes from Python's random, seeded too)."""
+    import dataclasses
+
+    original = fr.make_config
+
+    def sp_off(name, *args, **kwargs):
+        config = original(name, *args, **kwargs)
+        config.pipeline.model.sp.enabled = False
+        return config
+
+    monkeypatch.setattr(fr, "make_config", sp_off)
+    result = fr.run_pair(dataclasses.replace(TINY, steps=2, mesh_resolution=16), tmp_path, "paired")
+    assert result[fr.PAIR[0]]["losses"] == result[fr.PAIR[1]]["losses"]
