@@ -52,7 +52,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary
+from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, seed_everything
 from sp_plugins.nerfstudio.relu_field.model import voxel_size
 
 OUT = OUT_DIR / "radiance_methods"
@@ -194,7 +194,7 @@ class Run:
 
         self.name = name
         self.where = TrainingCallbackLocation
-        torch.manual_seed(seed)
+        seed_everything(seed)  # the cached image order comes from Python's random
         self.trainer = config.setup(local_rank=0, world_size=1)
         self.trainer.setup(test_mode="test")
         self.losses: List[float] = []
@@ -210,7 +210,7 @@ class Run:
         trainer.pipeline.train()
         for cb in trainer.callbacks:
             cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
-        torch.manual_seed(seed * 1_000_003 + step)  # the same rays and jitter for every run
+        seed_everything(seed * 1_000_003 + step)  # the same rays and jitter for every run
         t0 = time.perf_counter()
         loss, _, _ = trainer.train_iteration(step)
         self.times.append(time.perf_counter() - t0)
