@@ -236,18 +236,18 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
-    _figure(out / "renders" / tag, scene, result)
+    _figure(out / "renders" / tag, scene / "blender" / "test" / "r_0.png", PAIR)
     return result
 
 
-def _figure(folder: Path, scene: Path, result: dict) -> None:
+def _figure(folder: Path, target_image: Path, pair) -> None:
     """Ground truth | baseline | SP for the first test view (a convenience: never loses results)."""
     try:
         import imageio.v2 as imageio
 
-        target = imageio.imread(scene / "blender" / "test" / "r_0.png")[..., :3]
+        target = imageio.imread(target_image)[..., :3]
         tiles = [target]
-        for name in PAIR:
+        for name in pair:
             tiles.append((np.load(folder / f"{name}.npy").astype(np.float32) * 255).round().astype(np.uint8))
         imageio.imwrite(folder / "test0_gt_baseline_sp.png", np.concatenate(tiles, axis=1))
     except Exception as error:  # noqa: BLE001

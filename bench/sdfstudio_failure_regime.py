@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from bench.common import OUT_DIR, machine_info
-from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _crop, _psnr
+from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _crop, _figure, _psnr
 
 PAIR = ("neus", "sp-neus")
 
@@ -181,6 +181,7 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
+    _figure(out / "renders" / tag, scene / "sdfstudio" / "rgb" / "test_000.png", PAIR)
     return result
 
 
