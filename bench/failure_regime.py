@@ -95,7 +95,7 @@ QUICK = Setting(steps=300, views=24, resolution=(64, 48), test_views=2, mesh_res
 """The smallest pair (``--quick``); see bench/RESULTS.md for whether it still shows a difference."""
 
 
-def scene_dir(setting: Setting, out: Path) -> Path:
+def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
     """Render (once) the scene a setting trains on; scenes are shared by settings that agree on them."""
     from sp_plugins.data import make_scene
 
@@ -105,7 +105,7 @@ def scene_dir(setting: Setting, out: Path) -> Path:
     if not (root / "scene.json").is_file():
         logging.info("rendering scene %s", key)
         make_scene(setting.mesh, root, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
-                   layouts=("blender",), seed=0, dtu_like=setting.dtu_like, overwrite=True)
+                   layouts=(layout,), seed=0, dtu_like=setting.dtu_like, overwrite=True)
     return root
 
 

@@ -35,20 +35,15 @@ import numpy as np
 import torch
 
 from bench.common import OUT_DIR, machine_info
+import bench.failure_regime as failure_regime
 from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _crop, _figure, _psnr
 
 PAIR = ("neus", "sp-neus")
 
 
 def scene_dir(setting: Setting, out: Path) -> Path:
-    from sp_plugins.data import make_scene
-
-    name = Path(setting.mesh).stem
-    key = f"{name}_{'dtu' if setting.dtu_like else 'white'}_{setting.views}v_{setting.resolution[0]}x{setting.resolution[1]}"
-    root = out / "scenes" / key
-    if not (root / "scene.json").is_file():
-        make_scene(setting.mesh, root, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
-                   layouts=("sdfstudio",), seed=0, dtu_like=setting.dtu_like, overwrite=True)
+    """The setting's scene in the SDFStudio layout, plus its held-out views as a dataset of their own."""
+    root = failure_regime.scene_dir(setting, out, layout="sdfstudio")
     test = root / "sdfstudio_test"
     if not (test / "meta_data.json").is_file():  # the held-out views as a dataset of their own
         test.mkdir(exist_ok=True)

@@ -30,7 +30,7 @@ from jaxtyping import Float
 from tqdm.auto import tqdm
 
 from sp_plugins.data.cameras import pixel_rays
-from sp_plugins.data.render import AMBIENT, LIGHT_DIRECTION, albedo, ray_intersector
+from sp_plugins.data.render import AMBIENT, LIGHT_DIRECTION, albedo, interpolated_normals, lambert_facing_viewer, ray_intersector
 
 BACKDROP_RADIUS = 8.0
 """Radius of the textured sphere around everything (dataset units; the object fits radius 0.85)."""
@@ -113,12 +113,6 @@ def backdrop_albedo(points: Float[np.ndarray, "n 3"]) -> Float[np.ndarray, "n 3"
     return np.clip(np.array([0.45, 0.5, 0.55]) + 0.2 * waves, 0.0, 1.0)
 
 
-def _lambert(normals: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-    normals = normals * np.where(np.einsum("nd,nd->n", normals, view_dirs) > 0.0, -1.0, 1.0)[:, None]
-    return np.clip(normals @ LIGHT_DIRECTION, 0.0, 1.0), normals
-
-
 def render_dtu_views(
     object_mesh: trimesh.Trimesh,
     c2w: Float[np.ndarray, "n 4 4"],
@@ -139,7 +133,6 @@ def render_dtu_views(
     part[n_object : n_object + 2] = GROUND
     caster = ray_intersector(scene, backend)
     occluder = ray_intersector(object_mesh, backend)  # shadows: only the object blocks the light
-    vertex_normals = object_mesh.vertex_normals
     images = np.zeros((len(c2w), height, width, 3), dtype=np.float32)
     masks = np.zeros((len(c2w), height, width), dtype=np.float32)
     for index in tqdm(range(len(c2w)), desc=desc, unit="view", disable=not progress):
@@ -153,12 +146,10 @@ def render_dtu_views(
         normals = np.zeros_like(points)
         on_object = kind == OBJECT
         if on_object.any():
-            faces = triangles[on_object]
-            bary = trimesh.triangles.points_to_barycentric(object_mesh.triangles[faces], points[on_object])
-            normals[on_object] = np.einsum("nk,nkd->nd", bary, vertex_normals[object_mesh.faces[faces]])
+            normals[on_object] = interpolated_normals(object_mesh, points[on_object], triangles[on_object])
         normals[kind == GROUND] = (0.0, 0.0, 1.0)
         normals[kind == BACKDROP] = -points[kind == BACKDROP]
-        lambert, normals = _lambert(normals, view)
+        lambert, normals = lambert_facing_viewer(normals, view)
         lit = kind != BACKDROP
         if lit.any():  # shadow rays from object and ground points towards the light
             starts = points[lit] + 1e-3 * normals[lit]

@@ -49,6 +49,19 @@ def albedo(points: Float[np.ndarray, "n 3"]) -> Float[np.ndarray, "n 3"]:
     return 0.55 + 0.35 * np.sin(points @ _ALBEDO_MIX.T + _ALBEDO_PHASE)
 
 
+def interpolated_normals(mesh: trimesh.Trimesh, points: Float[np.ndarray, "n 3"], triangles: np.ndarray) -> Float[np.ndarray, "n 3"]:
+    """Vertex normals of `mesh` interpolated at hit `points` on `triangles` (not normalised)."""
+    barycentric = trimesh.triangles.points_to_barycentric(mesh.triangles[triangles], points)
+    return np.einsum("nk,nkd->nd", barycentric, mesh.vertex_normals[mesh.faces[triangles]])
+
+
+def lambert_facing_viewer(normals: Float[np.ndarray, "n 3"], view_dirs: Float[np.ndarray, "n 3"]):
+    """``(lambert, unit normals)``: normals flipped to face the viewer, and their cosine with the light."""
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+    normals = normals * np.where(np.einsum("nd,nd->n", normals, view_dirs) > 0.0, -1.0, 1.0)[:, None]
+    return np.clip(normals @ LIGHT_DIRECTION, 0.0, 1.0), normals
+
+
 def shade(
     mesh: trimesh.Trimesh,
     points: Float[np.ndarray, "n 3"],
@@ -59,11 +72,7 @@ def shade(
 
     Normals are flipped to face the viewer, so open meshes and inverted windings shade sensibly.
     """
-    barycentric = trimesh.triangles.points_to_barycentric(mesh.triangles[triangles], points)
-    normals = np.einsum("nk,nkd->nd", barycentric, mesh.vertex_normals[mesh.faces[triangles]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-    normals *= np.where(np.einsum("nd,nd->n", normals, view_dirs) > 0.0, -1.0, 1.0)[:, None]
-    lambert = np.clip(normals @ LIGHT_DIRECTION, 0.0, 1.0)
+    lambert, _ = lambert_facing_viewer(interpolated_normals(mesh, points, triangles), view_dirs)
     return np.clip(albedo(points) * (AMBIENT + (1.0 - AMBIENT) * lambert[:, None]), 0.0, 1.0)
 
 
