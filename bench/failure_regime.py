@@ -44,7 +44,9 @@ import torch
 
 from bench.common import OUT_DIR, machine_info
 
-PAIR = ("neus-hashgrid", "sp-neus-hashgrid")
+PAIRS = {"neus": ("neus-hashgrid", "sp-neus-hashgrid"), "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite")}
+"""Baseline and SP method of each family (Neuralangelo's baseline is its coarse-to-fine schedule)."""
+PAIR = PAIRS["neus"]
 FAILED_PSNR = 18.0
 """Provisional failure threshold on the masked test PSNR (the paper's failed DTU scans: 10-18 dB
 against 23-33 dB); the summary reports the values so the threshold can be revisited."""
@@ -54,7 +56,11 @@ against 23-33 dB); the summary reports the values so the threshold can be revisi
 class Setting:
     """One point of the search (every run of it: baseline and SP)."""
 
+    method: str = "neus"
+    """a key of PAIRS"""
     mesh: str = "spot"
+    """a mesh file, a bundled / primitive name, or the stem of one of ../shared/data/meshes"""
+    up_axis: str = "z"
     dtu_like: bool = True
     background_model: str = "mlp"
     background_mlp: tuple = (4, 64)
@@ -94,6 +100,28 @@ SETTINGS: Dict[str, Setting] = {
 QUICK = Setting(steps=300, views=24, resolution=(64, 48), test_views=2, mesh_resolution=64)
 """The smallest pair (``--quick``); see bench/RESULTS.md for whether it still shows a difference."""
 
+SCREEN: Dict[str, Setting] = {
+    "q-base": QUICK,
+    "q-6-views": dataclasses.replace(QUICK, views=6),
+    "q-grid-lr-1e-1": dataclasses.replace(QUICK, grid_lr=1e-1),
+    "q-mlp-lr-2e-2": dataclasses.replace(QUICK, lr=2e-2),
+    "q-long": dataclasses.replace(QUICK, steps=1200),
+    "q-homer": dataclasses.replace(QUICK, mesh="homer", up_axis="y"),
+    "q-bunny": dataclasses.replace(QUICK, mesh="bunny", up_axis="y"),
+    "q-fandisk": dataclasses.replace(QUICK, mesh="fandisk"),
+}
+"""Screening at the ``--quick`` size (~10 min a pair here): one change each from ``q-base``."""
+SETTINGS.update(SCREEN)
+
+
+SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+
+
+def mesh_source(mesh: str) -> str:
+    """A file as given; else a shared test mesh by stem (``homer``); else a bundled or primitive name."""
+    shared = SHARED_MESHES / f"{mesh}.ply"
+    return str(shared) if not Path(mesh).is_file() and shared.is_file() else mesh
+
 
 def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
     """Render (once) the scene a setting trains on; scenes are shared by settings that agree on them."""
@@ -104,7 +132,7 @@ def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
     root = out / "scenes" / key
     if not (root / "scene.json").is_file():
         logging.info("rendering scene %s", key)
-        make_scene(setting.mesh, root, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
+        make_scene(mesh_source(setting.mesh), root, up_axis=setting.up_axis, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
                    layouts=(layout,), seed=0, dtu_like=setting.dtu_like, overwrite=True)
     return root
 
@@ -215,7 +243,8 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
     from bench.sdf_methods import Run
 
     scene = scene_dir(setting, out)
-    runs = {name: Run(make_config(name, scene / "blender", setting, out / "runs", tag), setting.seed) for name in PAIR}
+    pair = PAIRS[setting.method]
+    runs = {name: Run(make_config(name, scene / "blender", setting, out / "runs", tag), setting.seed) for name in pair}
     names = list(runs)
     start = time.time()
     for step in range(setting.steps):
@@ -224,7 +253,7 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         if step % 100 == 0 or step == setting.steps - 1:
             logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
                          ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "setting": dataclasses.asdict(setting), "train_wall_s": time.time() - start,
+    result = {"tag": tag, "setting": dataclasses.asdict(setting), "pair": list(pair), "train_wall_s": time.time() - start,
               "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         t0 = time.time()
@@ -236,7 +265,7 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
-    _figure(out / "renders" / tag, scene / "blender" / "test" / "r_0.png", PAIR)
+    _figure(out / "renders" / tag, scene / "blender" / "test" / "r_0.png", pair)
     return result
 
 
@@ -256,13 +285,13 @@ def _figure(folder: Path, target_image: Path, pair) -> None:
 
 def summarise(results: List[dict], out: Path) -> str:
     lines = [
-        "| setting | steps | baseline PSNR (object) | SP PSNR (object) | baseline Chamfer | SP Chamfer | baseline NC | SP NC | s/step | train wall |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| setting | pair | steps | baseline PSNR (object) | SP PSNR (object) | baseline Chamfer | SP Chamfer | baseline NC | SP NC | s/step | train wall |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        b, s = r[PAIR[0]], r[PAIR[1]]
+        b, s = (r[name] for name in r.get("pair", PAIR))
         lines.append(
-            f"| {r['tag']} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
+            f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR))} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
             f"{b['chamfer']:.4f} | {s['chamfer']:.4f} | {b['normal_consistency']:.3f} | {s['normal_consistency']:.3f} | "
             f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f} | {r['train_wall_s'] / 60:.0f} min |"
         )
@@ -275,7 +304,7 @@ def quick(mesh: str, out: Path) -> str:
     setting = dataclasses.replace(QUICK, mesh=mesh)
     result = run_pair(setting, out, f"quick-{Path(mesh).stem}")
     (out / f"quick-{Path(mesh).stem}.json").write_text(json.dumps(result, indent=1))
-    b, s = result[PAIR[0]], result[PAIR[1]]
+    b, s = (result[name] for name in result["pair"])
     yes = {True: "yes", False: "no"}
     return (f"baseline PSNR {b['psnr_object']:.2f}, SP PSNR {s['psnr_object']:.2f}, "
             f"baseline failed: {yes[b['failed']]}, SP failed: {yes[s['failed']]}")
@@ -321,7 +350,7 @@ def main(argv=None) -> None:
         result = run_pair(setting, args.out, tag)
         path.write_text(json.dumps(result, indent=1))
         logging.info("wrote %s: baseline %.2f dB (object %.2f), SP %.2f dB (object %.2f)", path.name,
-                     result[PAIR[0]]["psnr"], result[PAIR[0]]["psnr_object"], result[PAIR[1]]["psnr"], result[PAIR[1]]["psnr_object"])
+                     *(result[n][k] for n in result["pair"] for k in ("psnr", "psnr_object")))
         results = [json.loads(p.read_text()) for p in sorted(args.out.glob("*.json"))]
         print(summarise(results, args.out), flush=True)
     print(f"machine: {machine_info()}")

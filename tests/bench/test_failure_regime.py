@@ -81,3 +81,49 @@ def test_pairs_are_paired_same_weights_and_rays(tmp_path, monkeypatch):
     monkeypatch.setattr(fr, "make_config", sp_off)
     result = fr.run_pair(dataclasses.replace(TINY, steps=2, mesh_resolution=16), tmp_path, "paired")
     assert result[fr.PAIR[0]]["losses"] == result[fr.PAIR[1]]["losses"]
+
+
+def test_figure_shows_renders_and_object_cropped_meshes(quick_line, tmp_path):
+    """bench.failure_figure on the quick pair: the meshes are cropped to the object's box as the
+    Chamfer metric crops them, and the PNG holds the three renders and three shaded meshes."""
+    import imageio.v2 as imageio
+    import numpy as np
+
+    import bench.failure_figure as ff
+
+    _, out = quick_line
+    result = json.loads((out / "quick-box.json").read_text())
+    scene = fr.scene_dir(fr.Setting(**{k: tuple(v) if isinstance(v, list) else v for k, v in result["setting"].items()}), out)
+    c2w, K, width, height, train = ff.test_camera(scene)
+    assert (width, height) == TINY.resolution and np.allclose(c2w[3], [0, 0, 0, 1])
+    gt, *pair = ff.object_meshes(result, out, scene, train)
+    assert len(gt.faces) and len(pair) == 2
+    low, high = gt.bounds[0] - 0.2, gt.bounds[1] + 0.2  # the crop keeps faces whose centres lie within 0.1 of the object
+    assert all(len(mesh.faces) for mesh in pair)  # 3 steps from the geometric-init sphere: a surface
+    for mesh in pair:  # (the ground and the backdrop sphere, radius 8, are gone)
+        centres = mesh.triangles_center
+        assert np.all(centres >= low) and np.all(centres <= high)
+    png = ff.figure(out, ["quick-box"], tmp_path / "figure.png")
+    picture = imageio.imread(png)
+    assert picture.ndim == 3 and picture.shape[0] > 100 and picture[..., :3].std() > 10
+
+
+def test_mesh_source_finds_shared_meshes_by_stem(tmp_path):
+    assert fr.mesh_source("box") == "box"
+    own = tmp_path / "homer.ply"
+    own.write_bytes(b"ply")
+    assert fr.mesh_source(str(own)) == str(own)  # a file as given wins over the shared mesh of that stem
+    if (fr.SHARED_MESHES / "homer.ply").is_file():
+        assert fr.mesh_source("homer") == str(fr.SHARED_MESHES / "homer.ply")
+    else:
+        assert fr.mesh_source("homer") == "homer"
+
+
+def test_neuralangelo_pair_runs_coarse_to_fine_against_sp(tmp_path):
+    import dataclasses
+
+    result = fr.run_pair(dataclasses.replace(TINY, method="neuralangelo", steps=2, mesh_resolution=16), tmp_path, "na")
+    assert result["pair"] == list(fr.PAIRS["neuralangelo"])
+    base, sp = (result[name] for name in result["pair"])
+    assert len(base["losses"]) == len(sp["losses"]) == 2 and base["losses"][0] != sp["losses"][0]
+    assert (tmp_path / "renders" / "na" / "test0_gt_baseline_sp.png").is_file()
