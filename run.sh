@@ -132,7 +132,12 @@ run_tests() {
     fi
   fi
   if [ "$run_main" = 1 ]; then
-    main_rc=0; "$venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
+    # the main suite is spread over SP_TEST_WORKERS processes (default: the cores, at most 8; 1 = one
+    # process), a test file per worker at a time so its module fixtures are built once
+    local workers="${SP_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}" xdist=()
+    [ "$workers" -gt 8 ] && workers=8
+    if [ "$workers" -gt 1 ] && "$venv/bin/python" -c "import xdist" 2>/dev/null; then xdist=(-n "$workers" --dist loadfile); fi
+    main_rc=0; "$venv/bin/python" -m pytest -q ${xdist[@]+"${xdist[@]}"} ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
   fi
   if [ -n "$sdf_pid" ]; then
     sdf_rc=0; wait "$sdf_pid" || sdf_rc=$?

@@ -43,3 +43,27 @@ def _remove_large_checkpoints_after_the_test(request):
     yield
     if tmp_path is not None and not os.environ.get("SP_TEST_KEEP_LARGE"):
         remove_large_files(Path(tmp_path))
+
+
+# -- order: the slowest files first ---------------------------------------------------------------
+SLOW_FIRST = (
+    "sweeps/test_sweep_cli.py", "nerfstudio/test_real_capture.py", "nerfstudio/test_with_sp.py",
+    "nerfstudio/test_ns_commands.py", "nerfstudio/test_bad_input_ns.py", "bench/test_failure_regime.py",
+    "nerfstudio/test_kill_resume.py", "nerfstudio/test_multiprocess.py", "nerfstudio/test_relu_field_thr3ed.py",
+    "cli/test_demo.py",
+)
+"""Files of a minute or more (``--durations``, 2026-12-02). ``./run.sh test`` hands whole files to
+pytest-xdist workers in collection order; a slow file drawn last would run alone at the end."""
+
+
+def pytest_collection_modifyitems(config, items):
+    here = Path(__file__).resolve().parent
+
+    def rank(item):
+        try:
+            name = Path(item.path).resolve().relative_to(here).as_posix()
+        except ValueError:
+            return len(SLOW_FIRST)
+        return SLOW_FIRST.index(name) if name in SLOW_FIRST else len(SLOW_FIRST)
+
+    items.sort(key=rank)  # stable: a file's tests keep their order
