@@ -82,6 +82,10 @@ class Setting:
     warm_up_end: int = 50
     seed: int = 0
     mesh_resolution: int = 96
+    sp_alpha0: Optional[float] = None
+    """the SP run's alpha0 (None: the NeuS preset, 0.013)"""
+    sp_end: Optional[float] = None
+    """the SP run's end of annealing (None: the preset, 0.2 of training)"""
 
 
 SETTINGS: Dict[str, Setting] = {
@@ -109,6 +113,8 @@ SCREEN: Dict[str, Setting] = {
     "q-homer": dataclasses.replace(QUICK, mesh="homer", up_axis="y"),
     "q-bunny": dataclasses.replace(QUICK, mesh="bunny", up_axis="y"),
     "q-fandisk": dataclasses.replace(QUICK, mesh="fandisk"),
+    # SP's blur at the pixel scale: the preset's 0.013 is a third of a 64x48 pixel's footprint at the object
+    "q-sp-wide": dataclasses.replace(QUICK, sp_alpha0=0.05, sp_end=0.5),
 }
 """Screening at the ``--quick`` size (~10 min a pair here): one change each from ``q-base``."""
 SETTINGS.update(SCREEN)
@@ -161,6 +167,10 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
         model.background_color = "white"
     model.eval_num_rays_per_chunk = 1024
     model.sp.seed = setting.seed
+    if setting.sp_alpha0 is not None:
+        model.sp.alpha0 = setting.sp_alpha0
+    if setting.sp_end is not None:
+        model.sp.end = setting.sp_end
     for group, lr in (("fields", setting.lr), (GRID_GROUP, setting.grid_lr), ("field_background", setting.lr)):
         entry = config.optimizers[group]
         entry["optimizer"].lr = lr
