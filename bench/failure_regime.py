@@ -98,6 +98,7 @@ SETTINGS: Dict[str, Setting] = {
     "dtu-16-views": Setting(views=16),
     "dtu-max-res-512": Setting(max_res=512, log2_hashmap_size=17),
     "dtu-paper-long": Setting(steps=2000),
+    "dtu-grid-lr-1e-1": Setting(grid_lr=1e-1),
 }
 """Named settings of the search; each varies one thing from ``dtu-paper`` (``white-paper``: the earlier studies' scene)."""
 
@@ -113,6 +114,17 @@ SCREEN: Dict[str, Setting] = {
     "q-homer": dataclasses.replace(QUICK, mesh="homer", up_axis="y"),
     "q-bunny": dataclasses.replace(QUICK, mesh="bunny", up_axis="y"),
     "q-fandisk": dataclasses.replace(QUICK, mesh="fandisk"),
+    # the grid tables at 10x nerfstudio's rate: the baseline's hash grid breaks up (q-grid-lr-1e-1), on every mesh?
+    "q-lr1-s1": dataclasses.replace(QUICK, grid_lr=1e-1, seed=1),
+    "q-lr1-s2": dataclasses.replace(QUICK, grid_lr=1e-1, seed=2),
+    "q-lr1-bunny": dataclasses.replace(QUICK, grid_lr=1e-1, mesh="bunny", up_axis="y"),
+    "q-lr1-homer": dataclasses.replace(QUICK, grid_lr=1e-1, mesh="homer", up_axis="y"),
+    "q-lr1-fandisk": dataclasses.replace(QUICK, grid_lr=1e-1, mesh="fandisk"),
+    "q-lr1-cow": dataclasses.replace(QUICK, grid_lr=1e-1, mesh="cow", up_axis="y"),
+    # smaller pairs, for the regression test and --quick: does the grid-lr failure and rescue survive?
+    "t-lr1-150": dataclasses.replace(QUICK, grid_lr=1e-1, steps=150, rays=128, resolution=(48, 36), views=16, mesh_resolution=48),
+    "t-lr1-100": dataclasses.replace(QUICK, grid_lr=1e-1, steps=100, rays=64, resolution=(32, 24), views=12, test_views=1,
+                                     mesh_resolution=32),
     # SP's blur at the pixel scale: the preset's 0.013 is a third of a 64x48 pixel's footprint at the object
     "q-sp-wide": dataclasses.replace(QUICK, sp_alpha0=0.05, sp_end=0.5),
 }

@@ -127,3 +127,15 @@ def test_neuralangelo_pair_runs_coarse_to_fine_against_sp(tmp_path):
     base, sp = (result[name] for name in result["pair"])
     assert len(base["losses"]) == len(sp["losses"]) == 2 and base["losses"][0] != sp["losses"][0]
     assert (tmp_path / "renders" / "na" / "test0_gt_baseline_sp.png").is_file()
+
+
+def test_sdfstudio_bench_refuses_what_it_cannot_pair(capsys):
+    """sdfstudio's bench has no Neuralangelo pair, no SP overrides, and one lr for grid and MLPs."""
+    import bench.sdfstudio_failure_regime as sfr
+
+    assert sfr.unsupported(fr.SETTINGS["dtu-paper"]) == ""
+    assert "grid_lr" in sfr.unsupported(fr.SETTINGS["dtu-grid-lr-5e-2"])
+    assert "sp_alpha0" in sfr.unsupported(fr.SETTINGS["q-sp-wide"])
+    with pytest.raises(SystemExit) as stop:
+        sfr.main(["--settings", "dtu-grid-lr-1e-1"])
+    assert stop.value.code == 2 and "not available in sdfstudio's bench: dtu-grid-lr-1e-1" in capsys.readouterr().err
