@@ -136,7 +136,7 @@ run_tests() {
     # process), a test file per worker at a time so its module fixtures are built once
     local workers="${SP_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}" xdist=()
     [ "$workers" -gt 8 ] && workers=8
-    if [ "$workers" -gt 1 ] && "$venv/bin/python" -c "import xdist" 2>/dev/null; then xdist=(-n "$workers" --dist loadfile); fi
+    if [ "$workers" -gt 1 ] && "$venv/bin/python" -c "import xdist" 2>/dev/null; then xdist=(-n "$workers" --dist loadfile --no-loadscope-reorder); fi
     main_rc=0; "$venv/bin/python" -m pytest -q ${xdist[@]+"${xdist[@]}"} ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
   fi
   if [ -n "$sdf_pid" ]; then

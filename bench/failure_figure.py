@@ -41,18 +41,16 @@ def object_meshes(result: dict, out: Path, scene: Path, train_outputs) -> List:
     """True object mesh and the pair's meshes, cropped as ``failure_regime.evaluate`` crops them."""
     import trimesh
 
-    from bench.failure_regime import _crop
+    from bench.failure_regime import crop_to_object
     from sp_plugins.data import load_gt_mesh, read_scene
 
-    gt = load_gt_mesh(scene, train_outputs)
-    info = read_scene(scene)
-    floor = info["dtu_like"]["ground_z"] + 0.03 if result["setting"]["dtu_like"] else -np.inf
-    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
-    low[2] = max(low[2], floor)
-    meshes = [_crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf))]
+    gt, info = load_gt_mesh(scene, train_outputs), read_scene(scene)
+    meshes = []
     for name in result["pair"]:
-        meshes.append(_crop(trimesh.load(out / "renders" / result["tag"] / f"{name}.ply", force="mesh", process=False), low, high))
-    return meshes
+        pred = trimesh.load(out / "renders" / result["tag"] / f"{name}.ply", force="mesh", process=False)
+        gt_cropped, cropped = crop_to_object(gt, pred, info, result["setting"]["dtu_like"])
+        meshes.append(cropped)
+    return [gt_cropped, *meshes]
 
 
 def figure(out: Path, tags: List[str], save: Path, upscale: int = 2) -> Path:
@@ -62,15 +60,13 @@ def figure(out: Path, tags: List[str], save: Path, upscale: int = 2) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from bench.failure_regime import PAIR
+    from bench.failure_regime import PAIR, Setting, scene_dir
     from sp_plugins.data.render import render_views
 
     fig, axes = plt.subplots(2 * len(tags), 3, figsize=(7.5, 2.0 * 2 * len(tags)), squeeze=False)
     for row, tag in enumerate(tags):
         result = json.loads((out / f"{tag}.json").read_text())
         result.setdefault("pair", list(PAIR))
-        from bench.failure_regime import Setting, scene_dir
-
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in result["setting"].items()}
         scene = scene_dir(Setting(**fields), out)
         c2w, K, width, height, train = test_camera(scene)

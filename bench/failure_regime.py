@@ -229,12 +229,7 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.5, 1.5),
                             resolution=setting.mesh_resolution, chunk=1 << 16)
     gt = load_gt_mesh(scene, pipeline.datamanager.train_dataparser_outputs)
-    info = read_scene(scene)
-    floor = info["dtu_like"]["ground_z"] + 0.03 if setting.dtu_like else -np.inf
-    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
-    low[2] = max(low[2], floor)
-    pred = _crop(mesh, low, high)
-    gt_cropped = _crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf))
+    gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
     geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
     if render_out is not None:
         render_out.parent.mkdir(parents=True, exist_ok=True)
@@ -250,6 +245,15 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         "fscore": geometry["fscore"],
         "area_ratio": geometry["area_ratio"],
     }
+
+
+def crop_to_object(gt, pred, info: dict, dtu_like: bool):
+    """The true object above the ground (+0.03) and the prediction inside the object's box + 0.1 above
+    that floor: the ground and the backdrop are not the object. Returns ``(gt, pred)`` cropped."""
+    floor = info["dtu_like"]["ground_z"] + 0.03 if dtu_like else -np.inf
+    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
+    low[2] = max(low[2], floor)
+    return _crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf)), _crop(pred, low, high)
 
 
 def _crop(mesh, low, high):

@@ -36,7 +36,7 @@ import torch
 
 from bench.common import OUT_DIR, machine_info
 import bench.failure_regime as failure_regime
-from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _crop, _figure, _psnr
+from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _figure, _psnr, crop_to_object
 
 PAIR = ("neus", "sp-neus")
 
@@ -154,10 +154,8 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
     with torch.no_grad():
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=setting.mesh_resolution)
     gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
-    floor = read_scene(scene)["dtu_like"]["ground_z"] + 0.03 if setting.dtu_like else -np.inf
-    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
-    low[2] = max(low[2], floor)
-    geometry = mesh_metrics(_crop(mesh, low, high), _crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf)), n_points=50_000)
+    gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
+    geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
     render_out.parent.mkdir(parents=True, exist_ok=True)
     mesh.export(render_out.with_suffix(".ply"))
     np.save(render_out.with_suffix(".npy"), first.astype(np.float16))

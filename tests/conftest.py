@@ -53,7 +53,8 @@ SLOW_FIRST = (
     "cli/test_demo.py",
 )
 """Files of a minute or more (``--durations``, 2026-12-02). ``./run.sh test`` hands whole files to
-pytest-xdist workers in collection order; a slow file drawn last would run alone at the end."""
+pytest-xdist workers in collection order (``--no-loadscope-reorder``: by default xdist starts with the
+files of most tests); a slow file drawn last would run alone at the end."""
 
 
 def pytest_collection_modifyitems(config, items):
