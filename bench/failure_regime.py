@@ -127,6 +127,10 @@ SCREEN: Dict[str, Setting] = {
                                      mesh_resolution=32),
     # SP's blur at the pixel scale: the preset's 0.013 is a third of a 64x48 pixel's footprint at the object
     "q-sp-wide": dataclasses.replace(QUICK, sp_alpha0=0.05, sp_end=0.5),
+    # the same wide blur where the baseline fails (grid lr 1e-1), on the three Spot seeds of q-grid-lr-1e-1 / q-lr1-s1 / -s2
+    "q-lr1-wide": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5),
+    "q-lr1-wide-s1": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5, seed=1),
+    "q-lr1-wide-s2": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5, seed=2),
 }
 """Screening at the ``--quick`` size (~10 min a pair here): one change each from ``q-base``."""
 SETTINGS.update(SCREEN)
@@ -265,12 +269,14 @@ def _crop(mesh, low, high):
     return out
 
 
-def run_pair(setting: Setting, out: Path, tag: str) -> dict:
+def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> dict:
+    """Baseline and SP (or ``names``: any runs, the first the baseline) side by side, paired."""
     from bench.sdf_methods import Run
 
     scene = scene_dir(setting, out)
-    pair = PAIRS[setting.method]
-    runs = {name: Run(make_config(name, scene / "blender", setting, out / "runs", tag), setting.seed) for name in pair}
+    pair = tuple(names or PAIRS[setting.method])
+    make = make or make_config
+    runs = {name: Run(make(name, scene / "blender", setting, out / "runs", tag), setting.seed) for name in pair}
     names = list(runs)
     start = time.time()
     for step in range(setting.steps):
@@ -315,9 +321,9 @@ def summarise(results: List[dict], out: Path) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        b, s = (r[name] for name in r.get("pair", PAIR))
+        b, s = (r[name] for name in r.get("pair", PAIR)[:2])
         lines.append(
-            f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR))} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
+            f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR)[:2])} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
             f"{b['chamfer']:.4f} | {s['chamfer']:.4f} | {b['normal_consistency']:.3f} | {s['normal_consistency']:.3f} | "
             f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f} | {r['train_wall_s'] / 60:.0f} min |"
         )
