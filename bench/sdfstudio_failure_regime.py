@@ -55,16 +55,14 @@ def scene_dir(setting: Setting, out: Path) -> Path:
 
 
 def unsupported(setting: Setting) -> str:
-    """Why this bench cannot run ``setting`` as the nerfstudio bench does ('' if it can). sdfstudio keeps
-    the hash tables in its ``fields`` optimizer group, so ``grid_lr`` cannot differ from ``lr`` there."""
-    reasons = []
+    """Why this bench cannot run ``setting`` as the nerfstudio bench does ('' if it can)."""
     if setting.method != "neus":
-        reasons.append(f"method {setting.method!r}: only NeuS is paired here")
-    if setting.sp_alpha0 is not None or setting.sp_end is not None:
-        reasons.append("sp_alpha0 / sp_end")
-    if setting.grid_lr not in (setting.lr, Setting().grid_lr):
-        reasons.append(f"grid_lr {setting.grid_lr} (sdfstudio trains the grid at the fields' lr {setting.lr})")
-    return "; ".join(reasons)
+        return f"method {setting.method!r}: only NeuS is paired here"
+    return ""
+
+
+GRID_GROUP = "grid"
+"""The optimizer group of the SDF field's hash tables in this bench (see :func:`grid_group`)."""
 
 
 def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
@@ -104,12 +102,41 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     f.bias = 0.5
     if hasattr(model, "sp"):
         model.sp.seed = setting.seed
-    for group in ("fields", "field_background"):
+        if setting.sp_alpha0 is not None:
+            model.sp.alpha0 = setting.sp_alpha0
+        if setting.sp_end is not None:
+            model.sp.end = setting.sp_end
+    config.optimizers[GRID_GROUP] = __import__("copy").deepcopy(config.optimizers["fields"])
+    for group, lr in (("fields", setting.lr), (GRID_GROUP, setting.grid_lr), ("field_background", setting.lr)):
         entry = config.optimizers[group]
-        entry["optimizer"].lr = setting.lr
+        entry["optimizer"].lr = lr
         entry["scheduler"].warm_up_end = setting.warm_up_end
         entry["scheduler"].max_steps = setting.steps
     return config
+
+
+@contextlib.contextmanager
+def grid_group():
+    """While trainers are set up, sdfstudio's surface models put the SDF field's hash tables in an
+    optimizer group of their own (:data:`GRID_GROUP`), as our nerfstudio NeuS does, so the grid's lr
+    can differ from the MLPs' (sdfstudio keeps them in ``fields``). The same for both runs: benchmark only."""
+    import nerfstudio.models.base_surface_model as surface
+
+    original = surface.SurfaceModel.get_param_groups
+
+    def split(self):
+        groups = original(self)
+        grid = list(self.field.encoding.parameters())
+        ids = {id(p) for p in grid}
+        groups["fields"] = [p for p in groups["fields"] if id(p) not in ids]
+        groups[GRID_GROUP] = grid
+        return groups
+
+    surface.SurfaceModel.get_param_groups = split
+    try:
+        yield
+    finally:
+        surface.SurfaceModel.get_param_groups = original
 
 
 @contextlib.contextmanager
@@ -168,7 +195,7 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
     from bench.sdfstudio_neus_facto import Run
 
     scene = scene_dir(setting, out)
-    with background_mlp(*setting.background_mlp):
+    with background_mlp(*setting.background_mlp), grid_group():
         runs = {name: Run(make_config(name, scene / "sdfstudio", setting, out / "runs", tag), setting.seed) for name in PAIR}
     start = time.time()
     for step in range(setting.steps):
@@ -177,7 +204,7 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         if step % 100 == 0 or step == setting.steps - 1:
             logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
                          ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "grid_lr_effective": setting.lr, "train_wall_s": time.time() - start,
+    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "grid_lr_effective": setting.grid_lr, "train_wall_s": time.time() - start,
               "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         metrics = evaluate(run, scene, setting, out / "renders" / tag / name)

@@ -1,6 +1,7 @@
 """bench/failure_regime.py end to end at a toy size: a DTU-like scene, a paired baseline/SP run, the
 metrics it reports, and the one-line summary of ``--quick``."""
 
+import dataclasses
 import json
 import math
 import re
@@ -130,12 +131,18 @@ def test_neuralangelo_pair_runs_coarse_to_fine_against_sp(tmp_path):
 
 
 def test_sdfstudio_bench_refuses_what_it_cannot_pair(capsys):
-    """sdfstudio's bench has no Neuralangelo pair, no SP overrides, and one lr for grid and MLPs."""
+    """sdfstudio's bench has no Neuralangelo pair; grid lr and SP overrides it takes (tests/sdfstudio)."""
     import bench.sdfstudio_failure_regime as sfr
 
     assert sfr.unsupported(fr.SETTINGS["dtu-paper"]) == ""
-    assert "grid_lr" in sfr.unsupported(fr.SETTINGS["dtu-grid-lr-5e-2"])
-    assert "sp_alpha0" in sfr.unsupported(fr.SETTINGS["q-sp-wide"])
-    with pytest.raises(SystemExit) as stop:
-        sfr.main(["--settings", "dtu-grid-lr-1e-1"])
-    assert stop.value.code == 2 and "not available in sdfstudio's bench: dtu-grid-lr-1e-1" in capsys.readouterr().err
+    assert sfr.unsupported(fr.SETTINGS["q-lr1-wide"]) == ""
+    assert "neuralangelo" in sfr.unsupported(dataclasses.replace(fr.SETTINGS["q-base"], method="neuralangelo"))
+    saved = dict(fr.SETTINGS)
+    fr.SETTINGS["q-na"] = dataclasses.replace(fr.SETTINGS["q-base"], method="neuralangelo")
+    try:
+        with pytest.raises(SystemExit) as stop:
+            sfr.main(["--settings", "q-na"])
+    finally:
+        fr.SETTINGS.clear()
+        fr.SETTINGS.update(saved)
+    assert stop.value.code == 2 and "not available in sdfstudio's bench: q-na" in capsys.readouterr().err

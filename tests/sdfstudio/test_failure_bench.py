@@ -1,0 +1,53 @@
+"""bench/sdfstudio_failure_regime.py in sdfstudio's environment, at a toy size: the hash tables get an
+optimizer group of their own at the setting's grid lr in both runs (sdfstudio keeps them in
+``fields``), the SP run takes the setting's alpha0 / end, and the pair trains and reports."""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: bench/ is not an installed package
+import bench.failure_regime as fr  # noqa: E402
+import bench.sdfstudio_failure_regime as sfr  # noqa: E402
+
+TOY = fr.Setting(mesh="box", steps=2, views=6, test_views=1, resolution=(24, 18), rays=32, num_samples=8,
+                 num_samples_importance=4, hidden_dim=16, num_levels=4, max_res=32, log2_hashmap_size=10,
+                 background_mlp=(2, 16), mesh_resolution=16, warm_up_end=1, grid_lr=0.1, sp_alpha0=0.07, sp_end=0.5)
+
+
+def _ids(optimizer):
+    return {id(p) for group in optimizer.param_groups for p in group["params"]}
+
+
+def test_grid_tables_train_in_their_own_group_at_the_grid_lr(patched, tmp_path):
+    import nerfstudio.models.base_surface_model as surface
+
+    from bench.sdfstudio_neus_facto import Run
+
+    original = surface.SurfaceModel.get_param_groups
+    scene = sfr.scene_dir(TOY, tmp_path)
+    for name in sfr.PAIR:
+        with sfr.background_mlp(*TOY.background_mlp), sfr.grid_group():
+            run = Run(sfr.make_config(name, scene / "sdfstudio", TOY, tmp_path / "runs", "groups"), TOY.seed)
+        optimizers = run.trainer.optimizers
+        grid = {id(p) for p in run.trainer.pipeline.model.field.encoding.parameters()}
+        assert grid and _ids(optimizers.optimizers[sfr.GRID_GROUP]) == grid
+        assert grid.isdisjoint(_ids(optimizers.optimizers["fields"])) and _ids(optimizers.optimizers["fields"])
+        assert optimizers.config[sfr.GRID_GROUP]["optimizer"].lr == pytest.approx(0.1)
+        assert optimizers.config["fields"]["optimizer"].lr == pytest.approx(TOY.lr)
+        if name == "sp-neus":
+            assert run.trainer.pipeline.model.sp.config.alpha0 == pytest.approx(0.07)
+            assert run.trainer.pipeline.model.sp.config.end == pytest.approx(0.5)
+    assert surface.SurfaceModel.get_param_groups is original  # the substitution ends with the set-up
+
+
+def test_pair_trains_and_records_the_grid_lr(patched, tmp_path):
+    result = sfr.run_pair(dataclasses.replace(TOY, mesh_resolution=16), tmp_path, "toy")
+    assert result["grid_lr_effective"] == pytest.approx(0.1)
+    base, sp = (result[name] for name in sfr.PAIR)
+    assert len(base["losses"]) == len(sp["losses"]) == TOY.steps
+    assert base["losses"][0] != sp["losses"][0]  # the SP run perturbs from the first step
+    for metrics in (base, sp):
+        assert 0 < metrics["psnr"] < 60 and isinstance(metrics["failed"], bool)
