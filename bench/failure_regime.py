@@ -131,12 +131,23 @@ SCREEN: Dict[str, Setting] = {
     "q-lr1-wide": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5),
     "q-lr1-wide-s1": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5, seed=1),
     "q-lr1-wide-s2": dataclasses.replace(QUICK, grid_lr=1e-1, sp_alpha0=0.05, sp_end=0.5, seed=2),
+    # the real capture (45 train / 5 test views of 135x240, the room behind the fox, no masks): whole-image PSNR only
+    "fox-q": dataclasses.replace(QUICK, mesh="fox", steps=600),
+    "fox-lr1": dataclasses.replace(QUICK, mesh="fox", steps=600, grid_lr=1e-1),
 }
 """Screening at the ``--quick`` size (~10 min a pair here): one change each from ``q-base``."""
 SETTINGS.update(SCREEN)
 
 
 SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+REAL = {"fox": Path(os.environ.get("SP_FOX_CAPTURE", SHARED_MESHES.parent / "real" / "fox"))}
+"""Real captures a setting's ``mesh`` may name (instant-ngp format, COLMAP poses): no true mesh and no
+object mask, so only whole-image test PSNR (nerfstudio's instant-ngp parser: 90/10 split); a mesh is
+still extracted for the figure."""
+
+
+def is_real(setting: "Setting") -> bool:
+    return setting.mesh in REAL
 
 
 def mesh_source(mesh: str) -> str:
@@ -146,8 +157,15 @@ def mesh_source(mesh: str) -> str:
 
 
 def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
-    """Render (once) the scene a setting trains on; scenes are shared by settings that agree on them."""
+    """Render (once) the scene a setting trains on; scenes are shared by settings that agree on them.
+    A real capture (:data:`REAL`) is used where it lies."""
     from sp_plugins.data import make_scene
+
+    if is_real(setting):
+        capture = REAL[setting.mesh]
+        if not (capture / "transforms.json").is_file():
+            raise SystemExit(f"{setting.mesh}: no capture at {capture} (transforms.json); set SP_FOX_CAPTURE to its folder")
+        return capture
 
     name = Path(setting.mesh).stem
     key = f"{name}_{'dtu' if setting.dtu_like else 'white'}_{setting.views}v_{setting.resolution[0]}x{setting.resolution[1]}"
@@ -157,6 +175,11 @@ def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
         make_scene(mesh_source(setting.mesh), root, up_axis=setting.up_axis, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
                    layouts=(layout,), seed=0, dtu_like=setting.dtu_like, overwrite=True)
     return root
+
+
+def data_dir(setting: Setting, scene: Path) -> Path:
+    """What the trainer reads: the Blender layout of a rendered scene, or the capture itself."""
+    return scene if is_real(setting) else scene / "blender"
 
 
 def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
@@ -194,6 +217,10 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
         entry["scheduler"].max_steps = setting.steps
     configure_run(config, data, steps=setting.steps, output_dir=out, layout="blender", rays_per_batch=setting.rays,
                   experiment_name=f"{name}-{tag}")
+    if is_real(setting):
+        from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
+
+        config.pipeline.datamanager.dataparser = InstantNGPDataParserConfig(data=data)
     return config
 
 
@@ -221,7 +248,9 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         target = dataset.get_image_float32(index)[..., :3].cpu().numpy()
         mask_path = scene / "blender" / "object_mask" / "test" / f"r_{index}.png"
         mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else None
-        if mask is None:  # object on white: the object is where the target is not background
+        if is_real(setting):  # no object mask: the whole image
+            mask = np.ones(target.shape[:2], dtype=bool)
+        elif mask is None:  # object on white: the object is where the target is not background
             alpha = imageio.imread(scene / "blender" / "test" / f"r_{index}.png")[..., 3]
             mask = alpha > 127
         whole.append(_psnr(pred, target))
@@ -232,9 +261,12 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
     with torch.no_grad():
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.5, 1.5),
                             resolution=setting.mesh_resolution, chunk=1 << 16)
-    gt = load_gt_mesh(scene, pipeline.datamanager.train_dataparser_outputs)
-    gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
-    geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
+    if is_real(setting):  # no true mesh
+        geometry = dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
+    else:
+        gt = load_gt_mesh(scene, pipeline.datamanager.train_dataparser_outputs)
+        gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
+        geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
     if render_out is not None:
         render_out.parent.mkdir(parents=True, exist_ok=True)
         mesh.export(render_out.with_suffix(".ply"))
@@ -276,7 +308,7 @@ def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> di
     scene = scene_dir(setting, out)
     pair = tuple(names or PAIRS[setting.method])
     make = make or make_config
-    runs = {name: Run(make(name, scene / "blender", setting, out / "runs", tag), setting.seed) for name in pair}
+    runs = {name: Run(make(name, data_dir(setting, scene), setting, out / "runs", tag), setting.seed) for name in pair}
     names = list(runs)
     start = time.time()
     for step in range(setting.steps):
@@ -297,7 +329,7 @@ def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> di
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
-    _figure(out / "renders" / tag, scene / "blender" / "test" / "r_0.png", pair)
+    _figure(out / "renders" / tag, runs[pair[0]].trainer.pipeline.datamanager.eval_dataset.image_filenames[0], pair)
     return result
 
 
@@ -315,6 +347,10 @@ def _figure(folder: Path, target_image: Path, pair) -> None:
         logging.warning("figure skipped: %s", error)
 
 
+def _num(value: Optional[float], digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
 def summarise(results: List[dict], out: Path) -> str:
     lines = [
         "| setting | pair | steps | baseline PSNR (object) | SP PSNR (object) | baseline Chamfer | SP Chamfer | baseline NC | SP NC | s/step | train wall |",
@@ -324,7 +360,7 @@ def summarise(results: List[dict], out: Path) -> str:
         b, s = (r[name] for name in r.get("pair", PAIR)[:2])
         lines.append(
             f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR)[:2])} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
-            f"{b['chamfer']:.4f} | {s['chamfer']:.4f} | {b['normal_consistency']:.3f} | {s['normal_consistency']:.3f} | "
+            f"{_num(b['chamfer'], 4)} | {_num(s['chamfer'], 4)} | {_num(b['normal_consistency'], 3)} | {_num(s['normal_consistency'], 3)} | "
             f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f} | {r['train_wall_s'] / 60:.0f} min |"
         )
     table = "\n".join(lines)

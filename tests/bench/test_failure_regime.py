@@ -146,3 +146,29 @@ def test_sdfstudio_bench_refuses_what_it_cannot_pair(capsys):
         fr.SETTINGS.clear()
         fr.SETTINGS.update(saved)
     assert stop.value.code == 2 and "not available in sdfstudio's bench: q-na" in capsys.readouterr().err
+
+
+def test_fox_setting_trains_on_the_capture_with_its_own_split(tmp_path):
+    """The real capture is read where it lies by nerfstudio's instant-ngp parser (45 train / 5 test
+    views); with no true mesh its geometry columns print as '-'."""
+    from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
+
+    setting = fr.SETTINGS["fox-lr1"]
+    assert fr.is_real(setting) and setting.grid_lr == pytest.approx(0.1)
+    data = fr.data_dir(setting, fr.scene_dir(setting, tmp_path))
+    assert data == fr.REAL["fox"] and (data / "transforms.json").is_file()
+    config = fr.make_config("neus-hashgrid", data, setting, tmp_path, "fox")
+    parser = config.pipeline.datamanager.dataparser
+    assert isinstance(parser, InstantNGPDataParserConfig)
+    outputs = parser.setup().get_dataparser_outputs("test")
+    assert len(outputs.image_filenames) == 5
+    metrics = {"psnr": 20.0, "psnr_object": 20.0, "chamfer": None, "normal_consistency": None, "median_step_s": 1.0}
+    row = fr.summarise([{"tag": "fox", "setting": dataclasses.asdict(setting), "pair": list(fr.PAIR), "train_wall_s": 60,
+                         fr.PAIR[0]: metrics, fr.PAIR[1]: metrics}], tmp_path).splitlines()[-1]
+    assert "| - | - | - | - |" in row
+
+
+def test_a_missing_capture_is_named(tmp_path, monkeypatch):
+    monkeypatch.setitem(fr.REAL, "fox", tmp_path / "nowhere")
+    with pytest.raises(SystemExit, match="SP_FOX_CAPTURE"):
+        fr.scene_dir(fr.SETTINGS["fox-q"], tmp_path)
