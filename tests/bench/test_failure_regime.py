@@ -21,12 +21,12 @@ TINY = fr.Setting(mesh="box", steps=3, views=6, test_views=1, resolution=(24, 18
 @pytest.fixture(scope="module")
 def quick_line(tmp_path_factory):
     out = tmp_path_factory.mktemp("failure_regime")
-    saved = fr.QUICK
-    fr.QUICK = TINY
+    saved = fr.QUICK_RUN
+    fr.QUICK_RUN = TINY
     try:
         line = fr.quick("box", out)
     finally:
-        fr.QUICK = saved
+        fr.QUICK_RUN = saved
     return line, out
 
 
