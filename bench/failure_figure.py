@@ -63,9 +63,10 @@ def figure(out: Path, tags: List[str], save: Path, upscale: int = 2) -> Path:
     from bench.failure_regime import PAIR, Setting, scene_dir
     from sp_plugins.data.render import render_views
 
-    fig, axes = plt.subplots(2 * len(tags), 3, figsize=(7.5, 2.0 * 2 * len(tags)), squeeze=False)
-    for row, tag in enumerate(tags):
-        result = json.loads((out / f"{tag}.json").read_text())
+    results = [json.loads((out / f"{tag}.json").read_text()) for tag in tags]
+    cols = 1 + max(len(r.get("pair", PAIR)) for r in results)  # ground truth, then every run (a pair or more)
+    fig, axes = plt.subplots(2 * len(tags), cols, figsize=(2.5 * cols, 2.0 * 2 * len(tags)), squeeze=False)
+    for row, (tag, result) in enumerate(zip(tags, results)):
         result.setdefault("pair", list(PAIR))
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in result["setting"].items()}
         scene = scene_dir(Setting(**fields), out)
@@ -85,11 +86,12 @@ def figure(out: Path, tags: List[str], save: Path, upscale: int = 2) -> Path:
                 continue
             rgba = render_views(mesh, c2w[None], K_big, width * upscale, height * upscale)[0]
             shaded.append(rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:]))
-        base, sp = (result[name] for name in result["pair"])
-        titles = ["ground truth", f"{result['pair'][0]}\n{base['psnr_object']:.2f} dB (object)",
-                  f"{result['pair'][1]}\n{sp['psnr_object']:.2f} dB (object)"]
-        mesh_titles = [f"true object ({tag})", f"Chamfer {base['chamfer']:.4f}", f"Chamfer {sp['chamfer']:.4f}"]
-        for col in range(3):
+        titles = ["ground truth"] + [f"{name}\n{result[name]['psnr_object']:.2f} dB (object)" for name in result["pair"]]
+        mesh_titles = [f"true object ({tag})"] + [_chamfer(result[name]["chamfer"]) for name in result["pair"]]
+        for col in range(len(images), cols):
+            axes[2 * row, col].axis("off")
+            axes[2 * row + 1, col].axis("off")
+        for col in range(len(images)):
             for r, (picture, title) in enumerate(((images[col], titles[col]), (shaded[col], mesh_titles[col]))):
                 ax = axes[2 * row + r, col]
                 ax.imshow(np.clip(picture, 0, 1))
@@ -100,6 +102,10 @@ def figure(out: Path, tags: List[str], save: Path, upscale: int = 2) -> Path:
     fig.savefig(save, dpi=110)
     plt.close(fig)
     return save
+
+
+def _chamfer(value) -> str:
+    return "no surface in the object's box" if value is None or not np.isfinite(value) else f"Chamfer {value:.4f}"
 
 
 def main(argv=None) -> None:
