@@ -135,6 +135,8 @@ SCREEN: Dict[str, Setting] = {
     # Neuralangelo (its coarse-to-fine schedule as the baseline) against SP, at the default and the failing grid lr
     "q-na": dataclasses.replace(QUICK, method="neuralangelo"),
     "q-na-lr1": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1),
+    "q-na-lr1-s1": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=1),
+    "q-na-lr1-s2": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=2),
     # the real capture (45 train / 5 test views of 135x240, the room behind the fox, no masks): whole-image PSNR only
     "fox-q": dataclasses.replace(QUICK, mesh="fox", steps=600),
     "fox-lr1": dataclasses.replace(QUICK, mesh="fox", steps=600, grid_lr=1e-1),
