@@ -137,6 +137,8 @@ SCREEN: Dict[str, Setting] = {
     "q-na-lr1": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1),
     "q-na-lr1-s1": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=1),
     "q-na-lr1-s2": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=2),
+    "q-na-lr1-s3": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=3),
+    "q-na-lr1-s4": dataclasses.replace(QUICK, method="neuralangelo", grid_lr=1e-1, seed=4),
     # the real capture (45 train / 5 test views of 135x240, the room behind the fox, no masks): whole-image PSNR only
     "fox-q": dataclasses.replace(QUICK, mesh="fox", steps=600),
     "fox-lr1": dataclasses.replace(QUICK, mesh="fox", steps=600, grid_lr=1e-1),
