@@ -119,13 +119,14 @@ def make_config(name: str, data: Path, setting: fr.Setting, out: Path, tag: str)
 
 SETTINGS: Dict[str, fr.Setting] = {
     # where the baseline fails and the adapter's SP run was ahead (seed 0) or behind (seed 2)
-    "x-direct": dataclasses.replace(fr.SETTINGS["q-grid-lr-1e-1"]),
-    "x-direct-s2": dataclasses.replace(fr.SETTINGS["q-lr1-s2"]),
+    "x-direct": fr.SETTINGS["q-grid-lr-1e-1"],
+    "x-direct-s2": fr.SETTINGS["q-lr1-s2"],
 }
 
 
-def max_loss_gap(result: dict, steps: int) -> float:
-    a, b = result[TRIPLE[1]]["losses"][:steps], result[TRIPLE[2]]["losses"][:steps]
+def max_loss_gap(result: dict, steps: int, runs=TRIPLE[1:]) -> float:
+    """Largest loss difference between two runs (default: adapter SP and direct SP) over the first ``steps``."""
+    a, b = (result[name]["losses"][:steps] for name in runs)
     return max(abs(u - v) for u, v in zip(a, b))
 
 
@@ -136,7 +137,7 @@ def summarise(result: dict) -> str:
         lines.append(f"| {name} | {m['psnr']:.2f} ({m['psnr_object']:.2f}) | {m['chamfer']:.4f} | "
                      f"{m['normal_consistency']:.3f} | {m['final_loss']:.4f} |")
     gaps = ", ".join(f"first {k}: {max_loss_gap(result, k):.2e}" for k in (1, 10, 50, len(result[TRIPLE[1]]["losses"])))
-    base_gap = max(abs(u - v) for u, v in zip(result[TRIPLE[0]]["losses"][:10], result[TRIPLE[1]]["losses"][:10]))
+    base_gap = max_loss_gap(result, 10, runs=TRIPLE[:2])
     lines.append(f"\nlargest |loss(adapter SP) - loss(direct SP)| over the {gaps} steps "
                  f"(baseline vs adapter SP over the first 10: {base_gap:.2e})")
     return "\n".join(lines)

@@ -265,12 +265,12 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         pred = outputs["rgb"].clamp(0, 1).cpu().numpy()
         target = dataset.get_image_float32(index)[..., :3].cpu().numpy()
         mask_path = scene / "blender" / "object_mask" / "test" / f"r_{index}.png"
-        mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else None
         if is_real(setting):  # no object mask: the whole image
             mask = np.ones(target.shape[:2], dtype=bool)
-        elif mask is None:  # object on white: the object is where the target is not background
-            alpha = imageio.imread(scene / "blender" / "test" / f"r_{index}.png")[..., 3]
-            mask = alpha > 127
+        elif mask_path.is_file():
+            mask = imageio.imread(mask_path) > 127
+        else:  # object on white: the object is where the target is not background
+            mask = imageio.imread(scene / "blender" / "test" / f"r_{index}.png")[..., 3] > 127
         whole.append(_psnr(pred, target))
         masked.append(_psnr(pred[mask], target[mask]))
         if first is None:
@@ -327,10 +327,9 @@ def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> di
     pair = tuple(names or PAIRS[setting.method])
     make = make or make_config
     runs = {name: Run(make(name, data_dir(setting, scene), setting, out / "runs", tag), setting.seed) for name in pair}
-    names = list(runs)
     start = time.time()
     for step in range(setting.steps):
-        for name in names if step % 2 == 0 else names[::-1]:
+        for name in pair if step % 2 == 0 else pair[::-1]:
             runs[name].step(step, setting.seed)
         if step % 100 == 0 or step == setting.steps - 1:
             logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,

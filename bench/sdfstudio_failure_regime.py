@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import functools
 import json
@@ -69,7 +70,7 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     import nerfstudio.configs.method_configs as host
     from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 
-    config = __import__("copy").deepcopy(host.method_configs[name])
+    config = copy.deepcopy(host.method_configs[name])
     config.machine.num_gpus = 0
     config.machine.seed = setting.seed
     config.vis = "tensorboard"
@@ -106,7 +107,7 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
             model.sp.alpha0 = setting.sp_alpha0
         if setting.sp_end is not None:
             model.sp.end = setting.sp_end
-    config.optimizers[GRID_GROUP] = __import__("copy").deepcopy(config.optimizers["fields"])
+    config.optimizers[GRID_GROUP] = copy.deepcopy(config.optimizers["fields"])
     for group, lr in (("fields", setting.lr), (GRID_GROUP, setting.grid_lr), ("field_background", setting.lr)):
         entry = config.optimizers[group]
         entry["optimizer"].lr = lr
