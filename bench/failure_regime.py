@@ -149,6 +149,10 @@ SETTINGS.update({
     # the full-size pair at the failing grid lr over more seeds: does its partial rescue hold?
     "dtu-grid-lr-1e-1-s1": Setting(grid_lr=1e-1, seed=1),
     "dtu-grid-lr-1e-1-s2": Setting(grid_lr=1e-1, seed=2),
+    # Neuralangelo c2f vs SP at the failing grid lr at full size: does the quick size's lead (4 of 5 seeds) become a rescue?
+    "dtu-na-lr1": Setting(method="neuralangelo", grid_lr=1e-1),
+    "dtu-na-lr1-s1": Setting(method="neuralangelo", grid_lr=1e-1, seed=1),
+    "dtu-na-lr1-s2": Setting(method="neuralangelo", grid_lr=1e-1, seed=2),
 })
 
 QUICK_RUN = SCREEN["q-grid-lr-1e-1"]

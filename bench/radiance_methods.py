@@ -14,7 +14,8 @@ same rays and jitter and the per-step times are measured under the same machine 
   flat training with the SP runs' later lr decay, so SP's effect is not confused with its schedule's. Every run
   reports train-view PSNR next to test PSNR.
 - ``mipnerf``: ``sp-mipnerf`` with SP off (plain MipNeRF) and on, trained on 6 of the 24 views,
-  a CPU-sized MipNeRF (narrower MLP, fewer rays and samples: stated in the results).
+  a CPU-sized MipNeRF (narrower MLP, fewer rays and samples: stated in the results); with
+  ``--dtu-like`` on 3 / 6 / 9 of the 49 views of the DTU-like scene, scored inside the object mask too.
 - ``cost``: the SP per-step cost of the ReLU field split into SP's own arithmetic (noise,
   reflection) and the slower grid lookups at perturbed positions, plus the average over a schedule.
 
@@ -29,6 +30,7 @@ Usage::
     python -m bench.radiance_methods relu --paper-regime --scenes spot --tag paper16 \
         --methods relu-field relu-field-flat relu-field-flat-sp-lr --sp 0.25@0.2857   # thr3ed_atom's ratios
     python -m bench.radiance_methods mipnerf
+    python -m bench.radiance_methods mipnerf --dtu-like --views 3 --steps 1200 --end 400 --tag dtu   # DTU-like, object-masked PSNR
     python -m bench.radiance_methods cost
 
 Finished runs (one JSON per study / scene / setting) are skipped; ``--overwrite`` recomputes.
@@ -154,11 +156,17 @@ class MipBudget:
     end: int = 1000
     image: int = 64
     test_views: int = 8
+    dtu_like: bool = False
+    """train on the DTU-like scene (``sp-scene --dtu-like``: ground, backdrop, a frontal cap of 49
+    views of 96x72, no masks; ``image`` and ``test_views`` do not apply) and score PSNR inside the
+    object mask too, as RegNeRF / FreeNeRF do on DTU; the far plane then reaches the backdrop."""
+    view_selection: str = "spread"
+    """which of the training views to keep (sp_plugins.nerfstudio.host.views): spread / first / random"""
 
 
 OMITTED_FROM_KEY = {"background": "white", "align_corners": True, "density_units": "voxel", "loss": "mse",
                     "diffuse_loss_weight": 0.0, "lr_schedule": "exponential", "decay_every": 3 / 28, "stage_gamma": 1.0,
-                    "sp_first_decay": 12 / 28}
+                    "sp_first_decay": 12 / 28, "dtu_like": False, "view_selection": "spread"}
 """Settings added after the first tables: left out of the key at their defaults, so finished runs stay found."""
 
 
@@ -184,6 +192,38 @@ def scene_dir(scene: str, views: int, image: int, test_views: int) -> Path:
         make_scene(SCENES[scene], path, n_train=views, n_val=2, n_test=test_views, resolution=image,
                    layouts=("blender",), seed=0, overwrite=True)
     return path / "blender"
+
+
+DTU_UP_AXIS = {"spot": "z", "cow": "y", "bunny": "y"}
+"""Up axis of each scene's mesh (the DTU-like scene stands it on its ground)."""
+
+
+def dtu_scene_dir(scene: str, views: int = 49, test_views: int = 3, resolution: Tuple[int, int] = (96, 72)) -> Path:
+    """The DTU-like scene of ``bench.failure_regime`` (full size: 49 + 3 views of 96x72), rendered once here."""
+    from bench.failure_regime import Setting, data_dir
+    from bench.failure_regime import scene_dir as failure_scene_dir
+
+    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=DTU_UP_AXIS.get(scene, "z"), views=views, test_views=test_views,
+                      resolution=resolution)
+    return data_dir(setting, failure_scene_dir(setting, OUT))
+
+
+def dtu_near_far(data: Path) -> Tuple[float, float]:
+    """Near and far planes that hold the whole DTU-like scene for every camera: from just inside the
+    closest approach of the object's sphere to the far side of the backdrop sphere."""
+    info = json.loads((data.parent / "scene.json").read_text())
+    distance = info["cameras"]["distance"]
+    near = max(0.05, distance - info["normalization"]["radius"] - 0.5)
+    return near, distance + info["dtu_like"]["backdrop_radius"] + 0.5
+
+
+def object_mask_paths(data: Path, image_filenames: Sequence[Path]) -> List[Path]:
+    """The object mask of each test image of a DTU-like scene's Blender layout (same file name)."""
+    masks = [data / "object_mask" / "test" / Path(f).name for f in image_filenames]
+    missing = [m for m in masks if not m.is_file()]
+    if missing:
+        raise FileNotFoundError(f"no object mask {missing[0]}: render the scene with sp-scene --dtu-like")
+    return masks
 
 
 class Run:
@@ -241,8 +281,9 @@ class Run:
         return statistics.mean(psnrs)
 
     @torch.no_grad()
-    def evaluate(self, rgb_key: str = "rgb", acc_key: str = "accumulation") -> dict:
-        """Test-view PSNR, SSIM, (LPIPS when cached) and background opacity; keeps the renders."""
+    def evaluate(self, rgb_key: str = "rgb", acc_key: str = "accumulation", object_masks: Optional[Sequence[Path]] = None) -> dict:
+        """Test-view PSNR, SSIM, (LPIPS when cached) and background opacity; keeps the renders.
+        With ``object_masks`` (one image per test view) also the PSNR inside each mask."""
         import numpy as np
         from PIL import Image
         from torchmetrics.functional import structural_similarity_index_measure as ssim
@@ -257,7 +298,7 @@ class Run:
             from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
             lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
-        psnrs, ssims, lps, bg, fg = [], [], [], [], []
+        psnrs, ssims, lps, bg, fg, inside = [], [], [], [], [], []
         renders = []
         for i in range(len(dataset)):
             rgba = np.asarray(Image.open(dataset.image_filenames[i]).convert("RGBA"), dtype=np.float32) / 255.0
@@ -271,6 +312,9 @@ class Run:
             rgb = rgb.clamp(0, 1)
             mse = float(((rgb - gt) ** 2).mean())
             psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+            if object_masks is not None:
+                mask = torch.from_numpy(np.asarray(Image.open(object_masks[i]).convert("L")) > 127)
+                inside.append(-10.0 * math.log10(max(float(((rgb - gt)[mask] ** 2).mean()), 1e-10)))
             a, b = gt.permute(2, 0, 1)[None], rgb.permute(2, 0, 1)[None]
             ssims.append(float(ssim(b, a, data_range=1.0)))
             if lpips is not None:
@@ -290,6 +334,9 @@ class Run:
         }
         if lps:
             result["lpips"] = statistics.mean(lps)
+        if inside:
+            result["psnr_object"] = statistics.mean(inside)
+            result["psnr_object_per_view"] = inside
         self.renders = renders
         return result
 
@@ -482,10 +529,14 @@ def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path):
     m.eval_num_rays_per_chunk = 4096
     m.sp = dataclasses.replace(m.sp, enabled=sp, alpha0=budget.alpha0, end=budget.end, seed=seed)
     config.optimizers["fields"]["optimizer"].lr = budget.lr
+    if budget.dtu_like:
+        near, far = dtu_near_far(data)
+        m.collider_params = {"near_plane": near, "far_plane": far}
     name = "sp-mipnerf" if sp else "mipnerf"
     configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
                   experiment_name=name)
     config.pipeline.datamanager.train_views = budget.views
+    config.pipeline.datamanager.train_view_selection = budget.view_selection
     return config
 
 
@@ -495,7 +546,7 @@ def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: boo
     if path.is_file() and not overwrite:
         logging.info("done already: %s", path.name)
         return json.loads(path.read_text())
-    data = scene_dir(scene, 24, budget.image, budget.test_views)
+    data = dtu_scene_dir(scene) if budget.dtu_like else scene_dir(scene, 24, budget.image, budget.test_views)
     work = OUT / "runs" / f"mip-{scene}-{key}"
     runs = {"mipnerf": Run("mipnerf", mip_config(False, data, budget, seed, work), seed),
             "sp-mipnerf": Run("sp-mipnerf", mip_config(True, data, budget, seed, work), seed)}
@@ -503,9 +554,10 @@ def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: boo
     result = {"study": "mipnerf", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
               "train_wall_s": wall, "runs": list(runs)}
     for name, run in runs.items():
-        result[name] = run_summary(run, run.evaluate("rgb_fine", "accumulation_fine"))
-        logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
-                     result[name]["background_opacity"])
+        masks = object_mask_paths(data, run.trainer.pipeline.datamanager.eval_dataset.image_filenames) if budget.dtu_like else None
+        result[name] = run_summary(run, run.evaluate("rgb_fine", "accumulation_fine", masks))
+        logging.info("%s %s: PSNR %.2f (object %s), background opacity %.4f", scene, name, result[name]["psnr"],
+                     fmt(result[name].get("psnr_object")), result[name]["background_opacity"])
     sp_times, base = runs["sp-mipnerf"].times, runs["mipnerf"].times
     active = [s / b for s, b, a in zip(sp_times, base, runs["sp-mipnerf"].alphas) if a > 0][10:]
     result["sp-mipnerf"]["time_ratio_while_active"] = statistics.median(active) if active else None
@@ -617,14 +669,15 @@ def relu_table(results: List[dict]) -> str:
 
 
 def mip_table(results: List[dict]) -> str:
-    lines = ["| tag | scene | seed | views | steps | run | test PSNR | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| tag | scene | seed | views | steps | run | test PSNR | PSNR in object mask | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         b = r["budget"]
         for name in r["runs"]:
             m = r[name]
             ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
-            lines.append(f"| {r['tag']} | {r['scene']} | {r['seed']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
+            scene = f"{r['scene']} (DTU-like)" if b.get("dtu_like") else r["scene"]
+            lines.append(f"| {r['tag']} | {scene} | {r['seed']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {fmt(m.get('psnr_object'))} | {m['ssim']:.3f} | "
                          f"{m['background_opacity']:.4f} | {m['median_step_s']:.3f} | {ratio} |")
     return "\n".join(lines)
 
@@ -662,7 +715,13 @@ def main(argv=None) -> None:
     mip = sub.add_parser("mipnerf", help="mipnerf vs sp-mipnerf on few views")
     mip.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
     for f in dataclasses.fields(MipBudget):
-        mip.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=f.default)
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(f.default, bool):
+            mip.add_argument(flag, action="store_true", help=f"(MipBudget.{f.name})")
+        elif f.name == "view_selection":
+            mip.add_argument(flag, default=f.default, choices=["spread", "first", "random"])
+        else:
+            mip.add_argument(flag, type=type(f.default), default=f.default)
     cost = sub.add_parser("cost", help="SP per-step cost on the ReLU field")
     cost.add_argument("--resolutions", nargs="+", type=int, default=[65, 129])
     cost.add_argument("--rays", type=int, default=1024)
@@ -678,6 +737,8 @@ def main(argv=None) -> None:
     for p in (relu, mip):
         p.add_argument("--seeds", nargs="+", type=int, default=[0])
     args = parser.parse_args(argv)
+    if getattr(args, "dtu_like", False) and (args.image, args.test_views) != (MipBudget.image, MipBudget.test_views):
+        mip.error("--image and --test-views do not apply with --dtu-like (its scene has 3 test views of 96x72); drop them")
     if getattr(args, "paper_regime", False):
         relu.set_defaults(**PAPER_REGIME)
         args = parser.parse_args(argv)
