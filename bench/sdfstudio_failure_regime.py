@@ -15,6 +15,15 @@ split); Chamfer as in `bench.failure_regime`.
 Both runs' NeRF++ background MLPs are built at the setting's size (4 x 64 by default) while the
 trainers are set up: a benchmark-only substitution of sdfstudio's ``NeRFField`` defaults, the same
 for both runs, because its 8 x 256 background dominated a CPU step.
+
+A real capture (``fox-q``, ``fox-lr1``: the instant-ngp fox) is converted with sdfstudio's own
+``scripts/datasets/process_nerfstudio_to_sdfstudio.py`` (images, OpenCV poses, intrinsics; like
+that script, sdfstudio has no lens distortion, and the fox's k1/k2 are dropped), then re-centred
+here: the script's ``object`` recipe centres the box of camera *positions*, which puts the fox --
+seen from an arc of cameras on one side -- outside the unit sphere (their optical axes meet at
+about 1.1 from its origin). :func:`capture_scene` centres on the point the cameras look at and
+scales them to :data:`CAPTURE_CAMERA_DISTANCE`; the held-out views are those nerfstudio's
+instant-ngp parser holds out, so both hosts test on the same images.
 """
 
 from __future__ import annotations
@@ -27,8 +36,11 @@ import functools
 import json
 import logging
 import os
+import math
 import shutil
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -37,13 +49,69 @@ import torch
 
 from bench.common import OUT_DIR, machine_info
 import bench.failure_regime as failure_regime
-from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, _figure, _psnr, crop_to_object
+from bench.failure_regime import FAILED_PSNR, REAL, SETTINGS, Setting, _figure, _psnr, crop_to_object, is_real
 
 PAIR = ("neus", "sp-neus")
+CAPTURE_CAMERA_DISTANCE = 3.0
+"""Mean camera distance from the captured point of interest after re-centring: the unit sphere (the
+foreground of NeuS) then holds a third of the camera distance around it, as the DTU-like scenes'
+object (radius 0.85, cameras at 4); the rest (the fox's wall) is the background model's."""
+
+
+def eval_indices(n: int, train_fraction: float = 0.9) -> np.ndarray:
+    """The held-out views of ``n`` frames: the ones nerfstudio's instant-ngp parser leaves out of its
+    equally spaced ``ceil(0.9 n)`` training views (``eval_mode="fraction"``)."""
+    train = np.linspace(0, n - 1, math.ceil(n * train_fraction), dtype=int)
+    return np.setdiff1d(np.arange(n), train)
+
+
+def focus_point(c2w: np.ndarray) -> np.ndarray:
+    """The point nearest, in least squares, to every camera's optical axis (OpenCV: +z forward) ``[N, 4, 4] -> [3]``."""
+    centres, axes = c2w[:, :3, 3], c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
+    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    return np.linalg.solve(projectors.sum(0), np.einsum("nij,nj->i", projectors, centres))
+
+
+def capture_scene(setting: Setting, out: Path) -> Path:
+    """A real capture in the SDFStudio layout, re-centred on where its cameras look (once per capture)."""
+    root = out / "scenes" / f"{setting.mesh}_sdfstudio"
+    if (root / "sdfstudio_test" / "meta_data.json").is_file():
+        return root
+    capture = REAL[setting.mesh]
+    if not (capture / "transforms.json").is_file():
+        raise SystemExit(f"{setting.mesh}: no capture at {capture} (transforms.json); set SP_FOX_CAPTURE to its folder")
+    converted = root / "converted"
+    logging.info("converting %s with sdfstudio's process_nerfstudio_to_sdfstudio", capture)
+    subprocess.run([sys.executable, "-m", "scripts.datasets.process_nerfstudio_to_sdfstudio", "--data", str(capture),
+                    "--output-dir", str(converted), "--data-type", "colmap", "--scene-type", "unbound"],
+                   check=True, capture_output=True, text=True)
+    meta = json.loads((converted / "meta_data.json").read_text())
+    c2w = np.array([frame["camtoworld"] for frame in meta["frames"]], dtype=np.float64)
+    centre = focus_point(c2w)
+    scale = CAPTURE_CAMERA_DISTANCE / float(np.linalg.norm(c2w[:, :3, 3] - centre, axis=1).mean())
+    c2w[:, :3, 3] = (c2w[:, :3, 3] - centre) * scale
+    distance = np.linalg.norm(c2w[:, :3, 3], axis=1)
+    to_capture = np.eye(4)
+    to_capture[:3, :3] /= scale
+    to_capture[:3, 3] = centre
+    meta["worldtogt"] = (np.asarray(meta["worldtogt"]) @ to_capture).tolist()
+    meta["scene_box"] = {"aabb": [[-1.0] * 3, [1.0] * 3], "near": max(0.05, float(distance.min()) - math.sqrt(3)),
+                         "far": float(distance.max()) + math.sqrt(3), "radius": 1.0, "collider_type": "near_far"}
+    frames = []
+    for pose, frame in zip(c2w, meta["frames"]):
+        frames.append({**frame, "camtoworld": pose.tolist(), "rgb_path": f"../converted/{frame['rgb_path']}"})
+    held_out = set(eval_indices(len(frames)).tolist())
+    for folder, keep in (("sdfstudio", lambda i: i not in held_out), ("sdfstudio_test", lambda i: i in held_out)):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+        subset = {**meta, "frames": [f for i, f in enumerate(frames) if keep(i)]}
+        (root / folder / "meta_data.json").write_text(json.dumps(subset, indent=1))
+    return root
 
 
 def scene_dir(setting: Setting, out: Path) -> Path:
     """The setting's scene in the SDFStudio layout, plus its held-out views as a dataset of their own."""
+    if is_real(setting):
+        return capture_scene(setting, out)
     root = failure_regime.scene_dir(setting, out, layout="sdfstudio")
     test = root / "sdfstudio_test"
     if not (test / "meta_data.json").is_file():  # the held-out views as a dataset of their own
@@ -174,16 +242,22 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
         pred = outputs["rgb"].clamp(0, 1).cpu().numpy()
         target = imageio.imread(test.image_filenames[index])[..., :3].astype(np.float32) / 255.0
         mask_path = scene / "sdfstudio" / "object_mask" / f"test_{index:03d}.png"
-        mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else np.any(target < 0.999, axis=-1)
+        if is_real(setting):  # no object mask: the whole image
+            mask = np.ones(target.shape[:2], dtype=bool)
+        else:
+            mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else np.any(target < 0.999, axis=-1)
         whole.append(_psnr(pred, target))
         masked.append(_psnr(pred[mask], target[mask]))
         first = pred if first is None else first
     field = pipeline.model.field
     with torch.no_grad():
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=setting.mesh_resolution)
-    gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
-    gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
-    geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
+    if is_real(setting):  # no true mesh
+        geometry = dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
+    else:
+        gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
+        gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
+        geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
     render_out.parent.mkdir(parents=True, exist_ok=True)
     mesh.export(render_out.with_suffix(".ply"))
     np.save(render_out.with_suffix(".npy"), first.astype(np.float16))
@@ -215,7 +289,8 @@ def run_pair(setting: Setting, out: Path, tag: str) -> dict:
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
-    _figure(out / "renders" / tag, scene / "sdfstudio" / "rgb" / "test_000.png", PAIR)
+    first_test = json.loads((scene / "sdfstudio_test" / "meta_data.json").read_text())["frames"][0]["rgb_path"]
+    _figure(out / "renders" / tag, scene / "sdfstudio_test" / first_test, PAIR)
     return result
 
 
@@ -260,8 +335,8 @@ def main(argv=None) -> None:
         result = run_pair(setting, args.out, tag)
         path.write_text(json.dumps(result, indent=1))
         b, s = result[PAIR[0]], result[PAIR[1]]
-        print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {b['chamfer']:.4f}); "
-              f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {s['chamfer']:.4f})", flush=True)
+        print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {failure_regime._num(b['chamfer'], 4)}); "
+              f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {failure_regime._num(s['chamfer'], 4)})", flush=True)
     print(f"machine: {machine_info()}")
 
 

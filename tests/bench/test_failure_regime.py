@@ -172,3 +172,33 @@ def test_a_missing_capture_is_named(tmp_path, monkeypatch):
     monkeypatch.setitem(fr.REAL, "fox", tmp_path / "nowhere")
     with pytest.raises(SystemExit, match="SP_FOX_CAPTURE"):
         fr.scene_dir(fr.SETTINGS["fox-q"], tmp_path)
+
+
+def test_sdfstudio_bench_holds_out_the_views_nerfstudio_holds_out():
+    """The fox is tested on the same images in both hosts: nerfstudio's instant-ngp split."""
+    from nerfstudio.data.utils.dataparsers_utils import get_train_eval_split_fraction
+
+    import bench.sdfstudio_failure_regime as sfr
+
+    for n in (7, 10, 45, 50, 51):
+        assert sfr.eval_indices(n).tolist() == get_train_eval_split_fraction(list(range(n)), 0.9)[1].tolist()
+
+
+def test_focus_point_is_where_the_optical_axes_meet():
+    import numpy as np
+
+    import bench.sdfstudio_failure_regime as sfr
+
+    rng = np.random.default_rng(0)
+    target = np.array([0.3, -1.2, 2.0])
+    poses = []
+    for _ in range(12):
+        centre = target + rng.normal(size=3) * 3
+        forward = (target - centre) / np.linalg.norm(target - centre)
+        right = np.cross(forward, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)  # OpenCV: +z forward
+        pose[:3, 3] = centre
+        poses.append(pose)
+    assert np.allclose(sfr.focus_point(np.array(poses)), target, atol=1e-9)

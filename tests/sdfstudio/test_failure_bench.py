@@ -51,3 +51,51 @@ def test_pair_trains_and_records_the_grid_lr(patched, tmp_path):
     assert base["losses"][0] != sp["losses"][0]  # the SP run perturbs from the first step
     for metrics in (base, sp):
         assert 0 < metrics["psnr"] < 60 and isinstance(metrics["failed"], bool)
+
+
+FOX_TOY = dataclasses.replace(TOY, mesh="fox", dtu_like=False)
+"""The real fox at the toy model size (its own 45 + 5 views of 135x240)."""
+
+
+@pytest.fixture(scope="module")
+def fox_pair(tmp_path_factory):
+    from sp_plugins.patches.sdfstudio_import_hook import install_all
+
+    install_all()
+    import scripts.train  # noqa: F401
+
+    from sp_plugins.sdfstudio.registration import add_methods
+
+    add_methods()
+    out = tmp_path_factory.mktemp("fox")
+    return sfr.run_pair(FOX_TOY, out, "fox-toy"), out
+
+
+def test_fox_is_converted_by_sdfstudio_and_centred_on_where_its_cameras_look(fox_pair):
+    import json
+
+    import numpy as np
+
+    _, out = fox_pair
+    root = out / "scenes" / "fox_sdfstudio"
+    train, test = (json.loads((root / f / "meta_data.json").read_text()) for f in ("sdfstudio", "sdfstudio_test"))
+    assert (len(train["frames"]), len(test["frames"])) == (45, 5)
+    names = [f["rgb_path"] for f in test["frames"]]
+    assert names == [f"../converted/{i:06d}_rgb.png" for i in (9, 19, 29, 39, 48)]  # nerfstudio's held-out fox views
+    c2w = np.array([f["camtoworld"] for f in train["frames"] + test["frames"]])
+    assert np.linalg.norm(sfr.focus_point(c2w)) < 0.05
+    distance = np.linalg.norm(c2w[:, :3, 3], axis=1)
+    assert distance.mean() == pytest.approx(sfr.CAPTURE_CAMERA_DISTANCE, rel=1e-6)
+    box = train["scene_box"]
+    assert box["near"] < distance.min() - 1 and box["far"] > distance.max() + 1  # the unit sphere inside [near, far]
+    assert all((root / "sdfstudio" / f["rgb_path"]).is_file() for f in train["frames"])
+
+
+def test_fox_pair_trains_and_scores_whole_images_without_a_mesh(fox_pair):
+    result, out = fox_pair
+    base, sp = (result[name] for name in sfr.PAIR)
+    assert base["losses"][0] != sp["losses"][0]
+    for metrics in (base, sp):
+        assert len(metrics["psnr_views"]) == 5 and metrics["psnr_object"] == pytest.approx(metrics["psnr"])
+        assert metrics["chamfer"] is None and 0 < metrics["psnr"] < 60
+    assert (out / "renders" / "fox-toy" / "test0_gt_baseline_sp.png").is_file()
