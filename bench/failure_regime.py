@@ -328,6 +328,9 @@ def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> di
     from bench.sdf_methods import Run
 
     scene = scene_dir(setting, out)
+    if is_real(setting):
+        logging.info("%s is a real capture: its own images, views and split are used (the setting's views, test_views, "
+                     "resolution and up_axis do not apply; its training sizes do)", setting.mesh)
     pair = tuple(names or PAIRS[setting.method])
     make = make or make_config
     runs = {name: Run(make(name, data_dir(setting, scene), setting, out / "runs", tag), setting.seed) for name in pair}
