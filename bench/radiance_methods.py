@@ -30,7 +30,7 @@ Usage::
     python -m bench.radiance_methods relu --paper-regime --scenes spot --tag paper16 \
         --methods relu-field relu-field-flat relu-field-flat-sp-lr --sp 0.25@0.2857   # thr3ed_atom's ratios
     python -m bench.radiance_methods mipnerf
-    python -m bench.radiance_methods mipnerf --dtu-like --views 3 --steps 1200 --end 400 --tag dtu   # DTU-like, object-masked PSNR
+    python -m bench.radiance_methods mipnerf --dtu-like --views 3 --steps 2000 --end 667 --tag dtu --scenes spot   # DTU-like, object-masked PSNR
     python -m bench.radiance_methods cost
 
 Finished runs (one JSON per study / scene / setting) are skipped; ``--overwrite`` recomputes.

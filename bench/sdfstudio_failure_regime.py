@@ -35,8 +35,8 @@ import dataclasses
 import functools
 import json
 import logging
-import os
 import math
+import os
 import shutil
 import statistics
 import subprocess
@@ -82,9 +82,12 @@ def capture_scene(setting: Setting, out: Path) -> Path:
         raise SystemExit(f"{setting.mesh}: no capture at {capture} (transforms.json); set SP_FOX_CAPTURE to its folder")
     converted = root / "converted"
     logging.info("converting %s with sdfstudio's process_nerfstudio_to_sdfstudio", capture)
-    subprocess.run([sys.executable, "-m", "scripts.datasets.process_nerfstudio_to_sdfstudio", "--data", str(capture),
-                    "--output-dir", str(converted), "--data-type", "colmap", "--scene-type", "unbound"],
-                   check=True, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "scripts.datasets.process_nerfstudio_to_sdfstudio", "--data", str(capture),
+                           "--output-dir", str(converted), "--data-type", "colmap", "--scene-type", "unbound"],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+        raise SystemExit(f"{setting.mesh}: sdfstudio's process_nerfstudio_to_sdfstudio failed on {capture}: {last}")
     meta = json.loads((converted / "meta_data.json").read_text())
     c2w = np.array([frame["camtoworld"] for frame in meta["frames"]], dtype=np.float64)
     centre = focus_point(c2w)
