@@ -246,6 +246,11 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     return config
 
 
+def no_geometry() -> dict:
+    """The geometry metrics of a run with no true mesh to compare against (a real capture)."""
+    return dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
+
+
 def _psnr(pred: np.ndarray, target: np.ndarray) -> float:
     mse = float(np.mean((pred - target) ** 2))
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
@@ -284,7 +289,7 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.5, 1.5),
                             resolution=setting.mesh_resolution, chunk=1 << 16)
     if is_real(setting):  # no true mesh
-        geometry = dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
+        geometry = no_geometry()
     else:
         gt = load_gt_mesh(scene, pipeline.datamanager.train_dataparser_outputs)
         gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)

@@ -55,6 +55,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, seed_everything
+from sp_plugins.nerfstudio.host.views import VIEW_SELECTIONS
 from sp_plugins.nerfstudio.relu_field.model import voxel_size
 
 OUT = OUT_DIR / "radiance_methods"
@@ -198,13 +199,13 @@ DTU_UP_AXIS = {"spot": "z", "cow": "y", "bunny": "y"}
 """Up axis of each scene's mesh (the DTU-like scene stands it on its ground)."""
 
 
-def dtu_scene_dir(scene: str, views: int = 49, test_views: int = 3, resolution: Tuple[int, int] = (96, 72)) -> Path:
-    """The DTU-like scene of ``bench.failure_regime`` (full size: 49 + 3 views of 96x72), rendered once here."""
+def dtu_scene_dir(scene: str, **sizes) -> Path:
+    """The DTU-like scene of ``bench.failure_regime`` at its full size (49 + 3 views of 96x72) unless
+    ``sizes`` (views, test_views, resolution) say otherwise; rendered once here."""
     from bench.failure_regime import Setting, data_dir
     from bench.failure_regime import scene_dir as failure_scene_dir
 
-    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=DTU_UP_AXIS.get(scene, "z"), views=views, test_views=test_views,
-                      resolution=resolution)
+    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=DTU_UP_AXIS.get(scene, "z"), **sizes)
     return data_dir(setting, failure_scene_dir(setting, OUT))
 
 
@@ -719,7 +720,7 @@ def main(argv=None) -> None:
         if isinstance(f.default, bool):
             mip.add_argument(flag, action="store_true", help=f"(MipBudget.{f.name})")
         elif f.name == "view_selection":
-            mip.add_argument(flag, default=f.default, choices=["spread", "first", "random"])
+            mip.add_argument(flag, default=f.default, choices=VIEW_SELECTIONS)
         else:
             mip.add_argument(flag, type=type(f.default), default=f.default)
     cost = sub.add_parser("cost", help="SP per-step cost on the ReLU field")

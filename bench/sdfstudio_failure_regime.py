@@ -49,7 +49,7 @@ import torch
 
 from bench.common import OUT_DIR, machine_info
 import bench.failure_regime as failure_regime
-from bench.failure_regime import FAILED_PSNR, REAL, SETTINGS, Setting, _figure, _psnr, crop_to_object, is_real
+from bench.failure_regime import FAILED_PSNR, REAL, SETTINGS, Setting, _figure, _psnr, crop_to_object, is_real, no_geometry
 
 PAIR = ("neus", "sp-neus")
 CAPTURE_CAMERA_DISTANCE = 3.0
@@ -100,9 +100,8 @@ def capture_scene(setting: Setting, out: Path) -> Path:
     meta["worldtogt"] = (np.asarray(meta["worldtogt"]) @ to_capture).tolist()
     meta["scene_box"] = {"aabb": [[-1.0] * 3, [1.0] * 3], "near": max(0.05, float(distance.min()) - math.sqrt(3)),
                          "far": float(distance.max()) + math.sqrt(3), "radius": 1.0, "collider_type": "near_far"}
-    frames = []
-    for pose, frame in zip(c2w, meta["frames"]):
-        frames.append({**frame, "camtoworld": pose.tolist(), "rgb_path": f"../converted/{frame['rgb_path']}"})
+    frames = [{**frame, "camtoworld": pose.tolist(), "rgb_path": f"../converted/{frame['rgb_path']}"}
+              for pose, frame in zip(c2w, meta["frames"])]
     held_out = set(eval_indices(len(frames)).tolist())
     for folder, keep in (("sdfstudio", lambda i: i not in held_out), ("sdfstudio_test", lambda i: i in held_out)):
         (root / folder).mkdir(parents=True, exist_ok=True)
@@ -247,8 +246,10 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
         mask_path = scene / "sdfstudio" / "object_mask" / f"test_{index:03d}.png"
         if is_real(setting):  # no object mask: the whole image
             mask = np.ones(target.shape[:2], dtype=bool)
-        else:
-            mask = imageio.imread(mask_path) > 127 if mask_path.is_file() else np.any(target < 0.999, axis=-1)
+        elif mask_path.is_file():
+            mask = imageio.imread(mask_path) > 127
+        else:  # object on white: the object is where the target is not background
+            mask = np.any(target < 0.999, axis=-1)
         whole.append(_psnr(pred, target))
         masked.append(_psnr(pred[mask], target[mask]))
         first = pred if first is None else first
@@ -256,7 +257,7 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
     with torch.no_grad():
         mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=setting.mesh_resolution)
     if is_real(setting):  # no true mesh
-        geometry = dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
+        geometry = no_geometry()
     else:
         gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
         gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)

@@ -58,15 +58,7 @@ FOX_TOY = dataclasses.replace(TOY, mesh="fox", dtu_like=False)
 
 
 @pytest.fixture(scope="module")
-def fox_pair(tmp_path_factory):
-    from sp_plugins.patches.sdfstudio_import_hook import install_all
-
-    install_all()
-    import scripts.train  # noqa: F401
-
-    from sp_plugins.sdfstudio.registration import add_methods
-
-    add_methods()
+def fox_pair(patched, tmp_path_factory):
     out = tmp_path_factory.mktemp("fox")
     return sfr.run_pair(FOX_TOY, out, "fox-toy"), out
 
