@@ -55,6 +55,16 @@ def _fold(u: Tensor) -> tuple[Tensor, Tensor]:
     return d.abs(), d < 0.0
 
 
+def _origin_at(origin: Tensor, shape: torch.Size, idx: Tensor) -> Tensor:
+    """The origins of the flat indices ``idx`` of a ``shape`` tensor that ``origin`` broadcasts to:
+    K draws ``[K, *batch, dim]`` of ``[*batch, dim]`` origins share them (flat index mod N)."""
+    if origin.shape == shape:
+        return origin.reshape(-1)[idx]
+    if tuple(shape[len(shape) - origin.dim():]) == tuple(origin.shape):
+        return origin.reshape(-1)[idx % origin.numel()]
+    return origin.expand(shape).reshape(-1)[idx]
+
+
 def _per_axis(values: Tensor) -> Union[float, Tensor]:
     """A python float when every axis has the same value (a cube: scalar ops are about twice as
     fast on the CPU as broadcasting a ``[dim]`` tensor), else the tensor."""
@@ -88,7 +98,7 @@ class _Reflect(torch.autograd.Function):
             folded, flip = _fold((escaped - start) / width)
             folded = folded.mul_(width).add_(start)
             if origin is not None:  # a sample the host placed outside the box stays where it is
-                keep = (origin.detach().reshape(-1)[idx] - mid).abs_() <= half
+                keep = (_origin_at(origin.detach(), y.shape, idx) - mid).abs_() <= half
                 folded = torch.where(keep, folded, escaped)
                 flip &= keep
             flat[idx] = folded
@@ -131,7 +141,8 @@ def reflect(
 ) -> Float[Tensor, "*batch dim"]:
     """Fold ``y`` into ``[lo, hi]`` by repeated mirroring (a triangle wave of period 2 * (hi - lo)).
 
-    With ``origin`` (the unperturbed positions), only coordinates whose origin lies inside the box
+    With ``origin`` (the unperturbed positions, ``[*batch, dim]`` or anything that broadcasts to
+    ``y``, e.g. the ``[N, dim]`` origins of ``[K, N, dim]`` draws), only coordinates whose origin lies inside the box
     are folded: a sample the host placed outside the box stays outside, for the host to treat as
     empty space. ``sparse`` folds only the coordinates that left the box (fastest on the CPU, but
     it syncs with the host); the default uses it on the CPU and a dense, sync-free fold elsewhere."""

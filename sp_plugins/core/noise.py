@@ -5,7 +5,8 @@ deviation of the offset along each axis whatever the kind:
 
 - ``gaussian``: N(0, 1), the paper's default.
 - ``uniform``: U(-sqrt(3), sqrt(3)), bounded support.
-- ``squared-gaussian``: sign(z) * z^2 / sqrt(3) with z ~ N(0, 1), heavy-tailed (kurtosis 15).
+- ``squared-gaussian``: sign(z) * z^2 / sqrt(3) with z ~ N(0, 1), heavy-tailed: kurtosis
+  E[z^8] / E[z^4]^2 = 105/9 ~ 11.7 (a Gaussian's is 3, a uniform's 1.8).
 """
 
 from __future__ import annotations

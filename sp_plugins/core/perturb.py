@@ -30,6 +30,13 @@ def check_positions(x: Tensor) -> None:
         raise ValueError("positions: contain NaN or inf; fix the input points before perturbing them")
 
 
+def compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype SP computes and returns positions in: at least float32. A half-precision offset
+    would be rounded away: fp16's spacing on [0.5, 1] is 2^-11 ~ 5e-4 and bf16's 2^-8 ~ 4e-3,
+    larger than a typical late alpha (issue 36)."""
+    return torch.promote_types(dtype, torch.float32)
+
+
 def perturb(
     x: Float[Tensor, "*batch dim"],
     alpha: AlphaLike,
@@ -57,8 +64,10 @@ def perturb(
         validate: check alpha and positions for NaN / negative values (one host sync).
 
     Returns:
-        ``[*batch, dim]`` (or ``[K, *batch, dim]``) perturbed positions. Gradients flow to ``x``
-        and to a tensor ``alpha`` (the reparameterisation trick).
+        ``[*batch, dim]`` (or ``[K, *batch, dim]``) perturbed positions, in float32 at least: a
+        float16 / bfloat16 ``x`` (and ``alpha``) is promoted and never rounded back, so a small
+        alpha still moves it. Gradients flow to ``x`` and to a tensor ``alpha`` (the
+        reparameterisation trick).
     """
     check_boundary_kind(boundary)
     if num_samples < 1:
@@ -66,6 +75,9 @@ def perturb(
     if validate:
         check_alpha(alpha)
         check_positions(x)
+    x = x.to(compute_dtype(x.dtype))  # a no-op for float32 / float64 (the same tensor)
+    if isinstance(alpha, Tensor):
+        alpha = alpha.to(x.dtype)
     box = as_bounds(bounds, x.shape[-1], x, check=validate) if bounds is not None else None
     shape = (num_samples, *x.shape) if num_samples > 1 else x.shape
     eps = sample_noise(shape, noise, generator=generator, device=x.device, dtype=x.dtype)

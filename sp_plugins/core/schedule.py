@@ -23,7 +23,8 @@ class AlphaSchedule:
       default). With ``r = 1e-3`` the value at ``t = T/2`` is about 3% of ``alpha0``.
     - ``linear``: ``alpha0 * (1 - t/T)``.
 
-    After T every kind but ``constant`` is exactly 0, so the trained field is an ordinary field.
+    At and after T every kind but ``constant`` is exactly 0, so the trained field is an ordinary
+    field; :meth:`resolve` puts T at the last training step at the latest.
     """
 
     kind: ScheduleKind = "exponential"
@@ -55,9 +56,12 @@ class AlphaSchedule:
 
         Args:
             alpha0: absolute when ``scene_diagonal`` is None, else a fraction of the diagonal.
-            end: a fraction of ``total_steps`` when in (0, 1] (1.0 = all of training), an absolute
-                step when > 1.
-            total_steps: length of training; the end must not lie after it.
+            end: a fraction of ``total_steps`` when in (0, 1], an absolute step when > 1. The end
+                step is ``round(end * total_steps)`` (0.2 of 5000: step 1000, the first at alpha
+                0), capped at the last step ``total_steps - 1``: ``end=1.0`` (or ``end=total``)
+                keeps SP on for every step but the last, which trains the plain field.
+            total_steps: length of training (steps ``0 .. total_steps - 1``); the end must not lie
+                after it.
         """
         if scene_diagonal is not None:
             if not (math.isfinite(scene_diagonal) and scene_diagonal > 0):
@@ -70,17 +74,20 @@ class AlphaSchedule:
         if end <= 1:
             if total_steps is None:
                 raise ValueError(f"end={end} is a fraction of training: total_steps is needed to resolve it")
-            end_step = max(1, round(end * total_steps))
+            end_step = round(end * total_steps)
         else:
             if end != int(end):
                 raise ValueError(f"end={end}: an absolute end step must be a whole number")
             end_step = int(end)
-        if total_steps is not None and end_step > total_steps:
-            raise ValueError(
-                f"end={end}: the schedule ends at step {end_step}, after the end of training "
-                f"({total_steps} steps); give an end <= {total_steps} or a fraction in (0, 1]"
-            )
-        return AlphaSchedule(kind, alpha0, end_step, final_ratio)
+        if total_steps is not None:
+            if end_step > total_steps:
+                raise ValueError(
+                    f"end={end}: the schedule ends at step {end_step}, after the end of training "
+                    f"({total_steps} steps); give an end <= {total_steps} or a fraction in (0, 1]"
+                )
+            # steps run 0 .. total - 1: an end at the total would never switch SP off
+            end_step = min(end_step, total_steps - 1)
+        return AlphaSchedule(kind, alpha0, max(1, end_step), final_ratio)
 
     def __call__(self, step: int) -> float:
         if self.kind == "constant":

@@ -29,7 +29,19 @@ def test_noise_kinds_differ_in_shape():
     kurt = lambda e: float((e**4).mean() / (e**2).mean() ** 2)  # noqa: E731
     assert kurt(u) == pytest.approx(1.8, abs=0.05)
     assert kurt(g) == pytest.approx(3.0, abs=0.1)
-    assert kurt(s) > 10.0
+    assert kurt(s) == pytest.approx(105 / 9, rel=0.06)  # E[z^8] / E[z^4]^2 of z ~ N(0, 1)
+
+
+def test_noise_docstring_states_the_kurtosis_it_draws():
+    """The module documents each kind's shape: the squared Gaussian's kurtosis is 105/9, not 15."""
+    import re
+
+    import sp_plugins.core.noise as noise
+
+    stated = re.search(r"kurtosis\s+E\[z\^8\] / E\[z\^4\]\^2 = 105/9 ~ ([0-9.]+)", noise.__doc__)
+    assert stated is not None and "kurtosis 15" not in noise.__doc__
+    e = sample_noise((400_000,), "squared-gaussian", generator=gen(5), dtype=torch.float64)
+    assert float((e**4).mean() / (e**2).mean() ** 2) == pytest.approx(float(stated.group(1)), rel=0.06)
 
 
 def test_reflect_keeps_uniform_uniform_but_clamp_does_not():
@@ -187,3 +199,48 @@ def test_samples_that_start_outside_the_box_are_not_pulled_in(boundary):
     assert bool((y[outside].abs() > 1.2).all())  # still far outside, just perturbed
     assert float((y[outside] - x[outside]).std()) == pytest.approx(0.05, rel=0.1)
     assert bool((y[~outside].abs() <= 1).all())  # the inside coordinates were folded
+
+
+@pytest.mark.parametrize("sparse", [True, False], ids=["sparse-fold", "dense-fold"])
+@pytest.mark.parametrize("box", ["cube", "non-cubic"])
+def test_multi_sample_reflect_folds_each_draw_against_its_own_origin(sparse, box, monkeypatch):
+    """K > 1 with reflect: ``[K, N, 3]`` draws folded against the ``[N, 3]`` origins (issue 37,
+    defect 1: the CPU's sparse fold indexed the origins with the draws' flat indices)."""
+    import sp_plugins.core.boundary as boundary
+
+    if box == "cube":
+        lo, hi = torch.full((3,), -1.0), torch.ones(3)
+    else:
+        lo, hi = torch.tensor([-2.0, 0.5, 10.0]), torch.tensor([3.0, 0.7, 10.25])
+    origin = lo + (hi - lo) * torch.rand(3000, 3, generator=gen(21))
+    origin[:7] = hi + 0.5  # a few samples the host placed outside the box
+    x = origin.clone().requires_grad_()
+    real = boundary.reflect
+    monkeypatch.setattr(boundary, "reflect", lambda *a, **k: real(*a, **dict(k, sparse=sparse)))
+    y = perturb(x, 0.3, num_samples=4, boundary="reflect", bounds=(lo, hi), generator=gen(22))
+    assert y.shape == (4, 3000, 3)
+    raw = origin + 0.3 * sample_noise((4, 3000, 3), generator=gen(22))
+    u = (raw - lo) / (hi - lo)
+    wave = (u - 2 * torch.floor((u + 1) / 2)).abs() * (hi - lo) + lo
+    inside = ((origin >= lo) & (origin <= hi)).expand_as(raw)
+    assert torch.allclose(y, torch.where(inside, wave, raw), atol=1e-5)
+    y.sum().backward()  # each origin gets the sum of its K draws' +-1 derivatives
+    slope = torch.where(inside, torch.sign(u - 2 * torch.floor((u + 1) / 2)), torch.ones_like(u))
+    assert torch.equal(x.grad, slope.sum(0))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_positions_are_perturbed_in_float32(dtype):
+    """A tiny alpha must move half-precision positions (issue 36): fp16 has a spacing of 2^-11 on
+    [0.5, 1] and bf16 2^-8, so rounding x + 1e-4 * eps back would undo the move."""
+    x = (0.5 + 0.5 * torch.rand(20_000, 3, generator=gen(31))).to(dtype)
+    y = perturb(x, 1e-4, generator=gen(32))
+    assert y.dtype == torch.float32
+    assert float((y != x.float()).float().mean()) >= 0.999
+    # the offset is the float32 draw itself, not a rounded one
+    expected = x.float() + 1e-4 * sample_noise((20_000, 3), generator=gen(32), dtype=torch.float32)
+    assert torch.allclose(y, expected, atol=1e-7, rtol=0)
+    alpha = torch.full((20_000, 1), 1e-4, dtype=dtype)  # a per-point alpha in half precision too
+    y2 = perturb(x, alpha, boundary="reflect", bounds=(0.0, 1.0), num_samples=2, generator=gen(33))
+    assert y2.dtype == torch.float32 and float((y2 != x.float()).float().mean()) >= 0.999
+    assert bool(((y2 >= 0) & (y2 <= 1)).all())

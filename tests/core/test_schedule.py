@@ -37,7 +37,7 @@ def test_resolve_fraction_of_training_and_diagonal():
     assert s.end_step == 1000
     assert s.alpha0 == pytest.approx(0.02 * math.sqrt(3))
     assert AlphaSchedule.resolve("step", 0.02, end=2000, total_steps=100_000).end_step == 2000
-    assert AlphaSchedule.resolve("step", 0.02, end=1.0, total_steps=300).end_step == 300
+    assert AlphaSchedule.resolve("step", 0.02, end=1.0, total_steps=300).end_step == 299
 
 
 @pytest.mark.parametrize(
@@ -58,3 +58,23 @@ def test_bad_schedules_raise_value_errors(kwargs, word):
     alpha0 = kwargs.pop("alpha0")
     with pytest.raises(ValueError, match=word):
         AlphaSchedule.resolve(kind, alpha0, **kwargs)
+
+
+@pytest.mark.parametrize("kind", ["step", "exponential", "linear"])
+@pytest.mark.parametrize("total", [2, 7, 300, 100_000])
+def test_end_of_training_reaches_exactly_zero_at_the_last_step(kind, total):
+    """Steps run 0 .. total - 1: ``end=1.0`` (and an absolute end at the total) must switch SP off
+    at the last step, so the last update trains the plain field (issue 37, defect 3)."""
+    for end in (1.0, total) if total > 1 else (1.0,):
+        s = AlphaSchedule.resolve(kind, 0.1, end=end, total_steps=total)
+        assert s.end_step == total - 1
+        assert s(total - 1) == 0.0 and s(total) == 0.0 and s(10 * total) == 0.0
+        assert s(0) == pytest.approx(0.1) and s(total - 2) > 0.0
+
+
+def test_other_fractions_end_where_they_did():
+    assert AlphaSchedule.resolve("step", 0.1, end=0.2, total_steps=5000).end_step == 1000
+    assert AlphaSchedule.resolve("step", 0.1, end=0.5, total_steps=200).end_step == 100
+    assert AlphaSchedule.resolve("step", 0.1, end=1 / 3, total_steps=7500).end_step == 2500
+    assert AlphaSchedule.resolve("step", 0.1, end=0.999, total_steps=100).end_step == 99  # capped at the last step
+    assert AlphaSchedule.resolve("linear", 0.1, end=2000, total_steps=100_000).end_step == 2000
