@@ -7,7 +7,7 @@ import contextlib
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence, Union
 
 import torch
 
@@ -196,40 +196,101 @@ def smooth(values: Sequence[float], window: int) -> list[float]:
 
 
 class StepTimer:
-    """Wall time of each step (``perf_counter``), for per-step cost ratios."""
+    """Time of each step, for per-step cost ratios.
 
-    def __init__(self) -> None:
-        self.times: list[float] = []
-        self._start: Optional[float] = None
+    On the CPU a step's work is done when it returns: ``perf_counter``. On CUDA it has only been
+    queued, so each step records a pair of CUDA events instead and ``times`` reads them later (the
+    stream's time from reaching the step's start to finishing its last kernel, the backward pass
+    included): no host-device sync per step, only when the times are read."""
+
+    def __init__(self, device: Union[str, torch.device, None] = None) -> None:
+        self.device = torch.device(device) if device is not None else None
+        self._cuda = self.device is not None and self.device.type == "cuda"
+        self._times: list[float] = []
+        self._pending: list = []  # (start, end) CUDA events not read yet
+        self._start: Any = None
 
     def __enter__(self) -> "StepTimer":
-        self._start = time.perf_counter()
+        if self._cuda:
+            self._start = torch.cuda.Event(enable_timing=True)
+            self._start.record(torch.cuda.current_stream(self.device))
+        else:
+            self._start = time.perf_counter()
         return self
 
     def __exit__(self, *exc) -> None:
         assert self._start is not None
-        self.times.append(time.perf_counter() - self._start)
+        if self._cuda:
+            end = torch.cuda.Event(enable_timing=True)
+            end.record(torch.cuda.current_stream(self.device))
+            self._pending.append((self._start, end))
+        else:
+            self._times.append(time.perf_counter() - self._start)
+        self._start = None
+
+    @property
+    def times(self) -> list[float]:
+        """Seconds per step (waits for the queued steps' events on CUDA)."""
+        for start, end in self._pending:
+            end.synchronize()
+            self._times.append(start.elapsed_time(end) / 1000.0)
+        self._pending = []
+        return self._times
+
+    @times.setter
+    def times(self, values: Iterable[float]) -> None:
+        self._times, self._pending = list(values), []
 
     @property
     def total(self) -> float:
         return float(sum(self.times))
 
 
+LOG_EVERY = 25
+"""Steps between two reads of a fit's per-step numbers from the device (and its non-finite check)."""
+
+
 def run_to_end(trainer, desc: str, callback=None, progress: bool = False) -> None:
     """Step ``trainer`` (anything with ``step()``, ``done``, ``step_index`` and ``config.steps``)
-    to its last step, with a tqdm bar showing the loss and alpha; ``callback(trainer, record)``
-    after each step."""
+    to its last step, with a tqdm bar showing the loss and alpha every :data:`LOG_EVERY` steps;
+    ``callback(trainer, record)`` after each step. The numbers are read from the device only then
+    (and at the end), never per step."""
     from tqdm.auto import tqdm
 
     bar = tqdm(total=trainer.config.steps, initial=trainer.step_index, disable=not progress, desc=desc)
     while not trainer.done:
         record = trainer.step()
         bar.update(1)
-        if trainer.step_index % 25 == 0 or trainer.done:
+        if progress and (trainer.step_index % LOG_EVERY == 0 or trainer.done):
             bar.set_postfix(loss=f"{record['loss']:.4g}", alpha=f"{record['alpha']:.3g}")
         if callback is not None:
             callback(trainer, record)
+    flush = getattr(trainer, "flush", None)
+    if flush is not None:
+        flush()  # the last steps' numbers, and their non-finite check
     bar.close()
+
+
+class StepRecord(Mapping):
+    """One step's numbers (``record["loss"]``), read from the device when first looked at: a loop
+    that never looks costs no host-device sync."""
+
+    def __init__(self, trainer: "ResumableTrainer", position: int, keys: Sequence[str]) -> None:
+        self._trainer, self._position, self._keys = trainer, position, tuple(keys)
+
+    def __getitem__(self, key: str) -> float:
+        if key not in self._keys:
+            raise KeyError(key)
+        return self._trainer.history[key][self._position]
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __repr__(self) -> str:
+        return f"StepRecord({dict(self)})"
 
 
 class ResumableTrainer:
@@ -237,7 +298,60 @@ class ResumableTrainer:
     depends on that is not rebuilt from its config and data (those are rebuilt identically on
     resume: the network's initialisation, the sample pool, the frame). A trainer has ``field``,
     ``sp``, ``optimizer``, ``generator`` (the batches), ``step_index``, ``history``, ``timer`` and
-    optionally ``scheduler``; :meth:`_extra_state` / :meth:`_load_extra_state` add its own."""
+    optionally ``scheduler``; :meth:`_extra_state` / :meth:`_load_extra_state` add its own.
+
+    It also keeps the per-step numbers: a step hands them to :meth:`_finish_step` as device
+    tensors, and they are read in one go (one host-device sync) every :data:`LOG_EVERY` steps or
+    when ``history`` / a record is read, checking the loss for NaN / inf then: a step on a GPU
+    never waits for its own numbers."""
+
+    _pending: list
+    _history: dict
+
+    @property
+    def history(self) -> dict:
+        """``{name: [value per step]}`` as Python floats (reads the steps not read yet)."""
+        self.flush()
+        return self._history
+
+    @history.setter
+    def history(self, value: Mapping) -> None:
+        from collections import defaultdict
+
+        self._history = defaultdict(list, {k: list(v) for k, v in value.items()})
+        self._pending = []
+
+    def _finish_step(self, values: Mapping[str, Any]) -> StepRecord:
+        """Count the step and keep its numbers (tensors stay on the device, detached)."""
+        position = len(self._history.get("loss", ())) + len(self._pending)
+        kept = {k: v.detach() if isinstance(v, torch.Tensor) else float(v) for k, v in values.items()}
+        self._pending.append((self.step_index, kept))
+        self.step_index += 1
+        if self.step_index % LOG_EVERY == 0:
+            self.flush()
+        return StepRecord(self, position, tuple(kept))
+
+    def flush(self) -> None:
+        """Read the pending steps' numbers from the device (one sync) into ``history``; a loss that
+        is not finite stops the fit, naming the first step where it happened."""
+        import math
+
+        if not self.__dict__.get("_pending"):
+            return
+        pending, self._pending = self._pending, []
+        tensors = [v.reshape(()).to(torch.float64) for _, values in pending for v in values.values() if isinstance(v, torch.Tensor)]
+        read = iter(torch.stack(tensors).tolist() if tensors else [])
+        rows = [(step, {k: next(read) if isinstance(v, torch.Tensor) else v for k, v in values.items()}) for step, values in pending]
+        for step, values in rows:
+            if not math.isfinite(values["loss"]):
+                raise FloatingPointError(self._diverged(step, values["loss"]))
+            for k, v in values.items():
+                self._history[k].append(v)
+        self.timer.times  # noqa: B018  (the steps' events completed before the numbers: free now)
+
+    def _diverged(self, step: int, loss: float) -> str:
+        """The one-line stop for a loss that became NaN / inf at ``step``."""
+        return f"step {step}: the loss became {loss}; the fit diverged: lower --lr (now {self.config.lr:g}, e.g. 10x smaller)"
 
     def state_dict(self) -> dict:
         state = {
@@ -255,8 +369,6 @@ class ResumableTrainer:
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        from collections import defaultdict
-
         self.field.load_state_dict(state["field"])
         self.sp.load_state_dict(state["sp"])
         self.optimizer.load_state_dict(state["optimizer"])
@@ -264,7 +376,7 @@ class ResumableTrainer:
             self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
         self.step_index = int(state["step"])
-        self.history = defaultdict(list, {k: list(v) for k, v in state["history"].items()})
+        self.history = state["history"]
         self.timer.times = list(state.get("step_times", []))
         self._load_extra_state(state)
 

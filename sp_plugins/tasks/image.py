@@ -28,7 +28,7 @@ import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Tuple, Type, Union
+from typing import Mapping, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -278,8 +278,10 @@ class ImageFitTrainer(ResumableTrainer):
             if not sp_config.enabled or sp_config.alpha0 <= 0:
                 raise ValueError("adaptive_alpha needs SP on with alpha0 > 0 (its initial value)")
             res = (max(2, self.width // config.alpha_map_downscale), max(2, self.height // config.alpha_map_downscale))
-            # The schedule still scales the map (alpha_at), so the fit ends as a plain field.
-            self.sp.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0)).to(self.device)
+            # The map alone is alpha while the SP schedule runs (sp.alpha_grid_mode "replace", the
+            # paper's variant), then SP is off, so the fit ends as a plain field.
+            self.sp.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0),
+                                           parameterization=sp_config.alpha_grid_parameterization).to(self.device)
             groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": config.alpha_map_lr})
             end = self.sp.schedule.end_step
             if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps):
@@ -293,7 +295,7 @@ class ImageFitTrainer(ResumableTrainer):
         self.generator.manual_seed(config.seed)
         self.step_index = 0
         self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer()
+        self.timer = StepTimer(self.device)
         self.phase2_step: Optional[int] = None
         """First step of phase 2 (the map guides the fit), once it has started."""
         self._pixel_cdf: Optional[Tensor] = None
@@ -331,7 +333,7 @@ class ImageFitTrainer(ResumableTrainer):
     def rgb(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n 3"]:
         return torch.sigmoid(self.field(x))
 
-    def step(self) -> dict[str, float]:
+    def step(self) -> Mapping[str, float]:
         c = self.config
         with self.timer:
             alpha = self.sp.set_step(self.step_index, c.steps)
@@ -348,19 +350,17 @@ class ImageFitTrainer(ResumableTrainer):
                 idx = torch.randint(n, (c.batch,), generator=self.generator, device=self.device)
             pred = self.sp.blurred(self.rgb, self.positions[idx])
             loss = (pred - self.colours[idx]).square().mean()
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr "
-                                         f"(now {c.lr:g}, e.g. 10x smaller){' or --alpha-map-lr' if c.adaptive_alpha else ''}")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
-        self.step_index += 1
-        record = {"loss": loss.item(), "alpha": float(alpha)}
+        record = {"loss": loss, "alpha": alpha}
         if self.sp.alpha_grid is not None:
-            record["alpha_map_mean"] = float(self.sp.alpha_grid.values().mean())
-        for k, v in record.items():
-            self.history[k].append(v)
-        return record
+            with torch.no_grad():
+                record["alpha_map_mean"] = self.sp.alpha_grid.values().mean()  # on the device, read with the loss
+        return self._finish_step(record)
+
+    def _diverged(self, step: int, loss: float) -> str:
+        return super()._diverged(step, loss) + (" or --alpha-map-lr" if self.config.adaptive_alpha else "")
 
     @property
     def done(self) -> bool:

@@ -21,7 +21,7 @@ import dataclasses
 import math
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Literal, Optional, Tuple, Type
+from typing import Literal, Mapping, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -182,11 +182,12 @@ class PointCloudSDFTrainer(ResumableTrainer):
         self.generator.manual_seed(config.seed)
         self.step_index = 0
         self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer()
+        self.timer = StepTimer(self.device)
 
     # ------------------------------------------------------------------------------------------
-    def step(self) -> dict[str, float]:
-        """One optimisation step; returns the weighted total and the unweighted terms."""
+    def step(self) -> Mapping[str, float]:
+        """One optimisation step; returns the weighted total and the unweighted terms (read from
+        the device when looked at: see :class:`~sp_plugins.tasks.common.ResumableTrainer`)."""
         c = self.config
         with self.timer:
             alpha = self.sp.set_step(self.step_index, c.steps)
@@ -204,22 +205,17 @@ class PointCloudSDFTrainer(ResumableTrainer):
                 + c.w_eikonal * terms["eikonal"]
                 + c.w_offsurface * terms["offsurface"]
             )
-            if not torch.isfinite(loss):
-                raise FloatingPointError(
-                    f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr (now {c.lr:g}, "
-                    "e.g. 10x smaller) or clip harder (--grad-clip)"
-                )
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if c.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(self.field.parameters(), c.grad_clip)
             self.optimizer.step()
             self.scheduler.step()
-        self.step_index += 1
-        record = {"loss": loss.item(), "alpha": float(alpha), **{k: v.item() for k, v in terms.items()}}
-        for k, v in record.items():
-            self.history[k].append(v)
-        return record
+        # read later, with the non-finite check (no host-device sync per step)
+        return self._finish_step({"loss": loss, "alpha": alpha, **terms})
+
+    def _diverged(self, step: int, loss: float) -> str:
+        return super()._diverged(step, loss) + " or clip harder (--grad-clip)"
 
     @property
     def done(self) -> bool:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Optional, Tuple, Type
+from typing import Mapping, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -130,9 +130,9 @@ class SDFFitTrainer(ResumableTrainer):
         self.generator.manual_seed(config.seed)
         self.step_index = 0
         self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer()
+        self.timer = StepTimer(self.device)
 
-    def step(self) -> dict[str, float]:
+    def step(self) -> Mapping[str, float]:
         c = self.config
         with self.timer:
             alpha = self.sp.set_step(self.step_index, c.steps)
@@ -145,17 +145,10 @@ class SDFFitTrainer(ResumableTrainer):
             x, d = torch.cat(xs), torch.cat(ds)
             pred = self.sp.blurred(self.field, x).squeeze(-1)
             loss = mape(pred, d)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"step {self.step_index}: the loss became {loss.item()}; the fit diverged: lower --lr "
-                                         f"(now {c.lr:g}, e.g. 10x smaller)")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
-        self.step_index += 1
-        record = {"loss": loss.item(), "alpha": float(alpha)}
-        for k, v in record.items():
-            self.history[k].append(v)
-        return record
+        return self._finish_step({"loss": loss, "alpha": alpha})  # read later, with the non-finite check
 
     @property
     def done(self) -> bool:
