@@ -18,7 +18,7 @@ def _shown(message, category, module):
 def test_host_messages_are_hidden_only_where_the_host_raises_them(monkeypatch):
     monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
     assert not _shown(INDEXING, UserWarning, "nerfstudio.cameras.cameras")
-    assert _shown(INDEXING, UserWarning, "sp_plugins.nerfstudio.frustum_sp")  # ours: never hidden
+    assert _shown(INDEXING, UserWarning, "sp_plugins.nerfstudio.seam")  # ours: never hidden
     assert _shown("something else entirely", UserWarning, "nerfstudio.cameras.cameras")
     assert _shown(INDEXING, RuntimeWarning, "nerfstudio.cameras.cameras")  # another category
     assert all(not module.startswith("sp_plugins") for _, _, module in HOST_WARNINGS)

@@ -9,7 +9,7 @@ dict keys stay the host's.
 
 from __future__ import annotations
 
-from typing import Callable, Optional, TypeVar
+from typing import Callable, Optional, Set, TypeVar
 
 from sp_plugins.core import StochasticPreconditioner
 
@@ -19,15 +19,18 @@ T = TypeVar("T")
 class PreconditionerHandle:
     """A reference to a model's preconditioner that ``nn.Module`` does not register."""
 
-    __slots__ = ("sp", "perturbed_calls")
+    __slots__ = ("sp", "perturbed_calls", "reads")
 
     def __init__(self, sp: Optional[StochasticPreconditioner]) -> None:
         self.sp = sp
         self.perturbed_calls = 0
         """Field queries that were perturbed (the model checks SP reached a field while training)."""
+        self.reads: Set[str] = set()
+        """What the field read of the moved samples it was handed (a host seam fills it)."""
 
     def __repr__(self) -> str:
-        return f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls})"
+        return (f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls}, "
+                f"reads={sorted(self.reads)})")
 
 
 class SPFieldMixin:

@@ -2,13 +2,14 @@
 
 One shape, as in ``sp_plugins.sdfstudio``, on the host-neutral base ``sp_plugins.adapter``:
 
-- fields, where positions are perturbed: :mod:`~sp_plugins.nerfstudio.frustum_sp` (any field that
-  reads ``get_positions()``), :mod:`~sp_plugins.nerfstudio.mipnerf` (Gaussian means),
-  :mod:`~sp_plugins.nerfstudio.sdf_field` (NeuS / Neuralangelo-lite);
-- models: :mod:`~sp_plugins.nerfstudio.model` (``SPModel``, ``AnyMethodSPModel``),
-  :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.radiance_models`;
-- registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, ``sp-train``),
-  :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
+- fields, where positions are perturbed: :mod:`~sp_plugins.nerfstudio.seam`, the one seam: every
+  field a model calls with ``RaySamples`` is handed a copy whose origins carry the SP offset, so
+  ``get_positions()``, ``get_start_positions()`` and Gaussian means all move;
+  :mod:`~sp_plugins.nerfstudio.sdf_field` is our SDF field (masked levels, numerical gradients);
+- models: :mod:`~sp_plugins.nerfstudio.model` (``SPModel``: attaches the seam, refuses where it
+  cannot act), :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.radiance_models`;
+- registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, ``sp-train``, the refusal
+  table), :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
   trainer configs of our registered methods (:mod:`~sp_plugins.nerfstudio.sdf_methods`,
   :mod:`~sp_plugins.nerfstudio.radiance_methods`; ``runs`` runs them from Python).
 

@@ -1,24 +1,24 @@
-"""The models of the nerfstudio adapter: the shared mixin with nerfstudio's few differences.
+"""The model of the nerfstudio adapter: one mixin for our methods and for ``with_sp`` on any method.
 
-:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from
-``config.sp`` over the scene box, checkpointed, its alpha-grid optimizer group, the schedule
-callbacks, ``sp_alpha`` in the metrics) plus, for nerfstudio 1.x:
+:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from ``config.sp``
+over the scene box, checkpointed, its alpha-grid optimizer group, the schedule callbacks,
+``sp_alpha`` in the metrics) plus, for nerfstudio 1.x:
 
-- LPIPS built without downloads and kept out of the state dict (every nerfstudio model builds
-  torchmetrics' LPIPS, which fetches AlexNet weights);
+- the seam (:mod:`sp_plugins.nerfstudio.seam`) attached to the fields the host's ``populate_modules``
+  built, whatever way it built them; the submodules of :data:`PLAIN_FIELDS` stay plain;
+- refusals in one line where SP cannot act: no field called with ``RaySamples``, a field that reads
+  positions some other way (checked after the first step with alpha > 0), a box boundary in a
+  contracted scene, an alpha grid no gradient reaches;
+- the host's build scoped with what it needs offline or without CUDA: LPIPS without downloads
+  (and out of the state dict), nerfstudio's ``SDFField`` on our torch hash grid without tcnn;
 - options that only act through SP refused on a baseline (``sp.enabled False``);
 - when it is built (not when nerfstudio discovers our methods), the one-line report of
-  :class:`InputError` and the filters for the host's known warnings: only a process that trains
-  or loads one of our methods gets them.
-
-:class:`AnyMethodSPModel` is the same for a model we have never seen (``with_sp``): the host's
-``populate_modules`` builds its fields as SP variants, and the model refuses, in one line, to
-train where SP would reach nothing.
+  :class:`InputError` and the filters for the host's known warnings.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
@@ -31,7 +31,7 @@ from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, install_input_error_hook
 from sp_plugins.nerfstudio.host.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
-__all__ = ["AnyMethodSPModel", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
+__all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
 
 
 def refuse_inert_options(config: SPConfig) -> None:
@@ -56,52 +56,76 @@ def install_process_settings() -> None:
     filter_host_warnings()
 
 
-def check_finite_losses(losses: Dict[str, torch.Tensor], step: int, groups: Callable[[], List[str]]) -> None:
-    """Stop a run whose loss turned NaN or infinite, naming the step and what to try: training on
-    would only write NaN checkpoints. (One device sync per step for the check.)"""
-    total = sum(v.detach().float().sum() for v in losses.values())
-    if bool(torch.isfinite(total)):
-        return
-    bad = [f"{name}={float(v.detach().float().sum()):g}" for name, v in losses.items() if not bool(torch.isfinite(v.detach()).all())]
-    flags = ", ".join(f"--optimizers.{g.replace('_', '-')}.optimizer.lr" for g in groups()[:3]) or "--optimizers.<group>.optimizer.lr"
-    raise InputError(
-        f"training step {step}: the loss became {' and '.join(bad) or 'NaN'}; the run diverged and stopped (nothing from this step "
-        f"was saved): lower the learning rate ({flags}, e.g. 10x smaller) or resume from an earlier checkpoint with --load-dir"
-    )
+class NonFiniteWatch:
+    """Stops a run whose loss turned NaN or infinite, naming the step and what to try, without a
+    device sync per step: each step ORs the losses' finiteness into device tensors; the trainer's
+    logging, checkpoint and last steps read them (:meth:`raise_if_diverged`), before any checkpoint of
+    a diverged run is written. Under mixed precision GradScaler skips a transient inf, so only a run
+    of :attr:`MIXED_PRECISION_RUN` non-finite steps in a row stops it."""
+
+    MIXED_PRECISION_RUN = 10
+
+    def __init__(self) -> None:
+        self.bad: Dict[str, torch.Tensor] = {}
+        self.first: Optional[torch.Tensor] = None
+        self.run: Optional[torch.Tensor] = None
+        self.mixed_precision = False
+
+    def update(self, losses: Dict[str, torch.Tensor], step: int) -> None:
+        """Record this step's losses (device ops only)."""
+        if not losses:
+            return
+        finite = {name: torch.isfinite(v.detach().float().sum()) for name, v in losses.items()}
+        for name, ok in finite.items():
+            self.bad[name] = ~ok if name not in self.bad else self.bad[name] | ~ok
+        any_bad = ~torch.stack(list(finite.values())).all()
+        first = torch.full_like(any_bad, -1, dtype=torch.long) if self.first is None else self.first
+        self.first = torch.where((first < 0) & any_bad, step, first)
+        run = torch.zeros_like(first) if self.run is None else self.run
+        self.run = torch.where(any_bad, run + 1, 0)
+
+    def raise_if_diverged(self, step: int, groups: Callable[[], List[str]]) -> None:
+        """One device read: raise :class:`InputError` when the run diverged."""
+        if self.first is None or self.run is None:
+            return
+        first, run = (int(v) for v in torch.stack([self.first, self.run]).cpu())
+        if first < 0 or (self.mixed_precision and run < self.MIXED_PRECISION_RUN):
+            return
+        bad = [name for name, flag in self.bad.items() if bool(flag)]
+        flags = ", ".join(f"--optimizers.{g.replace('_', '-')}.optimizer.lr" for g in groups()[:3]) or "--optimizers.<group>.optimizer.lr"
+        raise InputError(
+            f"training step {first}: the loss became NaN or infinite ({', '.join(bad) or 'total'}); the run diverged and stopped "
+            f"at step {step} before saving a checkpoint of it: lower the learning rate ({flags}, e.g. 10x smaller) or resume "
+            "from an earlier checkpoint with --load-dir"
+        )
 
 
-class SPModel(adapter_model.SPModel):
-    """Mixin for a nerfstudio ``Model``; list it before the host model class."""
+def divergence_callback(model: "SPModel", attributes: TrainingCallbackAttributes) -> TrainingCallback:
+    """Read the model's :class:`NonFiniteWatch` when the trainer logs, saves, or ends."""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation
+    from nerfstudio.utils.misc import step_check
 
-    def populate_modules(self) -> None:
-        install_process_settings()
-        check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
-        super().populate_modules()
+    trainer = getattr(attributes, "trainer", None)
+    config = getattr(trainer, "config", None)
+    log_every = int(getattr(getattr(config, "logging", None), "steps_per_log", 10) or 10)
+    save_every = int(getattr(config, "steps_per_save", 0) or 0)
+    last = int(getattr(trainer, "_start_step", 0)) + int(getattr(config, "max_num_iterations", 0) or 0) - 1
+    model._sp_watch.mixed_precision = bool(getattr(config, "mixed_precision", False)) and bool(
+        getattr(getattr(trainer, "grad_scaler", None), "is_enabled", lambda: False)())
 
-    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
-        losses = super().get_loss_dict(outputs, batch, metrics_dict)  # type: ignore[misc]
-        if self.training:  # type: ignore[attr-defined]
-            check_finite_losses(losses, int(getattr(self.sp, "_step", 0)), self._lr_groups)
-        return losses
+    def check(step: int) -> None:
+        if step_check(step, log_every, run_at_zero=True) or (save_every and step_check(step, save_every)) or step == last:
+            model._sp_watch.raise_if_diverged(step, model._lr_groups)
 
-    def _lr_groups(self) -> List[str]:
-        from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+    return TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], check, update_every_num_iters=1)
 
-        return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]
 
-    def build_preconditioner(self) -> StochasticPreconditioner:
-        refuse_inert_options(self.config.sp)  # type: ignore[attr-defined]
-        return super().build_preconditioner()
-
-    def populate_host_modules(self) -> None:
-        with offline_lpips():
-            super().populate_host_modules()
-        detach_lpips(self)  # type: ignore[arg-type]
-
-    def get_image_metrics_and_images(self, outputs, batch):
-        metrics, images = super().get_image_metrics_and_images(outputs, batch)  # type: ignore[misc]
-        return drop_missing_lpips(self, metrics), images  # type: ignore[arg-type]
-
+PLAIN_FIELDS: Dict[str, Dict[str, str]] = {
+    "nerfstudio.models.base_surface_model.SurfaceModel": {
+        "field_background": "the background model outside the SDF's sphere: the paper perturbs the SDF field only",
+    },
+}
+"""Host model classes (and subclasses) -> submodules that stay plain, and why."""
 
 ALPHA_GRID_UNREACHABLE = {
     "nerfstudio.models.tensorf.TensoRFModel": (
@@ -111,82 +135,69 @@ ALPHA_GRID_UNREACHABLE = {
 """Host models whose fields detach the positions they read: a learnable alpha grid cannot learn."""
 
 
-class AnyMethodSPModel(SPModel):
-    """SP on any nerfstudio model whose fields read ``Frustums.get_positions()``.
-
-    While the host's ``populate_modules`` runs, every module-level ``Field`` class of the
-    modules defining the model resolves to its SP variant (a :class:`FrustumSPField` subclass,
-    :func:`sp_plugins.patches.nerfstudio_host_fields.model_builds_variants`), so the host builds
-    our subclasses with its own arguments. Proposal networks are built that way too but stay
-    plain: they are queried through ``density_fn``, not with ``RaySamples``.
-
-    Refused in one line: fields SP cannot reach (none built as a variant), SDF fields (they read
-    ``get_start_positions()``, which ignores offsets), Gaussian-blob fields (MipNeRF), a box
-    boundary in a contracted scene, and a first training step in which no field was perturbed.
-    """
+class SPModel(adapter_model.SPModel):
+    """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
     def populate_modules(self) -> None:
-        from sp_plugins.nerfstudio.variants import variant
-        from sp_plugins.patches.nerfstudio_host_fields import model_builds_variants
+        install_process_settings()
+        check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
+        self._sp_watch = NonFiniteWatch()
+        super().populate_modules()
 
-        with model_builds_variants(type(self), lambda host: variant("Field", host)):
-            super().populate_modules()
+    def populate_host_modules(self) -> None:
+        from sp_plugins.patches.nerfstudio_sdf_field import torch_tcnn_fallback
 
+        with offline_lpips(), torch_tcnn_fallback():  # for this build only
+            super().populate_host_modules()
+        detach_lpips(self)  # type: ignore[arg-type]
+
+    def build_preconditioner(self) -> StochasticPreconditioner:
+        refuse_inert_options(self.config.sp)  # type: ignore[attr-defined]
+        return super().build_preconditioner()
+
+    # -- the seam --------------------------------------------------------------------------------
     def sp_host_name(self) -> str:
         return class_path(next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins.")))
 
-    def sp_fields(self) -> List[torch.nn.Module]:
-        from sp_plugins.nerfstudio.frustum_sp import FrustumSPField
+    def sp_plain_fields(self) -> Dict[str, str]:
+        plain: Dict[str, str] = {}
+        for cls in type(self).__mro__:
+            plain.update(PLAIN_FIELDS.get(class_path(cls), {}))
+        return plain
 
-        return [m for m in self.modules() if isinstance(m, FrustumSPField)]  # type: ignore[attr-defined]
+    def sp_fields(self) -> List[torch.nn.Module]:
+        """The fields that carry the seam."""
+        from sp_plugins.nerfstudio.seam import seam_fields
+
+        return [f for _, f in seam_fields(self)]  # type: ignore[arg-type]
 
     def attach_sp(self) -> None:
-        from nerfstudio.fields.sdf_field import SDFField
+        from sp_plugins.nerfstudio.seam import attach_seam
 
         host, sp = self.sp_host_name(), self.config.sp  # type: ignore[attr-defined]
-        for module in self.modules():  # type: ignore[attr-defined]
-            if isinstance(module, SDFField):
-                raise InputError(
-                    f"SP cannot reach {host}: its SDF field reads Frustums.get_start_positions(), which ignores offsets; "
-                    "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite (nerfstudio) or sp-sdfstudio-train (sdfstudio)"
-                )
         if sp.enabled and sp.alpha_grid:
             for cls in type(self).__mro__:
                 unreachable = ALPHA_GRID_UNREACHABLE.get(class_path(cls))
                 if unreachable:
                     raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
                                      "use a global alpha (the default)")
-        fields = self.sp_fields()
-        if not fields:
+        if not attach_seam(self, self.sp, self.sp_plain_fields()):  # type: ignore[arg-type]
             raise InputError(
-                f"SP cannot reach {host}: none of its fields is built from a module-level Field class of the modules that "
-                "define the model, so no query would be perturbed; build the field by class name in populate_modules"
+                f"SP cannot reach {host}: none of its modules is a nerfstudio Field or takes ray_samples in forward, so "
+                "no query would be perturbed"
             )
-        for f in fields:
-            if getattr(f, "use_integrated_encoding", False):
-                raise InputError(f"SP cannot reach {host}: its field encodes Gaussian blobs (MipNeRF), which refuse "
-                                 "Frustums.offsets; train sp-mipnerf")
-            if sp.enabled and sp.boundary != "none" and getattr(f, "spatial_distortion", None) is not None:
-                way_out = " (or --pipeline.model.disable-scene-contraction True)" if hasattr(self.config, "disable_scene_contraction") else ""  # type: ignore[attr-defined]
-                raise InputError(
-                    f"--pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but {type(f).__bases__[-1].__name__} "
-                    f"contracts space (scene contraction is on); pass --pipeline.model.sp.boundary none{way_out}"
-                )
-            f.use_preconditioner(self.sp)
 
     def perturbed_calls(self) -> int:
-        return sum(f.sp_handle.perturbed_calls for f in self.sp_fields() if f.sp_handle is not None)
+        return sum(f.sp_handle.perturbed_calls for f in self.sp_fields() if f.sp_handle is not None)  # type: ignore[union-attr]
 
     def check_sp_reached(self, step: int) -> None:
-        """After the first training step with alpha > 0: some field must have been perturbed."""
+        """After the first training step with alpha > 0: the fields read the moved positions."""
         if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
             return
         self._sp_reach_checked = True
-        if self.perturbed_calls() == 0:
-            raise InputError(
-                f"SP reached no field of {self.sp_host_name()} in training step {step}: no field was called with "
-                "RaySamples (fields queried only through positions or density_fn stay plain); SP does not apply to this method"
-            )
+        from sp_plugins.nerfstudio.seam import check_reached
+
+        check_reached(self, self.sp_host_name(), step, self.sp.config.boundary)  # type: ignore[arg-type]
         grid = self.sp.alpha_grid
         if grid is not None and all(p.grad is None or not bool(p.grad.any()) for p in grid.parameters()):
             raise InputError(
@@ -194,9 +205,25 @@ class AnyMethodSPModel(SPModel):
                 "grid in the first training step (the field detaches the positions it reads); use a global alpha (the default)"
             )
 
+    # -- training -------------------------------------------------------------------------------
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        check = TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_sp_reached, update_every_num_iters=1)
-        return callbacks + [check]
+        reached = TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_sp_reached, update_every_num_iters=1)
+        return callbacks + [reached, divergence_callback(self, training_callback_attributes)]
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        losses = super().get_loss_dict(outputs, batch, metrics_dict)  # type: ignore[misc]
+        if self.training:  # type: ignore[attr-defined]
+            self._sp_watch.update(losses, int(getattr(self.sp, "_step", 0)))
+        return losses
+
+    def _lr_groups(self) -> List[str]:
+        from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+
+        return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)  # type: ignore[misc]
+        return drop_missing_lpips(self, metrics), images  # type: ignore[arg-type]

@@ -1,7 +1,8 @@
 """NeuS and Neuralangelo-lite models with the shared SP settings.
 
-- :class:`SPNeuSModel`: nerfstudio's NeuS whose field perturbs its queries (see
-  :mod:`sp_plugins.nerfstudio.sdf_field`); ``sp.enabled=False`` is the plain baseline. The cosine
+- :class:`SPNeuSModel`: nerfstudio's NeuS on our SDF field (:mod:`sp_plugins.nerfstudio.sdf_field`:
+  masked hash levels, numerical gradients), SP through the one seam like every method;
+  ``sp.enabled=False`` is the plain baseline. The cosine
   annealing of NeuS ends at a fraction of training instead of a fixed 50k steps, so short runs
   anneal too.
 - :class:`NeuralangeloLiteModel`: the same with a hash grid, numerical gradients, an eikonal and a
@@ -80,6 +81,9 @@ class SPNeuSModel(SPModel, NeuSModel):
 
         super().populate_modules()
         claim_for_cpu_marching_cubes(self)  # ns-export marching-cubes builds this model, then meshes it
+
+    def populate_host_modules(self) -> None:
+        super().populate_host_modules()
         self._size_background_mlp()
         device = self.kwargs.get("device")
         if self.config.background_model == "grid" and hash_encoding.use_sp_hash_grids(device):
@@ -105,9 +109,6 @@ class SPNeuSModel(SPModel, NeuSModel):
             skip_connections=(4,) if layers > 4 else (),
             spatial_distortion=host.spatial_distortion,
         )
-
-    def attach_sp(self) -> None:
-        self.field.use_preconditioner(self.sp)
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
         """With a hash grid, its tables get their own optimizer group (:data:`GRID_GROUP`), so the

@@ -1,8 +1,9 @@
-"""MipNeRF with SP on its Gaussian means, and the names sp-vanilla-nerf / sp-nerfacto / sp-tensorf had.
+"""MipNeRF at a configurable size, and the names sp-vanilla-nerf / sp-nerfacto / sp-tensorf had.
 
-- :class:`SPMipNerfModel`: SP on the mean of each conical frustum's Gaussian
-  (:mod:`sp_plugins.nerfstudio.mipnerf`); the paper's sparse-view setting. A dedicated hook: MipNeRF's
-  Gaussian blobs refuse ``Frustums.offsets``, the generic route's seam.
+- :class:`SPMipNerfModel`: nerfstudio's MipNeRF (the paper's sparse-view setting) whose base MLP can
+  be made smaller for CPU-sized runs. SP reaches it through the one seam like any method: the moved
+  origins move each conical frustum's Gaussian mean and keep its covariance, so the integrated
+  encoding still low-passes what the footprint cannot resolve.
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf`` are the generic route (``with_sp``) on the
   host's model with their presets (:mod:`sp_plugins.nerfstudio.radiance_methods`); the class names
   they used before are kept here as aliases of the generic variants, so their saved ``config.yml``
@@ -22,8 +23,6 @@ from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModel, NerfactoHashGridModelConfig
-from sp_plugins.nerfstudio.mipnerf import SPNeRFField
-from sp_plugins.patches.nerfstudio_host_fields import host_builds
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
 MIPNERF_SP = presets.MIPNERF
@@ -50,16 +49,15 @@ class SPMipNerfModelConfig(SPModelConfig, VanillaModelConfig):
 class SPMipNerfModel(SPModel, MipNerfModel):
     config: SPMipNerfModelConfig
 
-    def populate_modules(self) -> None:
-        with host_builds("nerfstudio.models.mipnerf", SPNeRFField):
-            super().populate_modules()
-
-    def attach_sp(self) -> None:
+    def populate_host_modules(self) -> None:
+        super().populate_host_modules()
         c = self.config
         if (c.mlp_num_layers, c.mlp_layer_width, c.head_mlp_layer_width) != (8, 256, 128):
             # the host builds MipNeRF's 8x256 MLP unconditionally: rebuild it at the requested size
+            from nerfstudio.fields.vanilla_nerf_field import NeRFField
+
             host = self.field
-            self.field = SPNeRFField(
+            self.field = NeRFField(
                 position_encoding=host.position_encoding,
                 direction_encoding=host.direction_encoding,
                 base_mlp_num_layers=c.mlp_num_layers,
@@ -68,7 +66,6 @@ class SPMipNerfModel(SPModel, MipNerfModel):
                 skip_connections=(c.mlp_num_layers // 2,) if c.mlp_num_layers > 2 else (),
                 use_integrated_encoding=True,
             )
-        self.field.use_preconditioner(self.sp)
 
 
 # Names of the hand-built classes that sp-vanilla-nerf, sp-nerfacto and sp-tensorf used before they

@@ -33,18 +33,17 @@ from sp_plugins.core import SPConfig
 PROG = "sp-train"
 
 REFUSED_MODELS: Dict[str, str] = {
-    "nerfstudio.models.base_surface_model.SurfaceModel": (
-        "its SDF field reads Frustums.get_start_positions(), which ignores offsets; "
-        "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite instead"
-    ),
-    "nerfstudio.models.mipnerf.MipNerfModel": (
-        "its field encodes Gaussian blobs (conical frustums), which refuse Frustums.offsets; train sp-mipnerf instead"
-    ),
     "nerfstudio.models.splatfacto.SplatfactoModel": (
         "Gaussian splatting has no field queried with RaySamples (it rasterises Gaussians); SP does not apply"
     ),
 }
-"""Host model classes (and their subclasses) SP cannot reach through frustum offsets, and why."""
+"""Host model classes (and their subclasses) SP cannot reach, and why: only what has no field."""
+
+PRESETS: Dict[str, SPConfig] = {
+    "nerfstudio.models.base_surface_model.SurfaceModel": presets.NEUS,
+    "nerfstudio.models.mipnerf.MipNerfModel": presets.MIPNERF,
+}
+"""The paper's settings for host model classes (and subclasses); :data:`presets.DEFAULT` otherwise."""
 
 NEEDS_CUDA: Dict[str, str] = {
     "nerfstudio.models.instant_ngp.NGPModel": "it ray-marches with nerfacc's CUDA kernels and no CUDA device is available",
@@ -71,7 +70,7 @@ def refusal(config: Any) -> Optional[str]:
     """Why SP cannot be put on the method of trainer config ``config`` (None when it can).
 
     Decided from classes only (nothing is built): a method that passes can still be refused when
-    its model is built (see :class:`sp_plugins.nerfstudio.model.AnyMethodSPModel`)."""
+    its model is built or after its first step (see :class:`sp_plugins.nerfstudio.model.SPModel`)."""
     if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
         return "it is an external method that is not installed; install it, then it is listed here"
     model_config = getattr(getattr(config, "pipeline", None), "model", None)
@@ -87,17 +86,22 @@ def refusal(config: Any) -> Optional[str]:
         reason = NEEDS_CUDA.get(class_path(cls))
         if reason and not _cuda_available():
             return reason
-    from sp_plugins.patches.nerfstudio_host_fields import module_field_classes
-
-    if not module_field_classes(model):
-        return f"{model.__name__}'s modules define no Field class, so no field can be built as its SP variant"
     return None
+
+
+def preset_for(model: type) -> SPConfig:
+    """A copy of the SP settings for host model class ``model`` (:data:`PRESETS`)."""
+    for cls in model.__mro__:
+        preset = PRESETS.get(class_path(cls))
+        if preset is not None:
+            return dataclasses.replace(preset)
+    return dataclasses.replace(presets.DEFAULT)
 
 
 def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = None, description: Optional[str] = None):
     """The SP variant of method ``spec`` (a ``MethodSpecification`` or a ``TrainerConfig``).
 
-    ``sp`` defaults to :data:`sp_plugins.adapter.presets.DEFAULT`; ``name`` to ``sp-<method name>``.
+    ``sp`` defaults to :func:`preset_for` the host model; ``name`` to ``sp-<method name>``.
     A method that is already ours (its model config has ``sp``) comes back with SP enabled.
     Raises ``ValueError`` naming the reason when SP cannot reach the method."""
     from nerfstudio.plugins.types import MethodSpecification
@@ -117,7 +121,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     if hasattr(model, "sp"):  # ours already: switch SP on (an explicit sp wins)
         model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
     else:
-        sp_config = copy.deepcopy(sp) if sp is not None else dataclasses.replace(presets.DEFAULT)
+        sp_config = copy.deepcopy(sp) if sp is not None else preset_for(target_class(model))
         config_cls = variant("ModelConfig", type(model))
         config.pipeline.model = convert(model, config_cls, _target=variant("Model", target_class(model)), sp=sp_config)
     config.method_name = name or (config.method_name if config.method_name.startswith("sp-") else f"sp-{config.method_name}")

@@ -1,20 +1,19 @@
-"""nerfstudio's ``SDFField`` with the stochastic-preconditioning hook and numerical gradients.
+"""Our nerfstudio SDF field: ``SDFField`` with masked hash-grid levels and numerical gradients.
 
-Where SP enters (while training and alpha > 0; otherwise the plain field):
+Neuralangelo-lite needs what nerfstudio's ``SDFField`` lacks: hash levels that coarse-to-fine can
+switch on one by one, and normals from a finite-difference stencil whose step follows the finest
+active level. That is this field's reason to exist; it does not perturb anything itself. SP enters
+through the one seam (:mod:`sp_plugins.nerfstudio.seam`), which hands ``get_outputs`` samples whose
+start positions are moved: the SDF, geometry feature, colour and the autograd gradient are taken at
+the moved point ``q``, and the stencil is evaluated around ``q``, so all its points share one offset.
 
-- every sample position is perturbed once, ``q = x + alpha * eps`` (reflected into the scene
-  box); SDF, geometry feature, normal and colour are all evaluated at ``q``, so the renderer sees
-  one consistent blurred field. Ray directions, interval lengths and the NeuS alpha
-  computation are unchanged.
-- analytic normals are the autograd gradient of the SDF with respect to ``q`` (the field's own
-  slope where it was queried); numerical normals (Neuralangelo) evaluate the finite-difference
-  stencil around ``q``, so all stencil points share that one offset.
-- the NeuS sampler's ``get_sdf`` (no-grad importance sampling) sees the plain field by default:
-  it only places samples, one perturbed draw would jitter the placement without blurring it in
-  expectation, and the plain field costs nothing extra. ``perturb_sampler_queries`` turns it on.
+The NeuS sampler's ``get_sdf`` (no-grad importance sampling) sees the plain field by default: it
+only places samples, one perturbed draw would jitter the placement without blurring it in
+expectation, and the plain field costs nothing extra. ``perturb_sampler_queries`` moves its samples
+too, as the seam would.
 
 The hash grid is :class:`sp_plugins.encodings.HashGrid` (tiny-cuda-nn when it runs, torch
-otherwise), so coarse-to-fine can mask levels; without ``use_grid_feature`` there is no grid.
+otherwise); without ``use_grid_feature`` there is no grid.
 """
 
 from __future__ import annotations
@@ -69,7 +68,7 @@ class _NoGrid(nn.Module):
 
 
 class SPSDFField(SPFieldMixin, SDFField):
-    """``SDFField`` that perturbs its queries through a :class:`StochasticPreconditioner`."""
+    """``SDFField`` with masked levels and numerical gradients; the seam moves its samples."""
 
     config: SPSDFFieldConfig
 
@@ -122,11 +121,7 @@ class SPSDFField(SPFieldMixin, SDFField):
             )
         super().initialize_geo_layers()
 
-    # -- SP and coarse-to-fine controls ------------------------------------------------------
-    def perturb(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
-        sp = self.sp
-        return x if sp is None else sp(x)
-
+    # -- coarse-to-fine controls -----------------------------------------------------------------
     def level_cell_size(self, level: int) -> float:
         """Cell size of grid level ``level`` in scene units (for the finite-difference step)."""
         scale = self.encoding.levels[max(level, 0)].scale
@@ -153,57 +148,42 @@ class SPSDFField(SPFieldMixin, SDFField):
 
     def geometry(
         self, x: Float[Tensor, "n 3"]
-    ) -> Tuple[Float[Tensor, "n 3"], Float[Tensor, "n 1"], Float[Tensor, "n geo"], Float[Tensor, "n 3"], Optional[Tensor]]:
-        """Perturb ``x`` once and return ``(q, sdf, geo_feature, gradient, laplacian)`` at ``q``."""
+    ) -> Tuple[Float[Tensor, "n 1"], Float[Tensor, "n geo"], Float[Tensor, "n 3"], Optional[Tensor]]:
+        """``(sdf, geo_feature, gradient, laplacian)`` at ``x`` (the seam's moved points in training)."""
         if self.config.numerical_gradients:
-            q = self.perturb(x)
-            hidden = self.forward_geonetwork(q)
+            hidden = self.forward_geonetwork(x)
             sdf, geo = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
             grad, lap = finite_differences(
-                self.sdf_of, q, self._fd_step, self.config.stencil, centre_values=sdf[:, 0] if self.training else None
+                self.sdf_of, x, self._fd_step, self.config.stencil, centre_values=sdf[:, 0] if self.training else None
             )
-            return q, sdf, geo, grad, lap
+            return sdf, geo, grad, lap
         with torch.enable_grad():
-            q = self.perturb(x)
-            if not q.requires_grad:
-                q = q.requires_grad_(True)
-            hidden = self.forward_geonetwork(q)
+            if not x.requires_grad:
+                x = x.requires_grad_(True)
+            hidden = self.forward_geonetwork(x)
             sdf, geo = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
-            (grad,) = torch.autograd.grad(
-                sdf, q, torch.ones_like(sdf), create_graph=self.training, retain_graph=True
-            )
-        return q, sdf, geo, grad, None
+            (grad,) = torch.autograd.grad(sdf, x, torch.ones_like(sdf), create_graph=self.training, retain_graph=True)
+        return sdf, geo, grad, None
 
     def get_sdf(self, ray_samples: RaySamples) -> Float[Tensor, "num_samples ... 1"]:
+        if self.config.perturb_sampler_queries and self.sp_active():
+            from sp_plugins.nerfstudio.seam import perturbed_samples
+
+            ray_samples = perturbed_samples(ray_samples, self.sp)  # type: ignore[arg-type]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
-        if self.config.perturb_sampler_queries:
-            x = self.perturb(x)
         hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
         return hidden[..., :1]
 
     def get_outputs(
         self, ray_samples: RaySamples, density_embedding: Optional[Tensor] = None, return_alphas: bool = False
     ) -> Dict[FieldHeadNames, Tensor]:
-        """One perturbed query per sample; ``sp.num_samples`` > 1 averages that many draws (SDF,
-        gradient, colour, Laplacian; normals re-normalised from the mean gradient)."""
         if ray_samples.camera_indices is None:
             raise AttributeError("Camera indices are not provided.")
-        if not self.sp_active():
-            return self.outputs_of_one_draw(ray_samples, return_alphas)
-        if self.sp.config.num_samples == 1:
-            return self.perturbed(lambda: self.outputs_of_one_draw(ray_samples, return_alphas))
-        outputs = self.perturbed(lambda: self.outputs_of_one_draw(ray_samples, False))
-        outputs[FieldHeadNames.NORMALS] = F.normalize(outputs[FieldHeadNames.GRADIENT], p=2, dim=-1)
-        if return_alphas:
-            outputs[FieldHeadNames.ALPHA] = self.get_alpha(ray_samples, outputs[FieldHeadNames.SDF], outputs[FieldHeadNames.GRADIENT])
-        return outputs
-
-    def outputs_of_one_draw(self, ray_samples: RaySamples, return_alphas: bool) -> Dict[FieldHeadNames, Tensor]:
         shape = ray_samples.frustums.directions.shape[:-1]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         directions = ray_samples.frustums.directions.reshape(-1, 3)
-        q, sdf, geo, grad, lap = self.geometry(x)
-        rgb = self.get_colors(q, directions, grad, geo, ray_samples.camera_indices.squeeze())
+        sdf, geo, grad, lap = self.geometry(x)
+        rgb = self.get_colors(x, directions, grad, geo, ray_samples.camera_indices.squeeze())
         sdf = sdf.view(*shape, 1)
         grad = grad.view(*shape, 3)
         outputs: Dict = {

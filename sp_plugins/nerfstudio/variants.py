@@ -6,8 +6,8 @@ seen; their SP subclasses are made here on demand and named after the host class
 ``ns-viewer`` process with no extra step (see :mod:`sp_plugins.adapter.variants`)::
 
     variant("ModelConfig", NerfactoModelConfig)  # SPModelConfig__nerfstudio_dmodels_dnerfacto_dNerfactoModelConfig
-    variant("Model", NerfactoModel)              # SPModel__..., built by the host's populate_modules
-    variant("Field", NerfactoField)              # SPField__..., built in place of the host's field
+    variant("Model", NerfactoModel)              # SPModel__...
+    variant("Field", NerfactoField)              # SPField__..., the class a built field instance is swapped to
 """
 
 from __future__ import annotations
@@ -38,15 +38,15 @@ def _model_config(host: type, name: str, module: str) -> type:
 
 
 def _model(host: type, name: str, module: str) -> type:
-    from sp_plugins.nerfstudio.model import AnyMethodSPModel
+    from sp_plugins.nerfstudio.model import SPModel
 
-    return subclass((AnyMethodSPModel, host), name, module, __doc__=f"{host.__name__} with stochastic preconditioning.")
+    return subclass((SPModel, host), name, module, __doc__=f"{host.__name__} with stochastic preconditioning.")
 
 
 def _field(host: type, name: str, module: str) -> type:
-    from sp_plugins.nerfstudio.frustum_sp import FrustumSPField
+    from sp_plugins.nerfstudio.seam import SeamField
 
-    return subclass((FrustumSPField, host), name, module, __doc__=f"{host.__name__} with SP through frustum offsets.")
+    return subclass((SeamField, host), name, module, __doc__=f"{host.__name__} carrying the SP seam (moved RaySamples).")
 
 
 FACTORY = VariantFactory(__name__, {"ModelConfig": _model_config, "Model": _model, "Field": _field})

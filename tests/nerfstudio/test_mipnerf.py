@@ -1,4 +1,4 @@
-"""sp-mipnerf: SP on the mean of each conical frustum's Gaussian."""
+"""sp-mipnerf: SP, through the one seam, on the mean of each conical frustum's Gaussian."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
 
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
-from sp_plugins.nerfstudio.mipnerf import SPNeRFField
+from sp_plugins.nerfstudio.seam import SeamField, attach_seam
 
 BOX = SceneBox(aabb=torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]]))
 
@@ -46,17 +46,20 @@ def test_the_offset_moves_the_gaussian_mean_and_keeps_the_covariance():
     torch.manual_seed(0)
     enc = NeRFEncoding(in_dim=3, num_frequencies=6, min_freq_exp=0.0, max_freq_exp=6.0, include_input=True)
     direnc = NeRFEncoding(in_dim=3, num_frequencies=2, min_freq_exp=0.0, max_freq_exp=2.0, include_input=True)
-    field = SPNeRFField(position_encoding=enc, direction_encoding=direnc, base_mlp_num_layers=2, base_mlp_layer_width=32,
-                        use_integrated_encoding=True)
-    plain_density, _ = field.get_density(frustum_samples())
+    holder = torch.nn.Module()
+    holder.field = NeRFField(position_encoding=enc, direction_encoding=direnc, base_mlp_num_layers=2, base_mlp_layer_width=32,
+                             use_integrated_encoding=True)
+    field = holder.field
+    plain_density = field.forward(frustum_samples())[FieldHeadNames.DENSITY]
 
     def sp_with_seed(alpha):
         sp = StochasticPreconditioner(SPConfig(alpha0=alpha, schedule="constant", boundary="none", seed=7))
         sp.set_step(0, 10)
         return sp.train()
 
-    field.use_preconditioner(sp_with_seed(0.05))
-    density, _ = field.get_density(frustum_samples())
+    attach_seam(holder, sp_with_seed(0.05))
+    field = holder.field
+    density = field.forward(frustum_samples())[FieldHeadNames.DENSITY]
     # the same computation by hand: one N(0, alpha^2) draw added to each Gaussian mean, same covariance
     blobs = frustum_samples().frustums.get_gaussian_blob()
     mean = sp_with_seed(0.05)(blobs.mean.reshape(-1, 3)).view(blobs.mean.shape)
@@ -64,7 +67,7 @@ def test_the_offset_moves_the_gaussian_mean_and_keeps_the_covariance():
     assert torch.allclose(density, expected, atol=1e-6)
     assert not torch.allclose(density, plain_density)
     field.eval()
-    assert torch.equal(field.get_density(frustum_samples())[0], plain_density)
+    assert torch.equal(field.forward(frustum_samples())[FieldHeadNames.DENSITY], plain_density)
 
 
 @pytest.mark.parametrize("enabled", [True, False])
@@ -72,11 +75,11 @@ def test_sp_mipnerf_trains_a_few_iterations(enabled, tiny_scene, tmp_path):
     config = tiny_radiance_config("sp-mipnerf", tiny_scene, tmp_path, steps=3, enabled=enabled)
     trainer, record = run_recording(config)
     assert len(record) == 3
-    for loss, parts, metrics in record:
+    for step, (loss, parts, metrics) in enumerate(record):
         assert math.isfinite(loss) and set(parts) == {"rgb_loss_coarse", "rgb_loss_fine"}
-        assert (metrics["sp_alpha"] > 0) == enabled
+        assert (metrics["sp_alpha"] > 0) == (enabled and step < 2)  # end 1.0: the last step is plain
     model = trainer.pipeline.model
-    assert isinstance(model.field, SPNeRFField)
+    assert isinstance(model.field, SeamField)
     # eval metrics without LPIPS weights: the NaN entry is dropped, the others are there
     model.eval()
     camera = trainer.pipeline.datamanager.eval_dataset.cameras[0:1]
@@ -117,7 +120,7 @@ def test_checkpoint_round_trip_restores_sp_state(tiny_scene, tmp_path):
     fresh = tiny_radiance_config("sp-mipnerf", tiny_scene, tmp_path / "fresh", steps=10).pipeline.setup(device="cpu", test_mode="val")
     fresh.load_pipeline(loaded["pipeline"], loaded["step"])
     assert (int(fresh.model.sp.step), int(fresh.model.sp.total_steps)) == (int(first.pipeline.model.sp.step), 10)
-    assert isinstance(fresh.model.field, SPNeRFField)
+    assert isinstance(fresh.model.field, SeamField)
     for key, value in first.pipeline.model.field.state_dict().items():
         assert torch.equal(fresh.model.field.state_dict()[key], value), key
 
@@ -137,4 +140,4 @@ def test_ns_eval_runs_on_a_sparse_view_checkpoint(tiny_scene, tmp_path):
     assert math.isfinite(results["psnr"]) and "fine_lpips" not in results
     # inference mode (ns-render, viewer) rebuilds the same 3-view model from the saved config
     _, pipeline, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="inference")
-    assert pipeline.model.num_train_data == 3 and isinstance(pipeline.model.field, SPNeRFField)
+    assert pipeline.model.num_train_data == 3 and isinstance(pipeline.model.field, SeamField)

@@ -10,8 +10,9 @@ the first and last on the box faces, ``n - 1`` cells) or cell-centred (``False``
 ``n`` cells tile the box, values at their centres; beyond the outer centres the field fades to zero,
 to half the value on a face; samples never leave the box, so nothing is read further out).
 
-Stochastic preconditioning perturbs every sample position once (reflected into the box) before
-the single grid lookup that gives both density and colour.
+Stochastic preconditioning reaches it through the one seam (:mod:`sp_plugins.nerfstudio.seam`):
+``get_positions()`` returns each sample moved once (reflected into the box), before the single
+grid lookup that gives both density and colour.
 
 The grid is one ``nn.Parameter``; upsampling replaces it with a new one, which the model hands to
 the optimizer (see :meth:`ReLUField.upsample_to`). Loading a checkpoint of another stage resizes
@@ -31,7 +32,6 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from torch import Tensor, nn
 
-from sp_plugins.adapter.field import SPFieldMixin
 
 
 ColorMode = Literal["sh", "rgb"]
@@ -61,7 +61,7 @@ def upsample_grid(grid: Float[Tensor, "1 c d h w"], resolution: int, align_corne
     return F.interpolate(grid, size=(resolution,) * 3, mode="trilinear", align_corners=align_corners)
 
 
-class ReLUField(SPFieldMixin, Field):
+class ReLUField(Field):
     """Dense grid field: ``density = relu(trilinear(grid)[0]) * density_scale``.
 
     Args:
@@ -142,16 +142,9 @@ class ReLUField(SPFieldMixin, Field):
                             align_corners=self.align_corners)
         return out.view(self.grid.shape[1], -1).t()
 
-    def forward(self, ray_samples: RaySamples, compute_normals: bool = False) -> Dict[FieldHeadNames, Tensor]:
-        """The host's forward, averaged over ``sp.num_samples`` perturbations while SP is active."""
-        plain = super().forward
-        return self.over_draws(lambda: plain(ray_samples, compute_normals=compute_normals))
-
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
         shape = ray_samples.frustums.shape
         x = ray_samples.frustums.get_positions().reshape(-1, 3)
-        if self.sp_active():
-            x = self.sp(x)
         values = self.lookup(x)
         density = F.relu(values[:, :1]) * self.density_scale
         return density.view(*shape, 1), values[:, 1:].view(*shape, self.num_color)

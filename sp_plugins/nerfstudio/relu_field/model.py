@@ -323,5 +323,3 @@ class ReLUFieldModel(SPModel, ReLUFieldBaseModel):
 
     config: ReLUFieldModelConfig
 
-    def attach_sp(self) -> None:
-        self.field.use_preconditioner(self.sp)
