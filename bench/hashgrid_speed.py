@@ -129,7 +129,7 @@ def sparse_update_estimate(points: int) -> dict:
         t0 = time.perf_counter()
         opt.step()
         adam_s[name] = time.perf_counter() - t0
-    return {"rows": grid.table.shape[0], "rows_touched": touched, "fraction": touched / grid.table.shape[0],
+    return {"rows": grid.n_table_rows, "rows_touched": touched, "fraction": touched / grid.n_table_rows,
             "unique_rows_s": unique_s, "dense_adam_step_s": adam_s}
 
 

@@ -10,10 +10,14 @@ grid is built (on the CPU, unless built under a CUDA default device) and again a
 logged once per device type. Build the optimizer after moving the module: a hand-over replaces
 the Parameter object.
 
-Checkpoints are portable between the backends: the torch backend stores ``table`` as
-``[rows, features]``, tcnn ``tcnn_encoding.params`` as one flat float32 vector, and loading
-either into either maps one onto the other (nerfstudio's tcnn ``HashEncoding`` uses the same
-``tcnn_encoding.params`` key). The layout, read from tiny-cuda-nn's source
+Both backends hold the grid in one parameter of the same layout: tcnn's ``tcnn_encoding.params``,
+one flat float32 vector, and the torch backend's ``table``, the same flat vector (viewed as
+``[rows, features]`` to look it up). So a checkpoint loads into either backend (the key is mapped;
+nerfstudio's tcnn ``HashEncoding`` uses the same ``tcnn_encoding.params`` key) and so do the
+optimizer's moments: torch's optimizers keep them per parameter, by position, with the
+parameter's shape, so a run resumed under the other backend (trained on a CPU, continued on a GPU
+with tcnn, or the reverse) carries on. Older checkpoints with a ``[rows, features]`` table load
+too (their weights; Adam's moments of that shape do not). The layout, read from tiny-cuda-nn's source
 (``include/tiny-cuda-nn/encodings/grid.h``: ``GridEncodingTemplated``'s constructor and
 ``grid_index``; ``bindings/torch/tinycudann/modules.py`` and ``bindings.cpp`` for the dtype):
 
@@ -21,7 +25,7 @@ either into either maps one onto the other (nerfstudio's tcnn ``HashEncoding`` u
   entries rounded up to a multiple of 8, capped at ``2**log2_hashmap_size`` for hash grids; the
   offsets are the running sums, and ``n_params = total entries * n_features_per_level``;
 - entry ``i`` of a level holds its features contiguously: value ``(offset + i) * F + f``, i.e.
-  feature fastest, which is ``table.reshape(-1)`` for a ``[rows, F]`` table;
+  feature fastest, which is ``table.reshape(-1)`` for a ``[rows, F]`` table (our flat ``table``);
 - the torch ``params`` Parameter is float32 (``initial_params`` makes a float32 tensor); the
   forward casts it to the module's parameter precision (half on most GPUs) per call.
 
@@ -38,7 +42,7 @@ The torch backend reproduces tcnn's semantics so that the two are interchangeabl
   wraps around exactly as in tcnn), finer levels by tcnn's hash: XOR of ``coord_i * prime_i`` with
   primes ``(1, 2654435761, 805459861)``, modulo the table size;
 - Linear interpolation weights ``t``, Smoothstep weights ``t*t*(3-2t)`` (continuous derivative);
-- the table is ``[entries, features_per_level]`` in tcnn's layout (above);
+- the table is tcnn's flat layout (above), looked up as ``[entries, features_per_level]``;
 - initialisation uniform in ``[-1e-4, 1e-4]`` as in tcnn.
 
 Precision: the torch backend computes in the input's dtype (float32 or float64, so gradcheck
@@ -218,8 +222,8 @@ class HashGrid(nn.Module):
         self.requested_backend = backend
         self.backend = "torch"
         self.tcnn_encoding = None
-        table = torch.empty(self.n_table_rows, features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
-        self.table = nn.Parameter(table)
+        table = torch.empty(self.n_table_rows * features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
+        self.table = nn.Parameter(table)  # flat: tcnn's params layout, so optimizer state fits either backend
         self._make_constants()
         if backend == "tcnn":  # tcnn keeps its parameters on the current CUDA device from the start
             resolve_backend("tcnn", "cuda", dtype)
@@ -278,7 +282,7 @@ class HashGrid(nn.Module):
             )
         encoding = encoding.to(table.device if device is None else device)
         with torch.no_grad():
-            encoding.params.copy_(table.detach().reshape(-1))
+            encoding.params.copy_(table.detach())
         self.table = None
         self.tcnn_encoding = encoding
         self.backend = "tcnn"
@@ -287,7 +291,7 @@ class HashGrid(nn.Module):
     def _use_torch(self) -> None:
         params = self.tcnn_encoding.params
         self.tcnn_encoding = None
-        self.table = nn.Parameter(params.detach().reshape(self.n_table_rows, self.features_per_level).clone())
+        self.table = nn.Parameter(params.detach().clone())
         self.backend = "torch"
         self._make_constants()
 
@@ -298,15 +302,15 @@ class HashGrid(nn.Module):
         return module
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
-        """Checkpoints move between backends: the torch backend's ``table`` [rows, features] and
-        tcnn's flat ``tcnn_encoding.params`` hold the same values in the same order (see the
-        module docstring), so either loads into either."""
+        """Checkpoints move between backends: the torch backend's ``table`` and tcnn's
+        ``tcnn_encoding.params`` are the same flat vector (see the module docstring), so either
+        loads into either; an older ``[rows, features]`` table is flattened."""
         table_key, tcnn_key = prefix + "table", prefix + "tcnn_encoding.params"
         n_values = self.n_table_rows * self.features_per_level
         source = tcnn_key if self.backend == "torch" else table_key
         target = table_key if self.backend == "torch" else tcnn_key
-        if source in state_dict and target not in state_dict:
-            value = state_dict.pop(source)
+        if (source in state_dict and target not in state_dict) or (target in state_dict and state_dict[target].dim() != 1):
+            value = state_dict.pop(source if target not in state_dict else target)
             if value.numel() != n_values:
                 error_msgs.append(
                     f"HashGrid {prefix or '(root)'}: the checkpoint's {source!r} holds {value.numel()} grid values, this grid "
@@ -314,7 +318,7 @@ class HashGrid(nn.Module):
                     f"resolutions {self.levels[0].resolution}..{self.levels[-1].resolution}): the grids differ"
                 )
                 return
-            state_dict[target] = value.reshape(self.n_table_rows, self.features_per_level) if self.backend == "torch" else value.reshape(-1)
+            state_dict[target] = value.reshape(-1)
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
 
     # ----------------------------------------------------------------------------------------
@@ -392,7 +396,7 @@ class HashGrid(nn.Module):
         # positions need float32 at least: x * 2047 in half precision would snap to a coarse grid
         compute_dtype = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
         flat = flat.to(compute_dtype)
-        table = self.table if self.table.dtype == compute_dtype else self.table.to(compute_dtype)
+        table = (self.table if self.table.dtype == compute_dtype else self.table.to(compute_dtype)).view(-1, self.features_per_level)
         if n_active == 0:
             out = flat.new_zeros(flat.shape[0], self.n_output_dims)
         else:

@@ -2,6 +2,7 @@
 ``table`` and tcnn's flat ``params`` (checked against an independent tcnn-layout stand-in), and a
 forward pass makes no tensor from Python values (a host sync on CUDA)."""
 
+import copy
 import logging
 import sys
 import types
@@ -63,7 +64,7 @@ def test_table_is_tcnns_params_layout(name):
     out_s, g_s = _output_and_input_grad(standin, x)
     torch.testing.assert_close(out_s, out, rtol=1e-5, atol=2e-6)
     torch.testing.assert_close(g_s, g, rtol=1e-4, atol=2e-4)
-    shuffled = grid.table.detach().roll(1, 0).reshape(-1)  # rows off by one: the layout test can fail
+    shuffled = grid.table.detach().view(grid.n_table_rows, -1).roll(1, 0).reshape(-1)  # rows off by one: the layout test can fail
     with torch.no_grad():
         standin.params.copy_(shuffled)
     assert (standin(x) - out).abs().max() > 1e-2
@@ -182,3 +183,51 @@ def test_a_training_step_builds_no_tensor_from_python_values(monkeypatch):
     assert made == []
     monkeypatch.undo()
     torch.testing.assert_close(freq.frequencies(x), torch.tensor(freq.angular_frequencies, dtype=torch.float32))
+
+
+def _model(name, backend):
+    torch.manual_seed(0)
+    grid = HashGrid(**CONFIGS[name], backend=backend, init_scale=1.0)
+    return torch.nn.Sequential(grid, torch.nn.Linear(grid.n_output_dims, 1))
+
+
+def _adam_steps(model, optimizer, x, n):
+    for _ in range(n):
+        optimizer.zero_grad()
+        model(x).square().mean().backward()
+        optimizer.step()
+
+
+@pytest.mark.parametrize("first, then", [("torch", "tcnn"), ("tcnn", "torch")])
+def test_a_run_resumed_under_the_other_backend_keeps_its_adam_moments(first, then, fake_tcnn):
+    """Train, save weights and optimizer state, resume under the other backend (a CPU run resumed on
+    a GPU with tcnn, or the reverse): Adam's moments fit the grid's parameter and carry on."""
+    backends = {"torch": "torch", "tcnn": "auto"}  # auto: the stand-in on this "tcnn device"
+    name = "hash+dense"
+    model = _model(name, backends[first])
+    assert model[0].backend == first
+    x = _inputs(model[0]).detach()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-2)
+    _adam_steps(model, optimizer, x, 2)
+    saved_model, saved_optimizer = copy.deepcopy((model.state_dict(), optimizer.state_dict()))  # a checkpoint
+    _adam_steps(model, optimizer, x, 1)  # the uninterrupted run's next step
+
+    resumed = _model(name, backends[then])
+    assert resumed[0].backend == then
+    resumed.load_state_dict(saved_model)
+    resumed_optimizer = torch.optim.Adam(resumed.parameters(), lr=1e-2)
+    resumed_optimizer.load_state_dict(saved_optimizer)
+    _adam_steps(resumed, resumed_optimizer, x, 1)  # crashed here: the moments had the other layout
+    grid_param = next(resumed[0].parameters())
+    moments = resumed_optimizer.state[grid_param]["exp_avg"]
+    assert moments.shape == grid_param.shape and moments.abs().sum() > 0
+    for (key, a), b in zip(model.state_dict().items(), resumed.state_dict().values()):
+        torch.testing.assert_close(b.reshape(-1), a.reshape(-1), rtol=1e-4, atol=1e-5)
+
+
+def test_an_older_rows_by_features_table_still_loads():
+    grid = torch_grid("hash+dense")
+    old = {"table": grid.table.detach().view(grid.n_table_rows, -1).clone()}  # the layout before the flat table
+    fresh = HashGrid(**CONFIGS["hash+dense"], backend="torch")
+    fresh.load_state_dict(old)
+    assert fresh.table.dim() == 1 and torch.equal(fresh.table, grid.table)
