@@ -253,7 +253,7 @@ def check_neus(out: Path, steps: int, device: str, timeout: float) -> dict:
     result["seconds_per_step"] = result["seconds"] / steps  # includes start-up: an upper bound
     ckpts = sorted((out / "neus").glob("**/nerfstudio_models/step-*.ckpt"))
     if ckpts:
-        state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)["pipeline"]
+        state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)["pipeline"]  # our method: float learning rates
         result["checkpoint"] = str(ckpts[-1])
         result["grid_keys"] = sorted(k for k in state if k.endswith(("encoding.table", "encoding.tcnn_encoding.params")))
     configs = sorted((out / "neus").glob("**/config.yml"))

@@ -12,8 +12,10 @@ checkpoint, weights-only unpickling refuses them (``Unsupported global: numpy.co
 and the run can be neither resumed nor evaluated nor meshed: our methods' runs and sdfstudio's own.
 
 While those two functions run, ``torch.load`` also accepts numpy's scalar and dtype
-reconstructors (``torch.serialization.safe_globals``): still weights-only (no code runs from a
-checkpoint), and only there; every other ``torch.load`` in the process keeps torch's default.
+reconstructors (``torch.serialization.safe_globals``), for plain numbers only (bool, integer,
+float and complex dtypes; not object, string, bytes, void or time dtypes): still weights-only (no
+code runs from a checkpoint), and only there; every other ``torch.load`` in the process keeps
+torch's default.
 (The nerfstudio adapter meets the same host bug by keeping our methods' learning rates Python
 floats, :mod:`sp_plugins.nerfstudio.host.schedulers`, because a nerfstudio checkpoint may be loaded
 where the plugin is not imported; sdfstudio at 370902a runs on torch 2.x only with these patches,
@@ -36,16 +38,27 @@ __all__ = ["HOST_COMMIT", "install", "numpy_scalar_globals"]
 _MARK = "_sp_numpy_scalars_allowed"
 
 
+def _plain_number_dtype(cls) -> bool:
+    """A ``numpy.dtypes`` class of a plain number (``Float64DType``...): bool, integer, float, complex;
+    not timedelta64 (numpy counts it an integer), object, string, bytes or void."""
+    import numpy as np
+
+    kind = getattr(cls, "type", None)
+    return (isinstance(cls, type) and isinstance(kind, type)
+            and issubclass(kind, (np.bool_, np.integer, np.floating, np.complexfloating))
+            and not issubclass(kind, np.timedelta64))
+
+
 def numpy_scalar_globals() -> List[object]:
-    """What a pickled numpy scalar needs: ``numpy.dtype``, the dtype's class (``numpy.dtypes``,
-    numpy >= 1.25: ``Float64DType`` for a learning rate) and ``multiarray.scalar`` (under
-    ``numpy.core`` in numpy 1.x, ``numpy._core`` in 2.x)."""
+    """What a pickled numpy number needs: ``numpy.dtype``, the classes of the plain number dtypes
+    (``numpy.dtypes``, numpy >= 1.25: ``Float64DType`` for a learning rate) and ``multiarray.scalar``
+    (under ``numpy.core`` in numpy 1.x, ``numpy._core`` in 2.x)."""
     import numpy as np
 
     found: List[object] = [np.dtype]
     dtypes = getattr(np, "dtypes", None)
     if dtypes is not None:
-        found += [cls for name, cls in sorted(vars(dtypes).items()) if name.endswith("DType") and isinstance(cls, type)]
+        found += [cls for name, cls in sorted(vars(dtypes).items()) if name.endswith("DType") and _plain_number_dtype(cls)]
     for module in ("numpy._core.multiarray", "numpy.core.multiarray"):
         try:
             scalar = importlib.import_module(module).scalar

@@ -77,6 +77,13 @@ def _path_of(handle) -> Optional[str]:
     return name if isinstance(name, str) else None
 
 
+def refused_global(exc: BaseException) -> Optional[str]:
+    """The global (``posix.system``, ``builtins.print``...) a weights-only ``torch.load`` refused to
+    unpickle, from its error message; None for any other failure."""
+    found = re.search(r"[Uu]nsupported (?:global: )?GLOBAL ([\w.]+)", str(exc))
+    return found.group(1) if found else None
+
+
 def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> Optional[str]:
     """One line for a failure a user can fix that host code raised on a bad file, or None.
 
@@ -93,10 +100,11 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
         path = _path_of(load.f_locals.get("f")) or "the checkpoint"
         if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
             return f"{path}: checkpoint not found"
-        refused = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(exc))
+        refused = refused_global(exc)
         if refused:
-            return (f"{path}: holds a {refused.group(1)} object, which torch's weights-only loading refuses; it was written "
-                    "by another version (e.g. nerfstudio's schedulers stored numpy learning rates): retrain with this version")
+            return (f"{path}: holds a {refused} object, which torch's weights-only loading refuses (nothing in the file was "
+                    "run); it was written by another version (e.g. nerfstudio's schedulers stored numpy learning rates) or "
+                    "not by a training run: retrain with this version, and load checkpoints only from sources you trust")
         return (f"{path}: cannot be read as a PyTorch checkpoint ({first_line(exc, 120)}); the file is truncated or "
                 "damaged (an interrupted copy or save?) or is not a checkpoint: copy it again, or load another step")
     save = _torch_frame(tb, "save")

@@ -7,6 +7,11 @@ by rendering it (slow on a CPU). This command meshes the SDF (``forward_geonetwo
 callable nerfstudio meshes) coarse to fine, only near the surface
 (:func:`sp_plugins.geometry.sparse_extract_mesh`), inside the model's scene box unless
 ``--box-min`` / ``--box-max`` are given, and writes ``mesh.ply``. A progress bar shows each level.
+
+The ``config.yml`` is read with the restricted loader of :mod:`sp_plugins.adapter.safe_config`
+(also where nerfstudio's ``eval_setup`` reads it again), so a file naming anything but what a
+training run writes is refused in one line before anything is built; the checkpoint is read
+weights-only.
 """
 
 from __future__ import annotations
@@ -40,25 +45,15 @@ class _Refused(Exception):
 
 
 def _load_saved_config(path: Path):
-    """The ``TrainerConfig`` in ``path``, or :class:`_Refused` naming the file and why (a class path
-    this installation lacks: the file was written by another version)."""
-    import yaml
+    """The ``TrainerConfig`` in ``path``, read with the restricted loader
+    (:mod:`sp_plugins.adapter.safe_config`: nothing the file names is run), or :class:`_Refused`
+    naming the file and why (a tag no training run writes, a class this installation lacks, not YAML)."""
+    from sp_plugins.adapter.safe_config import ConfigRefused, load_run_config
 
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise _Refused(f"--load-config {path}: cannot be read ({exc.strerror or exc})") from None
-    try:
-        config = yaml.load(text, Loader=yaml.Loader)
-    except yaml.constructor.ConstructorError as exc:
-        detail = " ".join(str(exc.problem or exc).split())
-        raise _Refused(f"--load-config {path}: {detail}; it was written by another version of sp-plugins or nerfstudio "
-                       f"(this is {_versions()}): load it with the version that wrote it, or retrain") from None
-    except yaml.YAMLError as exc:
-        raise _Refused(f"--load-config {path}: not a valid config.yml ({' '.join(str(exc).split())[:160]})") from None
-    except (ImportError, AttributeError) as exc:
-        raise _Refused(f"--load-config {path}: names {exc} (a class this installation lacks); it was written by another "
-                       f"version of sp-plugins or nerfstudio (this is {_versions()}): load it with that version, or retrain") from None
+    try:  # before nerfstudio is imported: a refused file is answered at once (a real one imports it by naming its classes)
+        config = load_run_config(path, "--load-config", versions=_versions())
+    except ConfigRefused as refused:
+        raise _Refused(str(refused)) from None
     from nerfstudio.engine.trainer import TrainerConfig
 
     if not isinstance(config, TrainerConfig):
@@ -90,9 +85,10 @@ def _export(args) -> int:
         raise _Refused(f"--resolution {args.resolution}: need at least 2 cells per axis (128 and up for a useful mesh)")
     if (args.box_min is None) != (args.box_max is None):
         raise _Refused("give both --box-min and --box-max, or neither (the model's scene box)")
+    config = _load_saved_config(args.load_config)
 
     from sp_plugins.adapter.checks import check_checkpoint_file, check_writable_dir
-    from sp_plugins.adapter.errors import InputError, describe_failure, install_input_error_hook, write_failure
+    from sp_plugins.adapter.errors import InputError, describe_failure, first_line, install_input_error_hook, write_failure
 
     try:
         check_writable_dir(args.output_dir, "--output-dir")  # before minutes of meshing
@@ -100,22 +96,26 @@ def _export(args) -> int:
         raise _Refused(str(err)) from None
     install_input_error_hook()  # our command: our models' input errors print as one line here too
     import torch
-    from nerfstudio.utils.eval_utils import eval_setup
+    from nerfstudio.utils import eval_utils
 
+    from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
     from sp_plugins.geometry import save_mesh, sparse_extract_mesh
     from sp_plugins.nerfstudio.host.trainer import checkpoint_to_load
 
-    config = _load_saved_config(args.load_config)
     try:
         config.load_dir, config.load_checkpoint = config.get_checkpoint_dir(), None
         target = checkpoint_to_load(config, dir_flag=f"--load-config {args.load_config}: its checkpoint folder")
         if target is not None:
             check_checkpoint_file(*target)
-        _, pipeline, _, _ = eval_setup(args.load_config, test_mode="inference")
-    except Exception as exc:  # noqa: BLE001  (only the failures describe_failure knows become one line)
-        message = describe_failure(exc)
-        if message is None:
-            raise
+        # eval_setup reads the config.yml again itself: through the restricted loader too; its checkpoint weights-only
+        where = f"--load-config {args.load_config}"
+        with reading_configs_safely(eval_utils, where, _versions()), weights_only_checkpoints():
+            _, pipeline, _, _ = eval_utils.eval_setup(args.load_config, test_mode="inference")
+    except Exception as exc:  # noqa: BLE001  (a run folder the model cannot be set up from is answered in one line)
+        message = describe_failure(exc) or (
+            f"--load-config {args.load_config}: the model cannot be set up from this run ({type(exc).__name__}: "
+            f"{first_line(exc, 160)}); its config.yml was edited or written by another version: load it with the "
+            "version that wrote it, or retrain")
         raise _Refused(message) from None
     model = pipeline.model
     if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):

@@ -9,6 +9,11 @@
   ``ns-extract-mesh`` accepts only multiples of 512 for SDFs: minutes and GBs on a CPU). It loads
   the checkpoint with sdfstudio's ``eval_setup`` (the same loading as ns-eval) and runs our marching
   cubes on the plain field's SDF.
+
+Both read a saved ``config.yml`` (``--load-config``, ``--trainer.load-config``) with the restricted
+loader of :mod:`sp_plugins.adapter.safe_config`, first on their own (a refusal is one line naming the
+file and the tag) and then wherever sdfstudio reads it again (``eval_setup``, ``scripts/train.py``'s
+``main``); sdfstudio's own ``ns-*`` commands still read it with PyYAML's full loader.
 """
 
 from __future__ import annotations
@@ -34,6 +39,20 @@ def _prepare(prog: str) -> None:
     from sp_plugins.patches.sdfstudio_import_hook import install_all
 
     install_all()
+
+
+def _check_saved_config(prog: str, path: Path, flag: str) -> str:
+    """``path`` read with the restricted loader: an sdfstudio ``Config``, or one line and exit 2. Returns
+    how a later refusal names it."""
+    from nerfstudio.configs.base_config import Config
+
+    from sp_plugins.adapter.safe_config import ConfigRefused, load_run_config
+
+    try:
+        load_run_config(path, flag, expect=Config)
+    except ConfigRefused as refused:
+        _error(prog, str(refused))
+    return f"{flag} {path}"
 
 
 def train(argv: Optional[list] = None) -> None:
@@ -73,7 +92,14 @@ def train(argv: Optional[list] = None) -> None:
         problem = schedule_problem(sp, config.trainer.max_num_iterations, "--trainer.max-num-iterations")
         if problem:
             _error(prog, problem)
-    host_train.main(config)
+    if config.trainer.load_config is None:
+        host_train.main(config)
+        return
+    from sp_plugins.adapter.safe_config import reading_configs_safely
+
+    where = _check_saved_config(prog, config.trainer.load_config, "--trainer.load-config")
+    with reading_configs_safely(host_train, where):  # main reads it again: through the restricted loader too
+        host_train.main(config)
 
 
 @dataclass
@@ -106,9 +132,20 @@ def extract_mesh(argv: Optional[list] = None) -> None:
         _error(prog, f"--load-config {args.load_config}: no such file; give the config.yml of a training run")
     if args.resolution < 2:
         _error(prog, f"--resolution {args.resolution}: need at least 2 grid points per axis")
-    from nerfstudio.utils.eval_utils import eval_setup
+    from nerfstudio.utils import eval_utils
 
-    _, pipeline, _ = eval_setup(args.load_config)
+    from sp_plugins.adapter.errors import describe_failure
+    from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
+
+    where = _check_saved_config(prog, args.load_config, "--load-config")
+    try:  # eval_setup reads the config.yml again: through the restricted loader too; its checkpoint weights-only
+        with reading_configs_safely(eval_utils, where), weights_only_checkpoints():
+            _, pipeline, _ = eval_utils.eval_setup(args.load_config)
+    except Exception as exc:  # noqa: BLE001  (only the failures describe_failure knows become one line)
+        message = describe_failure(exc)
+        if message is None:
+            raise
+        _error(prog, message)
     field = pipeline.model.field
     field.eval()
     device = next(field.parameters()).device
