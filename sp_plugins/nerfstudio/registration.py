@@ -193,9 +193,17 @@ def train(argv: Optional[list] = None) -> None:
         f"plus --pipeline.model.sp.*. Not offered: {refused_text}."
     )
     config = tyro.cli(union, args=argv, prog=PROG, description=convert_markup_to_ansi(description))
-    from nerfstudio.scripts.train import main
+    from nerfstudio.scripts import train as host_train
 
-    main(config)
+    if config.load_config is None:
+        host_train.main(config)
+        return
+    # --load-config: read with the restricted loader (a refusal is one line before anything runs), also where main reads it
+    from sp_plugins.adapter.safe_config import load_run_config, reading_configs_safely
+
+    load_run_config(config.load_config, "--load-config")
+    with reading_configs_safely(host_train, f"--load-config {config.load_config}"):
+        host_train.main(config)
 
 
 def entrypoint() -> None:
