@@ -93,7 +93,9 @@ class _Reflect(torch.autograd.Function):
         if idx.numel():
             if isinstance(width, Tensor) or isinstance(start, Tensor):  # a box that is not a cube
                 axis = idx % dim
-                mid, half, start, width = (torch.as_tensor(v).expand(dim)[axis] for v in (mid, half, start, width))
+                mid, half, start, width = (
+                    torch.as_tensor(v, dtype=out.dtype, device=out.device).expand(dim)[axis] for v in (mid, half, start, width)
+                )  # a Python float must not become a float32 tensor: float64 boxes keep float64
             escaped = flat[idx]
             folded, flip = _fold((escaped - start) / width)
             folded = folded.mul_(width).add_(start)

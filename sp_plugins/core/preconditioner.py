@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from typing import Any, Callable, Optional, TypeVar
@@ -13,7 +14,7 @@ from torch import Tensor, nn
 from sp_plugins.core.alpha_grid import AlphaGrid
 from sp_plugins.core.boundary import BoundsLike, as_bounds
 from sp_plugins.core.config import SPConfig
-from sp_plugins.core.perturb import perturb, perturbed_mean
+from sp_plugins.core.perturb import compute_dtype, perturb, perturbed_mean
 from sp_plugins.core.schedule import AlphaSchedule
 
 log = logging.getLogger(__name__)
@@ -29,6 +30,17 @@ class StochasticPreconditioner(nn.Module):
     Step it with :meth:`set_step` (a nerfstudio training callback does so every iteration).
     Its ``state_dict`` holds the step and total, so a resumed run continues at the same alpha,
     plus the alpha grid's weights when there is one.
+
+    With ``alpha_grid`` the grid gives alpha(x) (the paper's spatially adaptive variant): by
+    default (``alpha_grid_mode="replace"``) the grid alone while the SP phase runs (steps before the
+    schedule's end; all of training with ``schedule="constant"``), then SP is off; with
+    ``"scaled"`` the grid times the schedule's decay from 1 to 0. Either way alpha0 is only the
+    grid's default initial value: ``alpha0=0`` with ``alpha_grid_init`` set is a working grid run.
+    A grid attached after construction (``sp.alpha_grid = AlphaGrid(...)``, the image task) is
+    used the same way from the next step on.
+
+    Positions in float16 / bfloat16 are perturbed and returned in float32 (a small alpha would be
+    rounded away); an inactive preconditioner returns its input itself.
 
     A training step never synchronises with an accelerator: the step, total and alpha live as
     Python numbers (the buffers only mirror them for checkpoints and are read back on load).
@@ -83,7 +95,9 @@ class StochasticPreconditioner(nn.Module):
         self._total = -1 if total_steps is None else int(total_steps)
         self._schedule: Optional[AlphaSchedule] = None
         self._schedule_key: Optional[tuple] = None
-        self._alpha = 0.0
+        self._alpha = 0.0  # the scheduled scalar at the current step
+        self._grid_scale = 0.0  # the factor on an alpha grid's values at the current step
+        self._decay: Optional[AlphaSchedule] = None  # the schedule's shape (alpha0 = 1)
         self._generators: dict = {}  # str(device) -> torch.Generator, built at the first draw there
         self._saved_generator_states: dict = {}  # device type -> a loaded state, applied at the next draw there
         self._reseed_at: Optional[int] = None  # set when a loaded state was another rank's or seed's
@@ -96,7 +110,10 @@ class StochasticPreconditioner(nn.Module):
                 raise ValueError(
                     "alpha_grid=True needs a positive initial alpha: set alpha_grid_init or an alpha0 > 0"
                 )
-            self.alpha_grid = AlphaGrid(dim, config.alpha_grid_resolution, init, bounds if bounds is not None else (-1.0, 1.0))
+            self.alpha_grid = AlphaGrid(
+                dim, config.alpha_grid_resolution, init, bounds if bounds is not None else (-1.0, 1.0),
+                parameterization=config.alpha_grid_parameterization,
+            )
         if total_steps is not None:
             self.set_step(0, total_steps)
 
@@ -115,6 +132,7 @@ class StochasticPreconditioner(nn.Module):
                 scene_diagonal=self.scene_diagonal,
                 final_ratio=c.final_ratio,
             )
+            self._decay = dataclasses.replace(self._schedule, alpha0=1.0)
             self._schedule_key = key
         return self._schedule
 
@@ -125,17 +143,31 @@ class StochasticPreconditioner(nn.Module):
             self.total_steps.fill_(self._total)
         self._step = int(step)
         self.step.fill_(self._step)  # an asynchronous fill: no host sync on an accelerator
-        self._alpha = self.schedule(self._step) if self.config.enabled else 0.0
-        return self._alpha
+        c = self.config
+        self._alpha = self.schedule(self._step) if c.enabled else 0.0
+        decay = self._decay(self._step) if c.enabled else 0.0  # in [0, 1]; > 0 exactly before the end
+        self._grid_scale = decay if c.alpha_grid_mode == "scaled" else (1.0 if decay > 0.0 else 0.0)
+        return self.alpha
 
     @property
     def alpha(self) -> float:
-        """The scheduled alpha at the current step (the alpha grid's scale when it is on)."""
-        return self._alpha
+        """The alpha in force at the current step, 0 exactly when SP is off: the scheduled scalar,
+        or with an alpha grid its nominal value ``grid_scale * init`` (what a cell still at its
+        initial value gives)."""
+        if self.alpha_grid is None:
+            return self._alpha
+        return self._grid_scale * self.alpha_grid.init
+
+    @property
+    def grid_scale(self) -> float:
+        """The factor on an alpha grid's values: 1 during the SP phase and 0 after it
+        (``replace``), or the schedule's decay from 1 to 0 (``scaled``)."""
+        return self._grid_scale
 
     @property
     def active(self) -> bool:
-        return self.training and self._alpha > 0.0
+        on = self._alpha > 0.0 if self.alpha_grid is None else self._grid_scale > 0.0
+        return self.training and on
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
         extra_key = prefix + _EXTRA_STATE_KEY
@@ -219,17 +251,18 @@ class StochasticPreconditioner(nn.Module):
         return int.from_bytes(digest[:8], "little") >> 1
 
     def alpha_at(self, x: Float[Tensor, "*batch dim"]):
-        """Alpha used at ``x``: the scheduled float, or the grid's values times the schedule's
-        decay (so a grid run still ends as an ordinary field)."""
+        """Alpha used at ``x``: the scheduled float, or ``[*batch, 1]`` from the alpha grid times
+        :attr:`grid_scale` (1 during the SP phase in the default ``replace`` mode)."""
         if self.alpha_grid is None:
             return self._alpha
-        decay = self._alpha / self._alpha0 if self._alpha0 > 0 else 0.0
-        return self.alpha_grid(x.detach()) * decay
+        alpha = self.alpha_grid(x.detach())
+        return alpha if self._grid_scale == 1.0 else alpha * self._grid_scale
 
     def _kwargs(self, x: Tensor) -> dict:
         bounds = None
         if self._bounds and self.config.boundary != "none":
-            bounds = (self.bounds_lo.to(x.dtype), self.bounds_hi.to(x.dtype))
+            dtype = compute_dtype(x.dtype)
+            bounds = (self.bounds_lo.to(dtype), self.bounds_hi.to(dtype))
         return dict(
             noise=self.config.noise,
             boundary=self.config.boundary,
@@ -269,7 +302,8 @@ class StochasticPreconditioner(nn.Module):
 
     def extra_repr(self) -> str:
         c = self.config
-        return f"enabled={c.enabled}, alpha={self._alpha:.4g}, step={self._step}/{self._total}, noise={c.noise}, boundary={c.boundary}"
+        grid = f", alpha_grid={c.alpha_grid_mode} x{self._grid_scale:.4g}" if self.alpha_grid is not None else ""
+        return f"enabled={c.enabled}, alpha={self.alpha:.4g}{grid}, step={self._step}/{self._total}, noise={c.noise}, boundary={c.boundary}"
 
 
 

@@ -11,7 +11,7 @@ def test_alpha_grid_starts_at_init_and_is_positive():
     assert a.shape == (100, 1)
     assert torch.allclose(a, torch.full_like(a, 0.03), rtol=1e-5)
     with torch.no_grad():
-        grid.logits.fill_(-50.0)
+        grid.param.fill_(-50.0)
     assert bool((grid(x) > 0).all())
 
 
@@ -20,8 +20,8 @@ def test_gradients_reach_the_alpha_grid():
     x = torch.rand(256, 2) * 2 - 1
     y = perturb(x, grid(x), generator=torch.Generator().manual_seed(0))
     (torch.sin(10 * y) - torch.sin(10 * x)).pow(2).mean().backward()
-    assert grid.logits.grad is not None
-    assert float(grid.logits.grad.abs().sum()) > 0
+    assert grid.param.grad is not None
+    assert float(grid.param.grad.abs().sum()) > 0
 
 
 def test_fitting_drives_alpha_lower_where_the_target_has_detail():

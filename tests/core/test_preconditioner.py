@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from sp_plugins import SPConfig, StochasticPreconditioner
+from sp_plugins import AlphaSchedule, SPConfig, StochasticPreconditioner
 
 
 def make(**kw):
@@ -63,7 +63,7 @@ def test_state_dict_restores_the_alpha_grid():
     cfg = dict(alpha0=0.03, alpha_grid=True, alpha_grid_resolution=4, schedule="constant")
     sp = make(**cfg)
     with torch.no_grad():
-        sp.alpha_grid.logits.add_(torch.randn_like(sp.alpha_grid.logits))
+        sp.alpha_grid.param.add_(torch.randn_like(sp.alpha_grid.param))
     other = make(**cfg)
     other.load_state_dict(sp.state_dict())
     x = torch.rand(20, 3) * 2 - 1
@@ -96,6 +96,9 @@ def test_multi_sample_blur_averages_draws():
         (dict(schedule="cosine"), "schedule"),
         (dict(num_samples=0), "num_samples"),
         (dict(end=0.0), "end"),
+        (dict(alpha_grid_mode="product"), "alpha_grid_mode"),
+        (dict(alpha_grid_parameterization="sigmoid"), "alpha_grid_parameterization"),
+        (dict(alpha_grid_lr=-1e-3), "alpha_grid_lr"),
     ],
 )
 def test_bad_config_raises(kwargs, word):
@@ -292,3 +295,85 @@ def test_unseeded_noise_is_seeded_from_the_global_generator():
     torch.manual_seed(12)
     c = make(**cfg).train()(torch.zeros(16, 3))
     assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_alpha_grid_with_alpha0_zero_is_active_at_its_own_init():
+    """alpha0 = 0 with alpha_grid_init set: the grid alone gives alpha (issue 37, defect 2: the
+    preconditioner was silently inactive)."""
+    sp = make(alpha0=0.0, schedule="constant", alpha_grid=True, alpha_grid_init=0.03, alpha_grid_resolution=4, seed=0)
+    sp.train()
+    assert sp.active
+    x = torch.rand(50_000, 3) * 0.5 - 0.25  # well away from the walls
+    assert float((sp(x) - x).detach().std()) == pytest.approx(0.03, rel=0.03)
+    timed = make(alpha0=0.0, schedule="exponential", end=0.5, alpha_grid=True, alpha_grid_init=0.03, alpha_grid_resolution=4)
+    timed.train()
+    assert timed.active and float((timed(x) - x).detach().std()) == pytest.approx(0.03, rel=0.03)
+    timed.set_step(500)
+    assert not timed.active and timed(x) is x
+
+
+@pytest.mark.parametrize("schedule", ["exponential", "linear", "step"])
+def test_alpha_grid_replaces_the_schedule_during_the_sp_phase_then_is_off(schedule):
+    """The paper's variant: alpha(x) from the grid alone while the SP phase runs (not times the
+    annealed scalar), exactly 0 from the end step on."""
+    sp = make(alpha0=0.03, schedule=schedule, end=0.5, alpha_grid=True, alpha_grid_resolution=4, total_steps=1000, seed=1)
+    sp.train()
+    with torch.no_grad():
+        sp.alpha_grid.set_values(torch.rand(4, 4, 4) * 0.05 + 0.01)
+    x = torch.rand(64, 3) * 2 - 1
+    for step in (0, 100, 250, 499):
+        sp.set_step(step)
+        assert sp.active and sp.grid_scale == 1.0
+        assert torch.equal(sp.alpha_at(x), sp.alpha_grid(x))
+    sp.set_step(500)
+    assert not sp.active and sp.alpha == 0.0 and sp(x) is x
+    scaled = make(alpha0=0.03, schedule=schedule, end=0.5, alpha_grid=True, alpha_grid_mode="scaled", alpha_grid_resolution=4,
+                  total_steps=1000)
+    scaled.set_step(250)
+    decay = AlphaSchedule.resolve(schedule, 1.0, end=0.5, total_steps=1000)(250)
+    assert scaled.grid_scale == pytest.approx(decay)
+    assert torch.allclose(scaled.alpha_at(x), scaled.alpha_grid(x) * decay)
+
+
+def test_scaled_grid_mode_works_with_alpha0_zero():
+    sp = make(alpha0=0.0, schedule="linear", end=0.5, alpha_grid=True, alpha_grid_mode="scaled", alpha_grid_init=0.02,
+              alpha_grid_resolution=4, total_steps=100)
+    sp.train()
+    assert sp.active and sp.grid_scale == 1.0
+    sp.set_step(25)
+    assert sp.grid_scale == pytest.approx(0.5) and sp.alpha == pytest.approx(0.01)
+    with pytest.raises(ValueError, match="alpha_grid_mode"):
+        SPConfig(alpha_grid_mode="product")
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("grid", [False, True])
+def test_preconditioner_returns_float32_for_half_positions(dtype, grid):
+    """Issue 36: half-precision positions come back in float32, moved by a tiny alpha."""
+    kw = dict(alpha_grid=True, alpha_grid_resolution=4) if grid else {}
+    sp = SPConfig(alpha0=1e-4, schedule="constant", boundary="reflect", seed=0, **kw).setup(total_steps=10, bounds=(0.0, 1.0))
+    sp.train()
+    x = (0.5 + 0.5 * torch.rand(20_000, 3)).to(dtype)
+    y = sp(x)
+    assert y.dtype == torch.float32
+    assert float((y != x.float()).float().mean()) >= 0.999
+    assert float((y - x.float()).std()) == pytest.approx(1e-4, rel=0.05)
+    sp.config.num_samples = 2
+    z = sp.blurred(lambda p: p, x)
+    assert z.dtype == torch.float32 and float((z != x.float()).float().mean()) >= 0.999
+
+
+def test_a_softplus_grid_checkpoint_of_version_0_1_0_loads_into_the_log_grid():
+    """sp-plugins 0.1.0 stored the grid as softplus logits (``alpha_grid.logits``): such a
+    checkpoint loads strictly into today's log-alpha grid, to the same alpha."""
+    import torch.nn.functional as F
+
+    cfg = dict(alpha0=0.03, alpha_grid=True, alpha_grid_resolution=4, schedule="constant")
+    sp = make(**cfg)
+    assert sp.alpha_grid.parameterization == "log" and "alpha_grid.log_alpha" in sp.state_dict()
+    old = {k: v for k, v in sp.state_dict().items() if not k.startswith("alpha_grid.")}
+    logits = torch.randn(1, 1, 4, 4, 4) - 3.0
+    old["alpha_grid.logits"] = logits
+    sp.load_state_dict(old, strict=True)
+    assert torch.allclose(sp.alpha_grid.values(), F.softplus(logits)[0, 0], rtol=1e-5)
+    assert set(sp.state_dict()) >= {"alpha_grid.log_alpha"} and "alpha_grid.logits" not in sp.state_dict()
