@@ -1,13 +1,18 @@
 """SP's per-step cost: baseline and SP training steps alternated in one process.
 
-Two workloads, both at CPU scale:
+Three workloads, all at CPU scale:
+
+- ``methods``: one training step (``Trainer.train_iteration``: forward, loss, backward, optimizer) of
+  our registered nerfstudio methods with SP on and off (``sp.enabled``), same weights and rays, the
+  steps alternated in one process: ``sp-nerfacto``, ``sp-neus-hashgrid``, ``sp-mipnerf``,
+  ``sp-relu-field``. SP on is the one seam (moved RaySamples handed to each field) plus the noise.
 
 - ``sdf``: a hash-grid SDF step (encoding + 2x64 MLP, SIREN-style surface/eikonal loss with the
   eikonal gradient by double backward, Adam), SP perturbing every query point.
 - ``dense``: a ReLU-field render step (RGB + density grid, trilinear, ReLU, 1024 rays x 96
   samples, white background, MSE, Adam), SP perturbing every sample with reflection.
 
-Usage: ``python -m bench.sp_overhead [--repeats 40] [--threads 2]``
+Usage: ``python -m bench.sp_overhead [--repeats 40] [--threads 2] [--only sdf|dense|methods]``
 Writes ``bench/out/sp_overhead.json`` and prints a markdown table.
 """
 
@@ -104,6 +109,63 @@ def make_dense_step(sp_on: bool, res: int, n_rays: int = 1024, n_samples: int = 
     return step
 
 
+METHODS = {
+    # method: (model settings that make a CPU step ~0.1-1 s, data layout)
+    "sp-nerfacto": (dict(log2_hashmap_size=15, max_res=512, num_nerf_samples_per_ray=48), "blender"),
+    "sp-neus-hashgrid": (dict(num_samples=32, num_samples_importance=16, num_up_sample_steps=2, background_model="none",
+                              sdf_field=dict(num_levels=12, max_res=512, log2_hashmap_size=15, hidden_dim=64)), "sdfstudio"),
+    "sp-mipnerf": (dict(num_coarse_samples=48, num_importance_samples=48, mlp_num_layers=4, mlp_layer_width=128), "blender"),
+    "sp-relu-field": (dict(resolution=65, num_samples=128), "blender"),
+}
+
+
+def make_method_steps(name: str, scene, out, rays: int = 1024):
+    """``(baseline_step, sp_step)``: training iterations of method ``name`` with SP off / on, from the
+    same initial weights, with a constant alpha so every timed SP step perturbs."""
+    import dataclasses
+
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
+
+    settings, layout = METHODS[name]
+    trainers = []
+    for enabled in (False, True):
+        config = method_config(name)
+        model = config.pipeline.model
+        for key, value in settings.items():
+            if isinstance(value, dict):
+                for k, v in value.items():
+                    setattr(getattr(model, key), k, v)
+            else:
+                setattr(model, key, value)
+        model.sp = dataclasses.replace(model.sp, enabled=enabled, schedule="constant", alpha_grid=False, num_samples=1)
+        configure_run(config, scene / layout, steps=10**6, output_dir=out / f"{name}-{enabled}", rays_per_batch=rays)
+        config.mixed_precision = False
+        torch.manual_seed(0)
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainers.append(trainer)
+    trainers[1].pipeline.model.load_state_dict(trainers[0].pipeline.model.state_dict(), strict=False)
+    counters = [0, 0]
+
+    def stepper(i: int):
+        def step():
+            trainer = trainers[i]
+            for callback in trainer.callbacks:
+                callback.run_callback_at_location(counters[i], location=_before())
+            trainer.train_iteration(counters[i])
+            counters[i] += 1
+
+        return step
+
+    return stepper(0), stepper(1)
+
+
+def _before():
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+    return TrainingCallbackLocation.BEFORE_TRAIN_ITERATION
+
+
 def perturb_only_ms(n_points: int, repeats: int, alpha: float) -> float:
     """SP's own arithmetic (noise + reflection) on ``n_points`` points, in milliseconds."""
     sp = SPConfig(alpha0=alpha, schedule="constant", boundary="reflect").setup(total_steps=10**6, bounds=(-1.0, 1.0))
@@ -118,7 +180,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=40)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--batch", type=int, default=2500, help="surface points (and as many free points) per SDF step")
-    ap.add_argument("--only", choices=["sdf", "dense"], default=None)
+    ap.add_argument("--only", choices=["sdf", "dense", "methods"], default=None)
+    ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS), help="methods of the 'methods' workload")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     results = {"machine": machine_info(), "workloads": {}}
@@ -138,6 +201,20 @@ def main() -> None:
             s["perturb_only_ms"] = own
             results["workloads"][f"dense{res}"] = {"rays": 1024, "samples": 96, "perturb_only_ms": own, **s}
             rows.append((f"dense-grid render step {res}^3 (1024 rays x 96)", s))
+    if args.only in (None, "methods"):
+        import tempfile
+        from pathlib import Path
+
+        from sp_plugins.data import make_tiny_scene
+
+        tmp = Path(tempfile.mkdtemp(prefix="sp-overhead-"))
+        scene = make_tiny_scene(tmp / "scene", mesh="sphere").root
+        for name in args.methods:
+            base, spst = make_method_steps(name, scene, tmp)
+            s = ratio_summary(paired_timing({"baseline": base, "sp": spst}, args.repeats), "baseline")
+            s["perturb_only_ms"] = float("nan")
+            results["workloads"][name] = {"rays": 1024, **s}
+            rows.append((f"{name} training step (1024 rays, SP on vs off)", s))
     results["machine_after"] = machine_info()["loadavg_1_5_15"]
     path = write_json("sp_overhead", results)
     print("| workload | baseline ms | SP ms | SP / baseline (median of pairs) | SP arithmetic alone |\n|---|---|---|---|---|")

@@ -169,7 +169,7 @@ class SPSDFField(SPFieldMixin, SDFField):
         if self.config.perturb_sampler_queries and self.sp_active():
             from sp_plugins.nerfstudio.seam import perturbed_samples
 
-            ray_samples = perturbed_samples(ray_samples, self.sp)  # type: ignore[arg-type]
+            ray_samples = perturbed_samples(ray_samples, self.sp, at_start=True)  # type: ignore[arg-type]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
         return hidden[..., :1]

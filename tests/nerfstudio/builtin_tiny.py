@@ -20,6 +20,14 @@ def shrink_model(model) -> None:
     if hasattr(model, "proposal_net_args_list"):
         for args in model.proposal_net_args_list:
             args.update(log2_hashmap_size=10, max_res=32, hidden_dim=8)
+    field = getattr(model, "sdf_field", None)
+    if field is not None:  # the NeuS family: a small SDF MLP and grid, no background model
+        for key, value in dict(hidden_dim=32, num_layers=2, hidden_dim_color=32, num_layers_color=2, geo_feat_dim=15,
+                               num_levels=8, max_res=64, log2_hashmap_size=12).items():
+            setattr(field, key, value)
+        for key, value in dict(num_samples=16, num_samples_importance=8, num_up_sample_steps=1, background_model="none").items():
+            if hasattr(model, key):
+                setattr(model, key, value)
     if hasattr(model, "upsampling_iters"):
         # TensoRF: no upsampling in a short run; not (), which TensoRFModel.update_to_step indexes when a
         # checkpoint loads

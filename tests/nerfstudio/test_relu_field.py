@@ -148,7 +148,7 @@ def test_checkpoint_of_a_later_stage_loads_and_resumes(tiny_scene, tmp_path):
     second.setup()
     start = loaded["step"] + 1
     assert second._start_step == start and int(second.pipeline.model.sp.step) == start
-    assert second.pipeline.model.sp.alpha == pytest.approx(AlphaSchedule("exponential", 0.05, end_step=8)(start))
+    assert second.pipeline.model.sp.alpha == pytest.approx(AlphaSchedule("exponential", 0.05, end_step=7)(start))
     assert second.pipeline.model.field.resolution == 9
     for callback in second.callbacks:
         callback.run_callback_at_location(start, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
@@ -251,9 +251,9 @@ def test_sp_offsets_in_world_units_are_alpha_voxels_reflected_and_training_only(
     torch.manual_seed(0)
     inner = torch.rand(20000, 3) * 2.0 - 1.0  # at least 10 alphas from every wall
     wall = torch.rand(20000, 3) * 2 * alpha + (1.5 - 2 * alpha)  # within 2 alphas of the +x/+y/+z walls
-    model.train()
-    model.field.get_density(_samples_at(inner))
-    model.field.get_density(_samples_at(wall))
+    model.train()  # the model calls its field's forward: the seam moves the samples there
+    model.field.forward(_samples_at(inner))
+    model.field.forward(_samples_at(wall))
     offsets = seen[0] - inner
     assert offsets.mean(0).abs().max() < 0.05 * alpha
     assert torch.allclose(offsets.std(0), torch.full((3,), alpha), rtol=0.03)
@@ -261,7 +261,7 @@ def test_sp_offsets_in_world_units_are_alpha_voxels_reflected_and_training_only(
     assert ((seen[1] - wall).abs() > 2 * alpha).any()  # (there was something to reflect)
     assert ((seen[1] - wall).std(0) < alpha).all()  # a reflected kernel is narrower near the wall
     model.eval()
-    model.field.get_density(_samples_at(inner))
+    model.field.forward(_samples_at(inner))
     assert torch.equal(seen[2], inner)
 
 

@@ -1,13 +1,17 @@
-"""SP on any nerfstudio method (issue 20): ``with_sp``, ``sp-train``, a third-party plugin, refusals.
+"""SP on any nerfstudio method (issues 20, 33): ``with_sp``, ``sp-train``, third-party plugins, refusals.
 
-The plugin (``plugin_fixture/toyplugin``: its own ``Model`` and ``Field``, classes sp-plugins has
-never seen) is installed as a temporary distribution with a ``nerfstudio.method_configs`` entry
-point, as a plugin author ships one. Its field logs the positions it reads (``TOY_FIELD_LOG``).
+The plugin (``plugin_fixture/toyplugin``: its own ``Model`` and ``Field`` classes sp-plugins has
+never seen) is installed as a temporary distribution with ``nerfstudio.method_configs`` entry
+points, as a plugin author ships one. Its fields read positions each in their own way
+(``get_positions()``, ``get_start_positions()`` with an eikonal gradient, ``get_gaussian_blob()``,
+and one that reads them from the samples' metadata) and log, against the plain samples the model
+made, how far what they read moved (``TOY_FIELD_LOG``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -32,6 +36,7 @@ def install_toy_plugin(root: Path) -> Path:
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: toyplugin\nVersion: 0.1\n")
     (dist / "entry_points.txt").write_text(
         "[nerfstudio.method_configs]\ntoy-method = toyplugin.config:toy_method\nsp-toy-method = toyplugin.config:sp_toy_method\n"
+        "toy-sdf = toyplugin.config:toy_sdf\ntoy-blob = toyplugin.config:toy_blob\ntoy-bypass = toyplugin.config:toy_bypass\n"
     )
     return root
 
@@ -53,49 +58,68 @@ def log_lines(path: Path):
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
-@pytest.fixture(scope="module")
-def toy_run(toy, tiny_scene, tmp_path_factory):
-    """``sp-train toy-method``: SP (alpha 0.05) for the first half of 4 steps, then plain."""
-    root, env = toy
-    out = tmp_path_factory.mktemp("toy-run")
-    log = out / "train.jsonl"
-    proc = run_env(
-        [command("sp-train"), "toy-method", *RUN_FLAGS, "--max-num-iterations", STEPS, "--steps-per-save", STEPS,
+def sp_train_toy(method, env, out, tiny_scene, log, expect=0):
+    """``sp-train METHOD``: SP (alpha 0.05) for the first half of 4 steps, then plain."""
+    return run_env(
+        [command("sp-train"), method, *RUN_FLAGS, "--max-num-iterations", STEPS, "--steps-per-save", STEPS,
          "--steps-per-eval-batch", 1000, "--steps-per-eval-image", 1000, "--steps-per-eval-all-images", 1000,
          "--output-dir", out, "--pipeline.model.sp.alpha0", "0.05", "--pipeline.model.sp.schedule", "step",
          "--pipeline.model.sp.end", "0.5", "--pipeline.model.sp.seed", "0",
          "blender-data", "--data", tiny_scene / "blender"],
-        dict(env, TOY_FIELD_LOG=str(log)),
+        dict(env, TOY_FIELD_LOG=str(log)), expect=expect,
     )
+
+
+TOY_METHODS = {"toy-method": "ToyModel", "toy-sdf": "ToySDFModel", "toy-blob": "ToyBlobModel"}
+"""Plugin fields reading get_positions(), get_start_positions() (+ eikonal), get_gaussian_blob()."""
+
+
+@pytest.fixture(scope="module", params=sorted(TOY_METHODS))
+def toy_run(request, toy, tiny_scene, tmp_path_factory):
+    root, env = toy
+    out = tmp_path_factory.mktemp(f"{request.param}-run")
+    log = out / "train.jsonl"
+    proc = sp_train_toy(request.param, env, out, tiny_scene, log)
     (config,) = out.glob("**/config.yml")
-    return config, log, proc, env
+    return request.param, config, log, proc, env
 
 
 def test_sp_train_trains_a_plugin_method_with_its_field_perturbed_then_plain(toy_run):
-    config, log, _, _ = toy_run
+    method, config, log, _, _ = toy_run
     training = [line for line in log_lines(log) if line["training"]]
     assert len(training) == STEPS, training  # one field query per step
     offsets = [line["offset"] for line in training]
-    assert all(o > 1e-3 for o in offsets[:2]), offsets  # alpha 0.05: the field read perturbed positions
+    assert all(o > 1e-3 for o in offsets[:2]), offsets  # alpha 0.05: the field read moved positions
     assert all(o < 1e-6 for o in offsets[2:]), offsets  # alpha 0 from step 2 on: the plain positions
-    assert config.parent.parent.name == "toy-method"  # the run keeps the method's name (ns-eval looks it up)
-    text = config.read_text()
-    assert "sp_plugins.nerfstudio.variants.SPModel__toyplugin_dmodel_dToyModel" in text
+    assert config.parent.parent.name == method  # the run keeps the method's name (ns-eval looks it up)
+    module = {"toy-method": "model", "toy-sdf": "sdf", "toy-blob": "blob"}[method]
+    assert f"sp_plugins.nerfstudio.variants.SPModel__toyplugin_d{module}_d{TOY_METHODS[method]}" in config.read_text()
 
 
 def test_ns_eval_and_ns_render_load_the_plugin_checkpoint_unperturbed(toy_run, tmp_path):
-    config, _, _, env = toy_run
+    _, config, _, _, env = toy_run
     log = tmp_path / "eval.jsonl"
     env = dict(env, TOY_FIELD_LOG=str(log))
     run_env([command("ns-eval"), "--load-config", config, "--output-path", tmp_path / "eval.json"], env)
     results = json.loads((tmp_path / "eval.json").read_text())["results"]
-    assert results["psnr"] == results["psnr"]  # finite, not NaN
+    assert math.isfinite(results["psnr"])
     run_env([command("ns-render"), "dataset", "--load-config", config, "--split", "test", "--output-path",
              tmp_path / "renders", "--rendered-output-names", "rgb", "--image-format", "png"], env)
     assert list((tmp_path / "renders").glob("**/*.png"))
     queries = log_lines(log)
     assert queries and not any(q["training"] for q in queries)
     assert max(q["offset"] for q in queries) < 1e-6  # evaluation and rendering see the plain field
+
+
+def test_a_plugin_field_that_reads_positions_around_the_seam_is_refused_in_one_line(toy, tiny_scene, tmp_path):
+    """Its positions come from the samples' metadata: it would train without SP, so it stops after
+    the first step, naming the field class and what it read, before any checkpoint is written."""
+    _, env = toy
+    proc = sp_train_toy("toy-bypass", env, tmp_path, tiny_scene, tmp_path / "log.jsonl", expect=2)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "toyplugin.bypass.BypassField (model.field)" in lines[0], proc.stderr
+    assert "read nothing of their frustums, never a position" in lines[0]
+    assert not list(tmp_path.glob("**/*.ckpt"))
 
 
 def test_a_plugin_registers_its_sp_variant_with_one_with_sp_call(toy, tmp_path):
@@ -112,9 +136,6 @@ def test_a_plugin_registers_its_sp_variant_with_one_with_sp_call(toy, tmp_path):
 
 
 REFUSED = {
-    "neus": "train sp-neus, sp-neus-hashgrid or sp-neuralangelo-lite",
-    "neus-facto": "reads Frustums.get_start_positions()",
-    "mipnerf": "train sp-mipnerf",
     "splatfacto": "Gaussian splatting",
     "neus-hashgrid": "baseline of sp-neus-hashgrid",
     "relu-field-flat": "baseline of sp-relu-field",
@@ -126,11 +147,12 @@ REFUSED = {
 def test_sp_train_help_lists_every_method_and_refuses_the_unreachable_in_one_line(toy):
     _, env = toy
     help_text = run_env([command("sp-train"), "--help"], dict(env, COLUMNS="200")).stdout
-    for method in ("nerfacto", "vanilla-nerf", "tensorf", "toy-method", "sp-neus-hashgrid"):
+    for method in ("nerfacto", "vanilla-nerf", "tensorf", "neus", "neus-facto", "mipnerf", "toy-method", "toy-sdf",
+                   "sp-neus-hashgrid"):
         assert method in help_text, method
-    proc = run_env([command("sp-train"), "neus", "--max-num-iterations", "1"], env, expect=2)
-    assert proc.stderr.strip().splitlines() == [f"sp-train: error: SP cannot be put on neus: {_refusals()['neus']}"]
-    assert REFUSED["neus"] in proc.stderr
+    proc = run_env([command("sp-train"), "splatfacto", "--max-num-iterations", "1"], env, expect=2)
+    assert proc.stderr.strip().splitlines() == [f"sp-train: error: SP cannot be put on splatfacto: {_refusals()['splatfacto']}"]
+    assert REFUSED["splatfacto"] in proc.stderr
 
 
 def _refusals():
@@ -157,11 +179,15 @@ def test_sp_train_offers_every_builtin_method_it_can_reach_and_says_why_not_for_
     assert set(configs) | set(refused) == set(all_methods)
     for method, why in REFUSED.items():
         assert why in refused[method], (method, refused[method])
-    for method in ("nerfacto", "nerfacto-big", "depth-nerfacto", "vanilla-nerf", "tensorf", "semantic-nerfw"):
+    for method in ("nerfacto", "nerfacto-big", "depth-nerfacto", "vanilla-nerf", "tensorf", "semantic-nerfw", "neus",
+                   "neus-facto", "mipnerf"):
         model = configs[method].pipeline.model
         assert model.sp.enabled and type(model).__name__.startswith("SPModelConfig__"), method
         assert configs[method].method_name == all_methods[method].method_name  # ns-eval finds its data manager by it
     assert configs["sp-neus-hashgrid"].pipeline.model.sp.enabled
+    # the paper's presets follow the host model: NeuS for surface models, MipNeRF's for mipnerf
+    assert configs["neus-facto"].pipeline.model.sp.alpha0 == pytest.approx(0.013)
+    assert configs["mipnerf"].pipeline.model.sp.alpha0 == pytest.approx(0.04)
 
 
 # -- in-process ---------------------------------------------------------------------------------
@@ -210,16 +236,16 @@ def test_sp_variants_resolve_by_path_in_a_saved_config(toy_importable):
         variants.SomethingElse
 
 
-def test_a_field_sp_cannot_reach_is_refused_when_the_model_is_built(toy_importable, tiny_scene, tmp_path):
-    """A model that builds its field through a name SP does not redirect refuses in one line
-    instead of training without SP."""
+def test_a_field_built_through_a_module_object_is_reached(toy_importable, tiny_scene, tmp_path):
+    """The seam is put on the field instances the model built, whatever name built them (a module
+    object here, which the former class-name redirection could not reach)."""
     from toyplugin.config import toy_method
     from toyplugin.hidden import HiddenFieldModelConfig
 
     from sp_plugins.adapter.variants import convert
     from sp_plugins.nerfstudio import with_sp
-    from sp_plugins.adapter.errors import InputError
     from sp_plugins.nerfstudio.runs import configure_run, train
+    from sp_plugins.nerfstudio.seam import SeamField
 
     base = toy_method.config
     hidden = type(toy_method)(config=base, description="")
@@ -227,21 +253,25 @@ def test_a_field_sp_cannot_reach_is_refused_when_the_model_is_built(toy_importab
                                pipeline=type(base.pipeline)(datamanager=base.pipeline.datamanager,
                                                             model=convert(base.pipeline.model, HiddenFieldModelConfig)))
     config = with_sp(hidden).config
-    configure_run(config, tiny_scene / "blender", steps=1, output_dir=tmp_path)
-    with pytest.raises(InputError, match="SP cannot reach toyplugin.hidden.HiddenFieldModel: none of its fields"):
-        train(config)
+    config.pipeline.model.sp.end = 2  # alpha > 0 in step 0
+    configure_run(config, tiny_scene / "blender", steps=3, output_dir=tmp_path)
+    model = train(config).pipeline.model
+    assert isinstance(model.field, SeamField) and model.field.sp is model.sp
+    assert model.perturbed_calls() >= 2 and "origins" in model.field.sp_handle.reads
 
 
-BUILTIN_TRAIN = ("nerfacto", "nerfacto-big", "nerfacto-huge", "vanilla-nerf", "tensorf", "phototourism", "dnerf")
-"""nerfstudio's methods that run on a CPU with the data a Blender scene gives (depth-nerfacto,
-semantic-nerfw and generfacto need depth / semantic data or downloaded models; instant-ngp needs CUDA)."""
+BUILTIN_TRAIN = ("nerfacto", "nerfacto-big", "nerfacto-huge", "vanilla-nerf", "tensorf", "phototourism", "dnerf", "mipnerf",
+                 "neus", "neus-facto")
+"""nerfstudio's methods that run on a CPU with the data a Blender scene gives (the NeuS family: the
+SDFStudio layout of the same scene; depth-nerfacto, semantic-nerfw and generfacto need depth /
+semantic data or downloaded models; instant-ngp needs CUDA)."""
 
 
 @pytest.mark.parametrize("method", BUILTIN_TRAIN)
 def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(method, tiny_scene, tmp_path):
     import copy
 
-    from builtin_tiny import shrink_model
+    from builtin_tiny import in_process_data, shrink_model
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
 
     from sp_plugins.nerfstudio.registration import sp_methods
@@ -249,12 +279,16 @@ def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(meth
 
     config = copy.deepcopy(sp_methods({method: all_methods[method]}, all_descriptions)[0][method])
     shrink_model(config.pipeline.model)
-    config.pipeline.model.sp.end = 1.0  # alpha > 0 in both steps
-    configure_run(config, tiny_scene / "blender", steps=2, output_dir=tmp_path, rays_per_batch=32)
+    in_process_data(config)
+    config.pipeline.model.sp.end = 2  # alpha > 0 in steps 0 and 1 of 3
+    layout = "sdfstudio" if hasattr(config.pipeline.model, "sdf_field") else "blender"
+    configure_run(config, tiny_scene / layout, steps=3, output_dir=tmp_path, rays_per_batch=32)
     trainer = train(config)
     model = trainer.pipeline.model
-    assert model.perturbed_calls() >= 2, method  # a field read perturbed positions in every step
-    assert int(model.sp.step) >= 1 and model.sp.total_steps == 2
+    fields = [f for f in model.sp_fields() if f.sp_handle.perturbed_calls]
+    assert fields and model.perturbed_calls() >= 2, method  # a field was handed moved samples in both SP steps
+    assert all("origins" in f.sp_handle.reads for f in fields), method  # ... and read them
+    assert int(model.sp.step) >= 2 and model.sp.total_steps == 3
     assert list(config.get_checkpoint_dir().glob("*.ckpt"))
 
 
@@ -289,5 +323,28 @@ def test_depth_nerfacto_builds_with_sp_on_its_main_field():
     model_config = copy.deepcopy(sp_methods({"depth-nerfacto": all_methods["depth-nerfacto"]}, all_descriptions)[0]["depth-nerfacto"].pipeline.model)
     shrink_model(model_config)
     model = model_config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={}, device="cpu")
-    reached = [type(f).__bases__[-1].__name__ for f in model.sp_fields()]
+    from sp_plugins.nerfstudio.seam import host_name
+
+    reached = [host_name(f).rsplit(".", 1)[-1] for f in model.sp_fields()]
     assert "NerfactoField" in reached and all(f.sp is model.sp for f in model.sp_fields())
+
+
+def test_neus_keeps_its_background_plain_and_its_sdf_field_carries_the_seam():
+    """The paper perturbs the SDF field only: a surface model's background (outside the SDF's
+    sphere) is listed in PLAIN_FIELDS; nerfstudio's own SDFField is built on our torch hash grid
+    without tcnn, for that build only."""
+    import torch
+    from builtin_tiny import shrink_model, sp_train_config
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.fields.sdf_field import SDFField
+    from nerfstudio.fields.vanilla_nerf_field import NeRFField
+
+    from sp_plugins.nerfstudio.seam import SeamField
+
+    model_config = sp_train_config("neus").pipeline.model
+    shrink_model(model_config)
+    model_config.background_model = "mlp"
+    model = model_config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={}, device="cpu")
+    assert isinstance(model.field, SeamField) and isinstance(model.field, SDFField)
+    assert isinstance(model.field_background, NeRFField) and not isinstance(model.field_background, SeamField)
+    assert model.sp.config.alpha0 == 0.013  # the NeuS preset

@@ -10,7 +10,33 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.nerfstudio import with_sp
+from toyplugin.blob import ToyBlobModelConfig
+from toyplugin.bypass import BypassModelConfig
 from toyplugin.model import ToyModelConfig
+from toyplugin.sdf import ToySDFModelConfig
+
+
+def _method(name, model_config, description):
+    return MethodSpecification(
+        config=TrainerConfig(
+            method_name=name,
+            max_num_iterations=1000,
+            mixed_precision=False,
+            pipeline=VanillaPipelineConfig(
+                datamanager=VanillaDataManagerConfig(dataparser=BlenderDataParserConfig()),
+                model=model_config,
+            ),
+            optimizers={
+                "fields": {
+                    "optimizer": AdamOptimizerConfig(lr=1e-2),
+                    "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-3, max_steps=1000),
+                }
+            },
+            viewer=ViewerConfig(num_rays_per_chunk=512),
+        ),
+        description=description,
+    )
+
 
 toy_method = MethodSpecification(
     config=TrainerConfig(
@@ -33,3 +59,7 @@ toy_method = MethodSpecification(
 )
 
 sp_toy_method = with_sp(toy_method, name="sp-toy-method")
+
+toy_sdf = _method("toy-sdf", ToySDFModelConfig(eval_num_rays_per_chunk=512), "A toy SDF method (start positions, eikonal).")
+toy_blob = _method("toy-blob", ToyBlobModelConfig(eval_num_rays_per_chunk=512), "A toy Gaussian-blob method.")
+toy_bypass = _method("toy-bypass", BypassModelConfig(eval_num_rays_per_chunk=512), "A toy method whose field reads metadata positions.")

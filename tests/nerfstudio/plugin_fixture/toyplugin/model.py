@@ -2,7 +2,8 @@
 
 With ``TOY_FIELD_LOG`` set, every field query appends one JSON line: whether the field was in
 training mode and the largest distance between the positions it read and the plain sample
-positions (origin + direction * mid-distance): non-zero only when something perturbed them.
+positions of the samples the *model* made (``field.reference``, set by the model before each call):
+measured inside the field against the model's plain rays, so it sees any move, however made.
 """
 
 from __future__ import annotations
@@ -27,14 +28,18 @@ class ToyField(Field):
         super().__init__()
         self.mlp = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, 4))
 
-    def get_density(self, ray_samples):
-        frustums = ray_samples.frustums
-        x = frustums.get_positions()
+    reference = None
+    """The samples the model made (plain), set by the model before it calls the field."""
+
+    def log_offset(self, read, plain) -> None:
         log = os.environ.get("TOY_FIELD_LOG")
         if log:
-            plain = frustums.origins + frustums.directions * (frustums.starts + frustums.ends) / 2
             with open(log, "a") as out:
-                out.write(json.dumps({"training": self.training, "offset": float((x - plain).abs().max())}) + "\n")
+                out.write(json.dumps({"training": self.training, "offset": float((read - plain).abs().max())}) + "\n")
+
+    def get_density(self, ray_samples):
+        x = ray_samples.frustums.get_positions()
+        self.log_offset(x, self.reference.frustums.get_positions())
         h = self.mlp(x)
         return torch.nn.functional.softplus(h[..., :1]), h[..., 1:]
 
@@ -66,7 +71,8 @@ class ToyModel(Model):
 
     def get_outputs(self, ray_bundle):
         samples = self.sampler(ray_bundle)
-        out = self.field(samples)
+        self.field.reference = samples
+        out = self._last = self.field(samples)
         weights = samples.get_weights(out[FieldHeadNames.DENSITY])
         return {"rgb": self.renderer(rgb=out[FieldHeadNames.RGB], weights=weights)}
 
