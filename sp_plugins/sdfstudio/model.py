@@ -16,7 +16,7 @@ from typing import Any
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
-from sp_plugins.sdfstudio.sdf_field import CONTRACTED_BOUNDS
+from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
 
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
@@ -33,12 +33,12 @@ class SPModel(adapter_model.SPModel):
 class SDFFieldSPModel(SPModel):
     """:class:`SPModel` for any sdfstudio ``SurfaceModel``: the preconditioner goes to the SDF
     field ``self.field`` that ``SurfaceModel.populate_modules`` builds from ``config.sdf_field``
-    (an :class:`~sp_plugins.sdfstudio.sdf_field.SPSDFFieldConfig` in every SP model config).
+    (an :class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig` in every SP model config).
     List it before the host model class (the SP model variants of
     :mod:`sp_plugins.sdfstudio.variants` are ``(SDFFieldSPModel, HostModel)``)."""
 
     def attach_sp(self) -> None:
-        from sp_plugins.sdfstudio.sdf_field import SPSDFField
+        from sp_plugins.sdfstudio.seam import SPSDFField
 
         field = getattr(self, "field", None)
         if not isinstance(field, SPSDFField):

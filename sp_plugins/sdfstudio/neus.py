@@ -1,7 +1,7 @@
 """The SP classes of sdfstudio's NeuS family under their old names (aliases).
 
 sp-neus, sp-neus-facto, sp-neuralangelo and sp-bakedangelo are now made by the generic
-conversion of :mod:`sp_plugins.sdfstudio.sdf_methods`, whose model and model config classes are
+conversion (:func:`sp_plugins.sdfstudio.registration.with_sp`), whose model and model config classes are
 the variants of :mod:`sp_plugins.sdfstudio.variants` (``SPModelConfig__nerfstudio_dmodels_...``).
 A ``config.yml`` written before names these classes by their old paths
 (``sp_plugins.sdfstudio.neus.SPNeuSModelConfig``...), so the names stay importable here and are

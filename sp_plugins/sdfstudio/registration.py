@@ -1,32 +1,55 @@
-"""Our sdfstudio methods, added to ns-train: the entry-point group of our own, plus ``sp-<method>``
-for every SDF method sdfstudio registers.
+"""How SP methods reach sdfstudio's commands: ``with_sp`` for any SDF method, our entry-point
+group, and ``sp-<method>`` for every method sdfstudio registers; the names of
+:mod:`sp_plugins.nerfstudio.registration` (``with_sp``, :func:`refusal`, :data:`REFUSED_MODELS`,
+:func:`preset_for`, :func:`sp_methods`).
+
+``with_sp(config)`` turns sdfstudio's own config of a method into ``sp-<method>``
+(:func:`sp_plugins.sdfstudio.sdf_methods.sp_model_config`); a method that is already ours comes back
+with SP on. Methods SP cannot reach are refused with "SP cannot be put on <method>: <reason>"
+(:func:`refusal`).
 
 sdfstudio (commit 370902a) has no plugin mechanism: ``nerfstudio/configs/method_configs.py``
 fills a plain dict and builds a tyro union from it at import, and ``scripts/train.py`` copies that
 union at its own import. :func:`add_methods` puts every method of the group
 ``sp_plugins.sdfstudio_methods`` into the dict (sp-neus, sp-neus-facto, sp-neuralangelo,
 sp-bakedangelo: names and presets fixed), then ``sp-<method>`` for every other registered method
-SP applies to (:func:`sp_plugins.sdfstudio.sdf_methods.sp_methods`), remembers why the rest are
-refused (:data:`REFUSED`), and rebuilds the union in both modules, which is enough as long as it
-runs before ``tyro.cli`` (our ``sp-sdfstudio-train`` calls it first thing; the opt-in hook of
-:mod:`sp_plugins.sdfstudio.hook` right after ``scripts.train`` is imported).
+SP applies to (:func:`sp_methods`), remembers why the rest are refused (:data:`REFUSED`), and
+rebuilds the union in both modules, which is enough as long as it runs before ``tyro.cli`` (our
+``sp-sdfstudio-train`` calls it first thing; the opt-in hook of :mod:`sp_plugins.sdfstudio.hook`
+right after ``scripts.train`` is imported). Unlike ``sp-train``, the SP methods get their own
+``sp-`` names: they sit in the one dict next to the host's.
 
 A method whose module fails to import is skipped with one line on stderr, so one broken
-method never breaks the others.
+method never breaks the others. Cheap to import: the host and the conversion load on use.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import sys
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from types import ModuleType
-from typing import Any, Dict, Optional
+from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
+
+if TYPE_CHECKING:
+    from sp_plugins.core import SPConfig
 
 ENTRY_POINT_GROUP = "sp_plugins.sdfstudio_methods"
+PREFIX = "sp-"
 
 REFUSED: Dict[str, str] = {}
 """``sp-<method>`` -> why SP cannot be put on that registered method (filled by :func:`add_methods`)."""
+
+REFUSED_MODELS: Dict[str, str] = {
+    "nerfstudio.models.dto.DtoOModel": (
+        "its model (DtoOModel) is a nerfacto model: nerfacto's density field renders, and its sdf_field only "
+        "builds an occupancy field that guides sampling, so there is no SDF surface for SP to precondition"
+    ),
+}
+"""Host model classes (and subclasses) with an ``sdf_field`` that SP still does not apply to, and
+why; a model without an ``SDFFieldConfig`` or not a ``SurfaceModel`` is refused by :func:`refusal`."""
 
 
 @dataclass
@@ -35,6 +58,102 @@ class MethodSpecification:
 
     config: Any
     description: str
+
+
+def refusal(config: Any) -> Optional[str]:
+    """Why SP cannot be put on the method of sdfstudio trainer config ``config`` (None when it
+    can). Decided from classes only: nothing is built."""
+    from nerfstudio.fields.sdf_field import SDFFieldConfig
+    from nerfstudio.models.base_surface_model import SurfaceModel
+
+    from sp_plugins.adapter.variants import class_path, target_class
+
+    model_config = getattr(getattr(config, "pipeline", None), "model", None)
+    model = target_class(model_config)
+    if model is None:
+        return "its model config has no model class (_target) to subclass"
+    if hasattr(model_config, "sp"):
+        return None  # one of ours: SP is already part of it
+    for cls in model.__mro__:
+        reason = REFUSED_MODELS.get(class_path(cls))
+        if reason:
+            return reason
+    if not isinstance(getattr(model_config, "sdf_field", None), SDFFieldConfig):
+        return (
+            f"its model ({model.__name__}) has no SDF field (no sdf_field: SDFFieldConfig in {type(model_config).__name__}); "
+            "sdfstudio's SP enters at an SDF field's queries, and this is a radiance-field method"
+        )
+    if not issubclass(model, SurfaceModel):
+        return (
+            f"its model ({model.__name__}) is not an sdfstudio SurfaceModel, so its sdf_field is not the field it "
+            "renders with; sdfstudio's SP enters at a SurfaceModel's SDF field"
+        )
+    return None
+
+
+def preset_for(model_config: Any) -> "SPConfig":
+    """A copy of the paper's SP settings (Ling et al. 2025) for an sdfstudio host model config.
+
+    Decided by the config, not the model class as in nerfstudio (neus-facto and neus-facto-angelo
+    share ``NeuSFactoModel``): :data:`~sp_plugins.adapter.presets.NEURALANGELO` where the host enables
+    Neuralangelo's progressive hash encoding (neuralangelo, bakedangelo, neus-facto-angelo; SP then
+    replaces coarse-to-fine), :data:`~sp_plugins.adapter.presets.NEUS` for every other SDF method."""
+    from sp_plugins.adapter import presets
+    from sp_plugins.sdfstudio.sdf_methods import replaces_coarse_to_fine
+
+    return dataclasses.replace(presets.NEURALANGELO if replaces_coarse_to_fine(model_config) else presets.NEUS)
+
+
+def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] = None, description: Optional[str] = None) -> MethodSpecification:
+    """The SP variant of method ``spec`` (a :class:`MethodSpecification` or an sdfstudio ``Config``).
+
+    ``sp`` defaults to :func:`preset_for` the host model config; ``name`` to ``sp-<method name>``.
+    A method that is already ours (its model config has ``sp``) comes back with SP enabled (an
+    explicit ``sp`` wins). Raises ``ValueError`` naming the reason when SP cannot reach the method."""
+    from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+    from sp_plugins.sdfstudio.sdf_methods import describe, replaces_coarse_to_fine, sp_model_config
+
+    config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
+    base = config.method_name
+    reason = refusal(config)
+    if reason:
+        raise ValueError(f"SP cannot be put on {base}: {reason}")
+    model = config.pipeline.model
+    if hasattr(model, "sp"):  # ours already: switch SP on (an explicit sp wins)
+        model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
+        text = (spec.description if isinstance(spec, MethodSpecification) else "") or f"sdfstudio {base} {describe(model.sp, False)}."
+    else:
+        sp = copy.deepcopy(sp) if sp is not None else preset_for(model)
+        config.pipeline.model = sp_model_config(model, sp)
+        text = f"sdfstudio {base} {describe(sp, replaces_coarse_to_fine(model))}."
+    config.method_name = name or (base if base.startswith(PREFIX) else f"{PREFIX}{base}")
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    return MethodSpecification(config=config, description=description or text)
+
+
+def sp_methods(method_configs: Dict[str, Any], descriptions: Dict[str, str]) -> Tuple[Dict[str, Any], Dict[str, str], Dict[str, str]]:
+    """``(configs, descriptions, refused)``, keyed by SP method name (``sp-<method>``): for every
+    host method, its SP config or why it is refused. Methods that are already ours are skipped
+    (they are in the dict under their own names)."""
+    from sp_plugins.sdfstudio.sdf_methods import describe, replaces_coarse_to_fine
+
+    configs: Dict[str, Any] = {}
+    texts: Dict[str, str] = {}
+    refused: Dict[str, str] = {}
+    for method, config in method_configs.items():
+        if hasattr(getattr(getattr(config, "pipeline", None), "model", None), "sp"):
+            continue  # ours
+        name = f"{PREFIX}{method}"
+        reason = refusal(config)
+        if reason:
+            refused[name] = reason
+            continue
+        host_text = descriptions.get(method, "").rstrip(".")
+        spec = with_sp(config, name=name)
+        sp = spec.config.pipeline.model.sp
+        configs[name] = spec.config
+        texts[name] = f"{host_text} ({method}) {describe(sp, replaces_coarse_to_fine(config.pipeline.model))}." if host_text else spec.description
+    return configs, texts, refused
 
 
 def discover() -> Dict[str, MethodSpecification]:
@@ -66,8 +185,6 @@ def add_methods(train_module: Optional[ModuleType] = None) -> Dict[str, MethodSp
     """Add our methods to sdfstudio's method dict and rebuild its union (also in ``scripts.train``).
     Returns the methods added (entry points first, then the generic ``sp-<method>``); safe to call again."""
     import nerfstudio.configs.method_configs as host
-
-    from sp_plugins.sdfstudio.sdf_methods import sp_methods
 
     methods = discover()
     # an entry point of that name wins (fixed preset and description); one made by an earlier call stays

@@ -3,7 +3,7 @@
 Every sdfstudio SDF method (neus, volsdf, unisurf, bakedsdf, neuralangelo, ...) has a model that
 is a ``SurfaceModel``: it builds its SDF field from ``config.sdf_field`` (an ``SDFFieldConfig``).
 SP enters all of them through the same seam: the field config becomes an
-:class:`~sp_plugins.sdfstudio.sdf_field.SPSDFFieldConfig` and the model config an SP variant of
+:class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig` and the model config an SP variant of
 its own class, made here on demand by a :class:`~sp_plugins.adapter.variants.VariantFactory`
 and named after the host class's path, so that a ``config.yml`` naming it loads in a fresh
 ``ns-eval`` / ``ns-extract-mesh`` / ``eval_setup`` process with no extra step::
@@ -15,7 +15,7 @@ A model config variant adds ``sp`` (``--pipeline.model.sp.*``, default
 :data:`sp_plugins.adapter.presets.NEUS`) and types ``sdf_field`` as ``SPSDFFieldConfig`` (so
 ``--pipeline.model.sdf-field.fd-step`` and ``perturb-sampler-queries`` exist); every other field
 and default is the host's. Method configs set the preset per method
-(:func:`sp_plugins.sdfstudio.sdf_methods.with_sp`).
+(:func:`sp_plugins.sdfstudio.registration.with_sp`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from sp_plugins.core import SPConfig
 
 def _model_config(host: type, name: str, module: str) -> type:
     from sp_plugins.sdfstudio.model import SPModelConfig
-    from sp_plugins.sdfstudio.sdf_field import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
 
     host_model = field_default(host, "_target")
 

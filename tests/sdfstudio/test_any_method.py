@@ -71,7 +71,7 @@ def test_presets_and_the_one_seam(method):
     import nerfstudio.configs.method_configs as host
 
     from sp_plugins.adapter import presets
-    from sp_plugins.sdfstudio.sdf_field import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
     from sp_plugins.sdfstudio.variants import variant
 
     ours, theirs = host.method_configs[f"sp-{method}"].pipeline.model, host.method_configs[method].pipeline.model
@@ -103,18 +103,19 @@ def test_sp_method_trains_two_steps_with_sp_active(method, scene_with_pairs, tmp
     import nerfstudio.configs.method_configs as host
     import torch
 
-    from sp_plugins.sdfstudio.sdf_field import SPSDFField
+    from sp_plugins.sdfstudio.seam import SPSDFField
 
     torch.manual_seed(0)
-    config = tiny_config(host.method_configs[f"sp-{method}"], scene_with_pairs, tmp_path, steps=2)
-    config.pipeline.model.sp = dataclasses.replace(config.pipeline.model.sp, end=1.0)  # alpha > 0 at both steps
+    config = tiny_config(host.method_configs[f"sp-{method}"], scene_with_pairs, tmp_path, steps=3)
+    # end 1.0: alpha > 0 at steps 0 and 1, 0 at the last step (SP ends there at the latest)
+    config.pipeline.model.sp = dataclasses.replace(config.pipeline.model.sp, end=1.0)
     trainer = train_in_process(config)
     model = trainer.pipeline.model
     assert isinstance(model.field, SPSDFField) and model.field.sp is model.sp
     calls = model.field.sp_handle.perturbed_calls
-    assert calls >= 2, f"SP perturbed {calls} field queries in 2 steps"
-    assert int(model.sp.step) == 1 and int(model.sp.total_steps) == 2
-    assert (tmp_path / "exp" / f"sp-{method}" / "run" / "sdfstudio_models" / "step-000000001.ckpt").is_file()
+    assert calls >= 2, f"SP perturbed {calls} field queries in the 2 steps with alpha > 0"
+    assert int(model.sp.step) == 2 and int(model.sp.total_steps) == 3 and model.sp.alpha == 0
+    assert (tmp_path / "exp" / f"sp-{method}" / "run" / "sdfstudio_models" / "step-000000002.ckpt").is_file()
     OUTCOMES[method] = f"trains with SP (`sp-{method}`, {'Neuralangelo preset, coarse-to-fine replaced' if method in CONTROLS_ANGELO else 'NeuS preset'})"
 
 
@@ -127,7 +128,7 @@ def test_cuda_only_sp_method_builds_with_sp(method, sdf_scene, tmp_path, monkeyp
     from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudio
     from nerfstudio.engine.trainer import Trainer
 
-    from sp_plugins.sdfstudio.sdf_field import SPSDFField
+    from sp_plugins.sdfstudio.seam import SPSDFField
 
     plain = SDFStudio._generate_dataparser_outputs
 

@@ -102,8 +102,8 @@ finally:
 
 
 def argv(scene: Path, out: Path, *extra) -> list:
-    """The user's command line (after ``sp-sdfstudio-train``): SP on to the end (alpha > 0 across the
-    kill), checkpoints at K and at the end, all kept, and the learning-rate warm-up (5000 steps in
+    """The user's command line (after ``sp-sdfstudio-train``): SP on until the last step (alpha > 0
+    across the kill), checkpoints at K and at the end, all kept, and the learning-rate warm-up (5000 steps in
     sp-neus) over by step 2, as in a real run resumed after it: the checkpoint's learning rates are
     then numpy float64 (sdfstudio's NeuSScheduler), which torch >= 2.6 refused to load until
     ``sp_plugins.patches.sdfstudio_checkpoint_load``."""
@@ -248,7 +248,8 @@ def test_killed_sp_neus_resumes_to_the_same_schedule_and_sp_stream_and_drifts_on
     full, full_record = sdf_train(full_config)
     assert full_record.pop("setup") == {"step": 0, "alpha": full_record[0]["alpha"], "total": STEPS}
     assert sorted(full_record) == list(range(STEPS))
-    assert full_record[STEPS - 1]["alpha"] > 0  # SP is on across the kill
+    # SP is on across the kill and ends at the last step (end 1.0)
+    assert all(full_record[s]["alpha"] > 0 for s in range(STEPS - 1)) and full_record[STEPS - 1]["alpha"] == 0
 
     # 1. the checkpoint at K: the same to the bit (pipeline incl. the SP generator state, optimizers, schedulers)
     at_k, killed_k = checkpoint(run_dir(tmp_path / "full", METHOD), KILL_AT), checkpoint(killed_run, KILL_AT)

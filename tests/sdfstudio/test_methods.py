@@ -3,6 +3,7 @@ equal to sdfstudio's own method configs except for the SP classes and settings."
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -59,11 +60,75 @@ def test_the_named_methods_are_the_generic_conversion(base):
     import nerfstudio.configs.method_configs as host
 
     from sp_plugins.sdfstudio.registration import discover
-    from sp_plugins.sdfstudio.sdf_methods import with_sp
+    from sp_plugins.sdfstudio.registration import with_sp
 
     named = discover()[f"sp-{base}"]
     assert named.config == with_sp(host.method_configs[base]).config
     assert host.method_configs[f"sp-{base}"] is named.config
+
+
+def test_with_sp_on_a_method_that_is_ours_switches_sp_on():
+    """As nerfstudio's ``with_sp``: ours comes back with SP enabled, an explicit ``sp`` wins, the
+    name, classes and alpha-grid optimizer entry follow."""
+    import nerfstudio.configs.method_configs as host
+
+    from sp_plugins.adapter import presets
+    from sp_plugins.sdfstudio.registration import MethodSpecification, discover, with_sp
+
+    named = discover()["sp-neus"]
+    config = copy.deepcopy(named.config)
+    config.pipeline.model.sp = dataclasses.replace(config.pipeline.model.sp, enabled=False, alpha0=0.02)
+    off = MethodSpecification(config=config, description=named.description)
+    on = with_sp(off)
+    assert on.config.method_name == "sp-neus" and on.description == named.description
+    assert type(on.config.pipeline.model) is type(named.config.pipeline.model)
+    assert on.config.pipeline.model.sp == dataclasses.replace(off.config.pipeline.model.sp, enabled=True)
+    assert not off.config.pipeline.model.sp.enabled  # the argument is not modified
+    mine = dataclasses.replace(presets.NEURALANGELO, alpha_grid=True, alpha_grid_lr=0.5)
+    explicit = with_sp(host.method_configs["sp-neus"], mine, name="sp-neus-grid")
+    assert explicit.config.pipeline.model.sp == mine and explicit.config.method_name == "sp-neus-grid"
+    assert explicit.config.optimizers["sp_alpha_grid"]["optimizer"].lr == 0.5
+
+
+def test_with_sp_refuses_in_one_line_naming_the_method_and_why():
+    import nerfstudio.configs.method_configs as host
+
+    from sp_plugins.sdfstudio.registration import REFUSED_MODELS, refusal, with_sp
+
+    assert all(path.count(".") >= 2 and reason for path, reason in REFUSED_MODELS.items())  # class path -> reason
+    for method in ("dto", "nerfacto"):
+        reason = refusal(host.method_configs[method])
+        assert reason
+        with pytest.raises(ValueError) as err:
+            with_sp(host.method_configs[method])
+        assert str(err.value) == f"SP cannot be put on {method}: {reason}"
+    assert refusal(host.method_configs["dto"]) == REFUSED_MODELS["nerfstudio.models.dto.DtoOModel"]
+    assert refusal(host.method_configs["neus"]) is None and refusal(host.method_configs["sp-neus"]) is None
+
+
+def test_both_hosts_have_the_same_adapter_names():
+    """The adapter shape (ARCHITECTURE.md): a reader of one host's adapter finds the other's by the
+    same module and function names (read from the sources: the two hosts never share a process)."""
+    import ast
+    from pathlib import Path
+
+    import sp_plugins
+
+    root = Path(sp_plugins.__file__).parent
+
+    def names(host: str, module: str) -> set:
+        tree = ast.parse((root / host / f"{module}.py").read_text())
+        found = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+        for n in tree.body:
+            targets = n.targets if isinstance(n, ast.Assign) else [n.target] if isinstance(n, ast.AnnAssign) else []
+            found |= {t.id for t in targets if isinstance(t, ast.Name)}
+        return found
+
+    shared = {"with_sp", "refusal", "REFUSED_MODELS", "preset_for", "sp_methods"}
+    for host in ("nerfstudio", "sdfstudio"):
+        assert shared <= names(host, "registration"), host
+        assert "SPModel" in names(host, "model") and (root / host / "seam.py").is_file(), host
+    assert not (root / "sdfstudio" / "sdf_field.py").exists()
 
 
 def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):

@@ -17,7 +17,7 @@ ALPHA = 0.05
 def tiny_field(numerical: bool, **changes):
     from nerfstudio.field_components.spatial_distortions import SceneContraction
 
-    from sp_plugins.sdfstudio.sdf_field import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
 
     config = SPSDFFieldConfig(
         use_grid_feature=True, num_layers=2, hidden_dim=32, geo_feat_dim=15, num_layers_color=2, hidden_dim_color=32,
@@ -30,7 +30,7 @@ def tiny_field(numerical: bool, **changes):
 
 def preconditioner():
     from sp_plugins.core import SPConfig
-    from sp_plugins.sdfstudio.sdf_field import CONTRACTED_BOUNDS
+    from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
 
     sp = SPConfig(alpha0=ALPHA, schedule="constant", seed=0).setup(bounds=CONTRACTED_BOUNDS)
     sp.set_step(0)

@@ -1,18 +1,19 @@
-"""sdfstudio's ``SDFField`` with the stochastic-preconditioning hook (sdfstudio commit 370902a).
+"""The one seam of the sdfstudio adapter: the SDF field's scene contraction (sdfstudio 370902a).
 
-Where SP enters (while training and alpha > 0; otherwise the plain field):
+Why here: sdfstudio's ``SDFField.get_outputs`` (the query that renders and that every loss reads)
+maps its sample positions through the field's ``spatial_distortion`` before anything else, and
+then does everything at the result: SDF, geometry feature, the autograd gradient *with respect to
+that tensor*, the 6-point numerical stencil around it (``gradient(..., skip_spatial_distortion=True)``),
+colour and ``points_norm``. So making that mapping ``sp(contraction(x))`` (:class:`PerturbedContraction`
+inside :class:`SPSDFField`) perturbs every sample once, takes the normal where the field was queried,
+and gives all six stencil points one offset, for every sdfstudio SDF method, without copying or
+wrapping sdfstudio's ``get_outputs``. The nerfstudio counterpart is
+:mod:`sp_plugins.nerfstudio.seam` (moved ``RaySamples`` handed to every field a model calls with them):
+nerfstudio's fields share no contraction, sdfstudio's SDF methods all share this field.
 
-- ``SDFField.get_outputs`` (the query every loss reads) maps the sample positions through the
-  field's ``spatial_distortion`` (the scene contraction) and then does everything at the
-  result: SDF, geometry feature, the autograd gradient *with respect to that tensor*, the
-  6-point numerical stencil around it (``gradient(..., skip_spatial_distortion=True)``), colour
-  and ``points_norm``. :class:`SPSDFField` makes that mapping ``sp(contraction(x))``
-  (:class:`PerturbedContraction`): every sample is perturbed once, the normal is the field's
-  own slope where it was queried, and all six stencil points share that one offset, without
-  copying or wrapping sdfstudio's ``get_outputs``.
 - The perturbation lives in the contracted frame, reflected into the contraction's range
   ``[-2, 2]^3`` (the hash grid's domain); inside the unit box the contraction is the identity,
-  so ``alpha`` is in scene units there.
+  so ``alpha`` is in scene units there. It acts only while training with alpha > 0.
 - ``get_sdf`` (NeuS up-sampling, under no_grad) and ``get_density`` (VolSDF's sampler) only place
   samples: they see the plain field by default, as in our nerfstudio adapter (one perturbed draw
   would jitter the placement without blurring it in expectation). ``perturb_sampler_queries``
