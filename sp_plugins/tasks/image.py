@@ -284,10 +284,12 @@ class ImageFitTrainer(ResumableTrainer):
                                            parameterization=sp_config.alpha_grid_parameterization).to(self.device)
             groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": config.alpha_map_lr})
             end = self.sp.schedule.end_step
-            if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps):
+            # an end at the last step (end 1.0: SP off for that step only) leaves phase 2 no room either
+            if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps - 1):
                 raise ValueError(
                     "--importance-sampling / --level-masking start when SP ends, but the SP schedule "
-                    f"({sp_config.schedule}, end={sp_config.end}) never ends before step {config.steps}: give --sp.end < 1"
+                    f"({sp_config.schedule}, end={sp_config.end}) never ends before the last step ({config.steps - 1}): "
+                    "give --sp.end < 1"
                 )
         # fused: about 5-10x faster on a CPU for a 2^17+ table (bench/hashgrid_speed.py)
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
