@@ -41,7 +41,8 @@ class ToySDFModel(ToyModel):
 
     def get_outputs(self, ray_bundle):
         outputs = super().get_outputs(ray_bundle)
-        outputs["eikonal"] = ((self._last[FieldHeadNames.GRADIENT].norm(dim=-1) - 1) ** 2).mean()
+        if self.training:  # a scalar: evaluation concatenates per-chunk outputs
+            outputs["eikonal"] = ((self._last[FieldHeadNames.GRADIENT].norm(dim=-1) - 1) ** 2).mean()
         return outputs
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
