@@ -9,7 +9,7 @@ dict keys stay the host's.
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Set, TypeVar
+from typing import Any, Callable, Optional, Set, TypeVar
 
 from sp_plugins.core import StochasticPreconditioner
 
@@ -19,7 +19,7 @@ T = TypeVar("T")
 class PreconditionerHandle:
     """A reference to a model's preconditioner that ``nn.Module`` does not register."""
 
-    __slots__ = ("sp", "perturbed_calls", "reads")
+    __slots__ = ("sp", "perturbed_calls", "reads", "first_move")
 
     def __init__(self, sp: Optional[StochasticPreconditioner]) -> None:
         self.sp = sp
@@ -27,6 +27,8 @@ class PreconditionerHandle:
         """Field queries that were perturbed (the model checks SP reached a field while training)."""
         self.reads: Set[str] = set()
         """What the field read of the moved samples it was handed (a host seam fills it)."""
+        self.first_move: Optional[Any] = None
+        """The largest move of the first moved samples, a device scalar: read once, by the reach check."""
 
     def __repr__(self) -> str:
         return (f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls}, "

@@ -143,7 +143,10 @@ class SeamField(SPFieldMixin):
         at_start = isinstance(self, SDFField)
 
         def one_draw() -> Any:
-            moved_args, moved_kwargs = _with_samples(args, kwargs, where, perturbed_samples(samples, sp, at_start))
+            moved = perturbed_samples(samples, sp, at_start)
+            if handle.first_move is None:  # once per run, device-side: the reach check reads it
+                handle.first_move = (moved.frustums.origins - samples.frustums.origins).detach().abs().max()
+            moved_args, moved_kwargs = _with_samples(args, kwargs, where, moved)
             token = _READS.set(handle.reads)
             try:
                 return host_forward(*moved_args, **moved_kwargs)
@@ -218,15 +221,22 @@ _VARIANTS = "sp_plugins.nerfstudio.variants"
 
 
 def check_reached(model: nn.Module, model_name: str, step: int, boundary: str = "none") -> None:
-    """After the first training step with alpha > 0: every field handed moved samples read their
-    positions, and at least one field was handed them; a box ``boundary`` is refused on a field that
-    contracts space (other than an SDF, which lives in the box). Counters only: no device sync."""
+    """After the first training step with alpha > 0: at least one field was handed moved samples,
+    they really moved, and every field handed them read their positions; a box ``boundary`` is
+    refused on a field that contracts space (other than an SDF, which lives in the box). Runs once
+    per run; one device read (the first move)."""
     fields = seam_fields(model)
     called = [(name, f) for name, f in fields if f.sp_handle is not None and f.sp_handle.perturbed_calls > 0]
     if not called:
         raise InputError(
             f"SP reached no field of {model_name} in training step {step}: no field was called with RaySamples "
             "(fields queried only through positions or density_fn stay plain); SP does not apply to this method"
+        )
+    moved = [float(f.sp_handle.first_move) for _, f in called if f.sp_handle.first_move is not None]  # type: ignore[union-attr]
+    if not any(m > 0 for m in moved):
+        raise InputError(
+            f"SP reached the fields of {model_name} in training step {step} but moved no sample (largest move "
+            f"{max(moved, default=0.0):g}): the perturbation is not applied; this is a bug of sp-plugins, please report it"
         )
     for name, f in called:
         if boundary != "none" and getattr(f, "spatial_distortion", None) is not None and not isinstance(f, SDFField):

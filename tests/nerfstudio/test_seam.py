@@ -224,3 +224,15 @@ def test_resume_restores_the_sp_state(tiny_scene, tmp_path):
     field = second.pipeline.model.field_fine
     assert isinstance(field, SeamField) and isinstance(field, NeRFField) and field.sp is sp
     assert not any("_sp" in k for k in loaded["pipeline"] if "field_fine" in k)
+
+
+def test_samples_handed_over_unmoved_stop_the_run(monkeypatch):
+    """If the offset were drawn but never applied, the reach check says so instead of a silent run."""
+    model = Holder()
+    sp = preconditioner(alpha=1e-2, boundary="none")
+    attach_seam(model, sp)
+    monkeypatch.setattr(type(sp), "forward", lambda self, x: x)  # the mutation: positions come back as they went in
+    model.field.forward(samples())
+    assert "origins" in model.field.sp_handle.reads
+    with pytest.raises(InputError, match=r"SP reached the fields of Holder in training step 3 but moved no sample"):
+        check_reached(model, "Holder", 3)
