@@ -16,17 +16,31 @@ StencilKind = Literal["6pt", "4pt"]
 STENCIL_KINDS: tuple[str, ...] = ("6pt", "4pt")
 
 
+_OFFSETS: dict = {}
+
+
 def stencil_offsets(kind: StencilKind, *, device=None, dtype=None) -> Float[Tensor, "points 3"]:
     """Unit offsets: ``6pt`` is +-e_i (central differences); ``4pt`` the vertices of a regular
-    tetrahedron (+-1, +-1, +-1) with an even number of minus signs (length sqrt(3))."""
-    if kind == "6pt":
-        eye = torch.eye(3, device=device, dtype=dtype)
-        return torch.cat([eye, -eye])
-    if kind == "4pt":
-        return torch.tensor(
-            [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]], device=device, dtype=dtype
-        )
-    raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
+    tetrahedron (+-1, +-1, +-1) with an even number of minus signs (length sqrt(3)).
+
+    Made once per (kind, device, dtype) and shared (read-only): ``torch.tensor(list, device=cuda)``
+    is a blocking host-to-device copy, which a training step must not pay per call."""
+    key = (kind, None if device is None else torch.device(device), dtype)
+    cached = _OFFSETS.get(key)
+    if cached is not None:
+        return cached
+    with torch.inference_mode(False):  # a cached inference tensor could not be saved for backward later
+        if kind == "6pt":
+            eye = torch.eye(3, device=device, dtype=dtype)
+            cached = torch.cat([eye, -eye])
+        elif kind == "4pt":
+            cached = torch.tensor(
+                [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]], device=device, dtype=dtype
+            )
+        else:
+            raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
+    _OFFSETS[key] = cached
+    return cached
 
 
 def stencil_points(

@@ -52,3 +52,16 @@ def test_stencil_around_a_perturbed_centre_shares_one_offset():
 def test_unknown_stencil_is_rejected():
     with pytest.raises(ValueError, match="stencil"):
         stencil_offsets("5pt")
+
+
+def test_offsets_are_made_once_per_device_and_dtype(monkeypatch):
+    """``torch.tensor(list, device=cuda)`` is a blocking host-to-device copy: not once per call."""
+    first = stencil_offsets("4pt", dtype=torch.float64)
+    made = []
+    real = torch.tensor
+    monkeypatch.setattr(torch, "tensor", lambda *a, **k: made.append(a) or real(*a, **k))
+    assert stencil_offsets("4pt", dtype=torch.float64) is first
+    with torch.inference_mode():
+        inside = stencil_offsets("4pt", dtype=torch.float16)
+    assert not inside.is_inference()  # a tensor made under inference mode could not be saved for backward later
+    assert stencil_offsets("4pt", dtype=torch.float16) is inside and len(made) == 1
