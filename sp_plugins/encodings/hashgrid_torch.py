@@ -173,18 +173,32 @@ def _scalar_view(table: Tensor) -> Optional[Tensor]:
 
 # devices with a native embedding_bag; elsewhere (e.g. MPS) the forward gathers, then sums
 EMBEDDING_BAG_DEVICES = {"cpu", "cuda"}
+# devices whose index_select / index_add_ take int32 indices as they are (elsewhere: an int64 copy)
+INT32_INDEX_DEVICES = {"cpu", "cuda"}
+
+
+def _index(rows: Tensor, add_rows: bool = False) -> Tensor:
+    """``rows`` flattened, int32 where the device's gather / scatter take it: no copy. The one
+    exception is the CPU's ``index_add_`` of whole rows (``add_rows``), 3-5x slower with an int32
+    index than with int64 (measured, torch 2.14: a 1-D scatter or a gather is as fast or faster)."""
+    flat = rows.reshape(-1)
+    if flat.device.type not in INT32_INDEX_DEVICES or (add_rows and flat.device.type == "cpu"):
+        return flat.long()
+    return flat
 
 
 def _interp_kernel(table: Tensor, w: Tensor, rows: Tensor) -> Tensor:
     """``embedding_bag`` is exactly a gather fused with a weighted sum: one pass, no temporaries
-    beyond the corner-last copies of ``rows`` and ``w`` it needs."""
+    beyond the corner-last copies of ``rows`` and ``w`` it needs. Its inputs are detached (this
+    runs inside an autograd Function): a table that requires grad would send it down its training
+    path, which also writes per-index bookkeeping (``offset2bag``) for a backward we never call."""
     n_levels, n_corners, n = w.shape
     if table.device.type not in EMBEDDING_BAG_DEVICES:
-        values = table.index_select(0, rows.reshape(-1).long()).view(n_levels, n_corners, n, -1)
+        values = table.index_select(0, _index(rows)).view(n_levels, n_corners, n, -1)
         return torch.sum(values * w[..., None], 1).transpose(0, 1)
     bags = rows.transpose(1, 2).reshape(-1, n_corners)
-    weights = w.transpose(1, 2).reshape(-1, n_corners)
-    out = F.embedding_bag(bags, table, per_sample_weights=weights, mode="sum")  # [L * N, F]
+    weights = w.detach().transpose(1, 2).reshape(-1, n_corners)
+    out = F.embedding_bag(bags, table.detach(), per_sample_weights=weights, mode="sum")  # [L * N, F]
     return out.view(n_levels, n, -1).transpose(0, 1)  # [N, L, F]
 
 
@@ -192,10 +206,10 @@ def _dot_kernel(table: Tensor, g: Tensor, rows: Tensor) -> Tensor:
     n_levels, n_corners, n = rows.shape
     scalars = _scalar_view(table)
     if scalars is None:
-        values = table.index_select(0, rows.reshape(-1).long()).view(n_levels, n_corners, n, -1)
+        values = table.index_select(0, _index(rows)).view(n_levels, n_corners, n, -1)
         return torch.sum(values * g.transpose(0, 1)[:, None], -1)
     planes = g.permute(2, 1, 0).contiguous()  # [F, L, N]: contiguous operands vectorise
-    values = scalars.index_select(0, rows.reshape(-1)).view(n_levels, n_corners, n)
+    values = scalars.index_select(0, _index(rows)).view(n_levels, n_corners, n)
     if not values.is_complex():
         return values * planes[0][:, None]
     # <a, b> over the 2 features = a.re * b.re + a.im * b.im
@@ -210,14 +224,14 @@ def _splat_kernel(w: Tensor, g: Tensor, rows: Tensor, n_rows: int) -> Tensor:
     scalars = _scalar_view(grad)
     if scalars is None:
         src = (w[..., None] * g.transpose(0, 1)[:, None]).reshape(-1, n_features)
-        grad.index_add_(0, rows.reshape(-1).long(), src)
+        grad.index_add_(0, _index(rows, add_rows=True), src)
     elif not scalars.is_complex():
-        scalars.index_add_(0, rows.reshape(-1), (w * g[..., 0].t().contiguous()[:, None]).reshape(-1))
+        scalars.index_add_(0, _index(rows), (w * g[..., 0].t().contiguous()[:, None]).reshape(-1))
     else:
         g_lvl = torch.view_as_complex(g.contiguous()).t().contiguous()  # [L, N]
         src = torch.empty(w.shape, dtype=scalars.dtype, device=w.device).copy_(w)  # contiguous complex
         src.mul_(g_lvl[:, None])
-        scalars.index_add_(0, rows.reshape(-1), src.view(-1))
+        scalars.index_add_(0, _index(rows), src.view(-1))
     return grad
 
 
