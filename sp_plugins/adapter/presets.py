@@ -11,9 +11,15 @@ from sp_plugins.core import SPConfig
 NEUS = SPConfig(alpha0=0.013, end=0.2, schedule="exponential")
 """NeuS, NeuS-hashgrid, neus-facto: alpha0 0.013, exponential to 0 over the first 20k of 100k steps."""
 
-NEURALANGELO = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid_init=0.03, alpha_grid_lr=1e-3)
-"""Neuralangelo, bakedangelo: alpha0 0.03 over the first 150k of 500k steps; or a learnable alpha
-grid initialised to 0.03, Adam lr 1e-3 (``--pipeline.model.sp.alpha-grid True``)."""
+NEURALANGELO = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid_init=0.03, alpha_grid_lr=1e-3,
+                        alpha_grid_mode="replace", alpha_grid_parameterization="log")
+"""Neuralangelo, bakedangelo: alpha0 0.03, exponential to 0 over the first 150k of 500k steps; or
+(``--pipeline.model.sp.alpha-grid True``) the paper's spatially adaptive variant: a learnable alpha
+grid initialised to 0.03, Adam lr 1e-3, *in place of* the annealed scalar for the same first 30%
+(the grid alone, not times the schedule), then SP off. The grid stores log-alpha, so lr 1e-3 is a
+0.1% relative step (about 800 Adam steps to halve a cell; the paper's alpha-stored grid moves
+0.001 in scene units, about 15 steps to halve 0.03): see ``AlphaGrid`` and bench/RESULTS.md,
+"Alpha grid parameterisation (issue 37)"."""
 
 MIPNERF = SPConfig(alpha0=0.04, end=1 / 3, schedule="exponential", boundary="none")
 """Sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500, a third of the sp-mipnerf preset's
