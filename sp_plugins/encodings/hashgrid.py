@@ -92,6 +92,16 @@ def _import_tcnn():
     return tinycudann
 
 
+def on_device(device: Union[str, torch.device]):
+    """``torch.cuda.device(device)`` for a CUDA device, else nothing: tiny-cuda-nn builds its
+    native module and launches its kernels on the *current* CUDA device, so a grid on ``cuda:1``
+    (another DDP rank's GPU) is built and called with that device current."""
+    import contextlib
+
+    device = torch.device(device)
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
 def tcnn_available() -> bool:
     """True when ``tinycudann`` imports and a CUDA device is available."""
     return torch.cuda.is_available() and _import_tcnn() is not None
@@ -274,13 +284,17 @@ class HashGrid(nn.Module):
         ``params`` are ``table.reshape(-1)``."""
         tcnn = _import_tcnn()
         table = self.table
-        encoding = tcnn.Encoding(n_input_dims=self.n_input_dims, encoding_config=self.tcnn_config())
+        device = table.device if device is None else torch.device(device)
+        if device.type == "cuda" and device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+        with on_device(device):
+            encoding = tcnn.Encoding(n_input_dims=self.n_input_dims, encoding_config=self.tcnn_config())
         if encoding.params.numel() != table.numel():
             raise RuntimeError(
                 f"tinycudann made {encoding.params.numel()} grid parameters where tcnn's documented layout gives "
                 f"{table.numel()} ({self.tcnn_config()}): this tiny-cuda-nn version lays the grid out differently"
             )
-        encoding = encoding.to(table.device if device is None else device)
+        encoding = encoding.to(device)
         with torch.no_grad():
             encoding.params.copy_(table.detach())
         self.table = None
@@ -388,7 +402,8 @@ class HashGrid(nn.Module):
         flat = x.reshape(-1, self.n_input_dims)
         n_active = self.active_levels
         if self.tcnn_encoding is not None:
-            out = self.tcnn_encoding(flat).to(x.dtype)
+            with on_device(self.tcnn_encoding.params.device):
+                out = self.tcnn_encoding(flat).to(x.dtype)
             if n_active < self.num_levels:
                 kept = n_active * self.features_per_level
                 out = torch.cat([out[:, :kept], out.new_zeros(out.shape[0], self.n_output_dims - kept)], dim=-1)

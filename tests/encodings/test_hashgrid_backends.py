@@ -231,3 +231,37 @@ def test_an_older_rows_by_features_table_still_loads():
     fresh = HashGrid(**CONFIGS["hash+dense"], backend="torch")
     fresh.load_state_dict(old)
     assert fresh.table.dim() == 1 and torch.equal(fresh.table, grid.table)
+
+
+def test_tcnn_is_built_and_called_under_its_own_device(fake_tcnn, monkeypatch):
+    """tcnn builds and launches on the current CUDA device: a grid on another rank's GPU must make
+    that device current, or its module lands on cuda:0."""
+    import contextlib
+
+    current = []
+
+    @contextlib.contextmanager
+    def recording(device):
+        current.append(torch.device(device))
+        yield
+        current.pop()
+
+    seen = []
+
+    class Recorder(TcnnLayoutEncoding):
+        def __init__(self, *args, **kwargs):
+            seen.append(("built", list(current)))
+            super().__init__(*args, **kwargs)
+
+        def forward(self, x):
+            seen.append(("called", list(current)))
+            return super().forward(x)
+
+    real = hashgrid_module.on_device
+    fake_tcnn.Encoding = Recorder
+    monkeypatch.setattr(hashgrid_module, "on_device", recording)
+    grid = HashGrid(**CONFIGS["hash+dense"], backend="auto")
+    grid(torch.rand(8, 3))
+    assert seen == [("built", [torch.device("cpu")]), ("called", [torch.device("cpu")])]
+    on_gpu1 = real(torch.device("cuda", 1))  # not entered: no GPU here
+    assert isinstance(on_gpu1, torch.cuda.device) and on_gpu1.idx == 1
