@@ -12,6 +12,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from sp_plugins.core.boundary import BoundsLike, as_bounds
+from sp_plugins.encodings.grid_sample import grid_sample
 
 AlphaGridParameterization = Literal["log", "alpha", "softplus"]
 ALPHA_GRID_PARAMETERIZATIONS: tuple[str, ...] = ("log", "alpha", "softplus")
@@ -53,15 +54,18 @@ class AlphaGrid(nn.Module):
     ``x + alpha(x) * eps`` and the task loss back-propagates into the grid. Where blurring hurts
     (fine detail) the loss pushes alpha down; where the target is smooth it barely moves.
 
-    Parameterisation (what Adam moves; ``bench/RESULTS.md``, "Alpha grid parameterisation
-    (issue 37)"): ``log`` (default) stores log-alpha, so a step of lr changes alpha by a factor
-    ``e^lr`` whatever its scale: one learning rate serves a scene in metres and an image in [0, 1],
-    and alpha never reaches 0 or turns negative. ``alpha`` stores alpha itself (the paper's words;
-    clamped at 0 when read): a step moves it by about lr in scene units, so lr must scale with the
-    initial alpha (1e-3 halves 0.03 in about 15 Adam steps, and an lr of 1e-2 empties a 0.01 map in
-    one). ``softplus`` (sp-plugins <= 0.1.0) behaves like ``log`` below alpha ~ 1 with a smaller
-    step: it needed about 800 Adam steps at lr 1e-3 to halve 0.03. Measured on ``sp-fit image``,
-    log-alpha at lr 1e-2 gives the clearest level-of-detail map within the SP phase.
+    Parameterisation (what Adam moves; measured in ``bench/RESULTS.md``, "Alpha grid
+    parameterisation (issue 37)"): ``log`` (default) stores log-alpha. Chosen because (1) a step of
+    lr changes alpha by a factor of about ``e^lr`` whatever its scale, so one learning rate serves a
+    scene in metres and an image in [0, 1]; (2) alpha never reaches 0, so no cell stops learning;
+    (3) on ``sp-fit image`` (256 px, map at 1/16) it gave the clearest level-of-detail map: rank
+    correlation of alpha with the image gradient -0.84 after 250 SP steps at lr 1e-2, against
+    -0.47 for alpha stored directly at lr 1e-3, which had put 92% of the cells at exactly 0 (a
+    clamped cell gets no gradient). ``alpha`` stores alpha itself (the paper's words; clamped at 0
+    when read): a step moves it by about lr in scene units (lr 1e-3 halves 0.03 in 15 Adam steps),
+    so lr must scale with the initial alpha. ``softplus`` (sp-plugins 0.1.0) is log-alpha in all but
+    name below alpha ~ 0.1 (the same maps, the same ~800 steps at lr 1e-3 to halve 0.03): the slow
+    grid of 0.1.0 came from lr 1e-3, not from softplus.
 
     Checkpoints name their parameterisation by key (``log_alpha``, ``alpha``, ``logits`` for
     softplus): a grid loads any of them, converted through alpha.
@@ -117,7 +121,7 @@ class AlphaGrid(nn.Module):
         raw = self.param
         u = (x.reshape(-1, self.dim).to(raw.dtype) - self.lo) / (self.hi - self.lo) * 2.0 - 1.0
         u = u.view(1, *([1] * (self.dim - 1)), -1, self.dim)
-        sampled = F.grid_sample(raw, u, mode="bilinear", padding_mode="border", align_corners=True)
+        sampled = grid_sample(raw, u, padding_mode="border", align_corners=True)  # deterministic mode: by gathers on CUDA
         alpha = _to_alpha(self.parameterization, sampled.reshape(*batch, 1))
         return alpha.to(torch.promote_types(x.dtype, raw.dtype))
 
@@ -164,7 +168,8 @@ class AlphaGrid(nn.Module):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(5, 5 * v.shape[0] / v.shape[1] + 0.5))
+        aspect = min(max(v.shape[0] / v.shape[1], 0.1), 10.0)  # a 8x25611 image's map: no 16000-inch figure
+        fig, ax = plt.subplots(figsize=(5, 5 * aspect + 0.5))
         im = ax.imshow(v, cmap="magma", vmin=0.0, vmax=vmax)
         ax.set_axis_off()
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="alpha")
