@@ -32,6 +32,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from torch import Tensor, nn
 
+from sp_plugins.encodings.grid_sample import grid_sample
 
 
 ColorMode = Literal["sh", "rgb"]
@@ -138,8 +139,7 @@ class ReLUField(Field):
         """Trilinear interpolation of every channel at ``x`` (zero outside the box)."""
         lo, hi = self.aabb[0], self.aabb[1]
         u = ((x - lo) / (hi - lo)) * 2.0 - 1.0
-        out = F.grid_sample(self.grid, u.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="zeros",
-                            align_corners=self.align_corners)
+        out = grid_sample(self.grid, u.view(1, 1, 1, -1, 3), padding_mode="zeros", align_corners=self.align_corners)  # deterministic mode: by gathers on CUDA
         return out.view(self.grid.shape[1], -1).t()
 
     def get_density(self, ray_samples: RaySamples) -> Tuple[Tensor, Tensor]:
