@@ -26,9 +26,10 @@ def build_model(variant: str, seed: int = 0):
     from nerfstudio.data.scene_box import SceneBox
 
     from sp_plugins.nerfstudio.host import hash_encoding
-    from sp_plugins.nerfstudio.radiance_models import SPNerfactoModelConfig
+    from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModelConfig
+    from sp_plugins.nerfstudio.variants import variant
 
-    config = SPNerfactoModelConfig(implementation="torch")
+    config = variant("ModelConfig", NerfactoHashGridModelConfig)(implementation="torch")
     config.sp.enabled = False
     config.camera_optimizer.mode = "off"
     box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))

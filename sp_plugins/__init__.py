@@ -7,5 +7,5 @@ The public API is deliberately small::
 
 from sp_plugins.core import AlphaGrid, AlphaSchedule, SPConfig, StochasticPreconditioner, perturb
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 __all__ = ["AlphaGrid", "AlphaSchedule", "SPConfig", "StochasticPreconditioner", "perturb", "__version__"]

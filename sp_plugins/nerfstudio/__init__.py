@@ -15,8 +15,7 @@ One shape, as in ``sp_plugins.sdfstudio``, on the host-neutral base ``sp_plugins
 
 Not SP, in their own sub-packages: :mod:`~sp_plugins.nerfstudio.relu_field` (a method of ours) and
 :mod:`~sp_plugins.nerfstudio.host` (data checks, the tcnn fallback, float schedulers, offline
-LPIPS). ``data``, ``schedulers``, ``relu_field_model`` and ``relu_field_lr`` at this level are
-former paths kept for saved ``config.yml`` files. Importing this package imports no host module.
+LPIPS). Importing this package imports no host module.
 """
 
 from sp_plugins.nerfstudio.registration import with_sp

@@ -1,13 +1,9 @@
-"""MipNeRF at a configurable size, and the names sp-vanilla-nerf / sp-nerfacto / sp-tensorf had.
+"""MipNeRF at a configurable size.
 
 - :class:`SPMipNerfModel`: nerfstudio's MipNeRF (the paper's sparse-view setting) whose base MLP can
   be made smaller for CPU-sized runs. SP reaches it through the one seam like any method: the moved
   origins move each conical frustum's Gaussian mean and keep its covariance, so the integrated
   encoding still low-passes what the footprint cannot resolve.
-- ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf`` are the generic route (``with_sp``) on the
-  host's model with their presets (:mod:`sp_plugins.nerfstudio.radiance_methods`); the class names
-  they used before are kept here as aliases of the generic variants, so their saved ``config.yml``
-  files load.
 """
 
 from __future__ import annotations
@@ -66,16 +62,3 @@ class SPMipNerfModel(SPModel, MipNerfModel):
                 skip_connections=(c.mlp_num_layers // 2,) if c.mlp_num_layers > 2 else (),
                 use_integrated_encoding=True,
             )
-
-
-# Names of the hand-built classes that sp-vanilla-nerf, sp-nerfacto and sp-tensorf used before they
-# became instances of the generic route (issue 20): config.yml files written then name them.
-def _alias(host_config: type, host_model: type) -> tuple:
-    from sp_plugins.nerfstudio.variants import variant
-
-    return variant("ModelConfig", host_config), variant("Model", host_model)
-
-
-SPNeRFModelConfig, SPNeRFModel = _alias(VanillaModelConfig, NeRFModel)
-SPNerfactoModelConfig, SPNerfactoModel = _alias(NerfactoHashGridModelConfig, NerfactoHashGridModel)
-SPTensoRFModelConfig, SPTensoRFModel = _alias(TensoRFModelConfig, TensoRFModel)

@@ -292,22 +292,6 @@ def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(meth
     assert list(config.get_checkpoint_dir().glob("*.ckpt"))
 
 
-def test_config_yml_of_the_former_hand_built_classes_still_loads():
-    """sp-nerfacto / sp-vanilla-nerf / sp-tensorf are the generic route now; a config.yml written
-    with their former class names loads as the generic variants (same fields, same host modules)."""
-    from nerfstudio.models.tensorf import TensoRFModel
-
-    from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModel
-
-    for name, host, extra in (("SPNerfactoModel", NerfactoHashGridModel, "num_nerf_samples_per_ray: 12"),
-                              ("SPTensoRFModel", TensoRFModel, "num_samples: 12")):
-        text = (f"!!python/object:sp_plugins.nerfstudio.radiance_models.{name}Config\n"
-                f"_target: !!python/name:sp_plugins.nerfstudio.radiance_models.{name} ''\n{extra}\n")
-        config = yaml.load(text, Loader=yaml.Loader)
-        assert type(config).__name__.startswith("SPModelConfig__") and issubclass(config._target, host)
-        assert config._target.__name__.startswith("SPModel__") and getattr(config, extra.split(":")[0]) == 12
-
-
 def test_depth_nerfacto_builds_with_sp_on_its_main_field():
     """depth-nerfacto needs depth images (or downloads a depth model) to train; its SP model builds
     and reaches the main field as nerfacto's does."""

@@ -1,4 +1,0 @@
-"""Former path of :mod:`sp_plugins.nerfstudio.host.data`, kept because ``config.yml`` files written
-before it moved name its classes here (they load unchanged)."""
-
-from sp_plugins.nerfstudio.host.data import *  # noqa: F401,F403
