@@ -139,9 +139,9 @@ def test_phase2_starts_when_sp_ends_and_guides_sampling_and_levels():
     trainer = config.setup(img)
     for _ in range(100):
         trainer.step()
-    assert trainer.phase2_step is None and trainer.sp.alpha_grid.logits.requires_grad
+    assert trainer.phase2_step is None and trainer.sp.alpha_grid.param.requires_grad
     trainer.step()  # step 100: the step schedule is 0 from here
-    assert trainer.phase2_step == 100 and not trainer.sp.alpha_grid.logits.requires_grad
+    assert trainer.phase2_step == 100 and not trainer.sp.alpha_grid.param.requires_grad
     frozen = trainer.sp.alpha_grid.values().clone()
     # more draws on the detailed (right) half, where the map learned low alpha
     idx = draw_pixels(trainer._pixel_cdf, 20_000, torch.Generator().manual_seed(1))
