@@ -20,9 +20,13 @@ BEGIN, END = "<!-- sp-defaults:begin -->", "<!-- sp-defaults:end -->"
 
 
 def _end(end: float, steps: int) -> str:
+    """Where alpha reaches 0, as :meth:`AlphaSchedule.resolve` puts it (never after the last step)."""
+    from sp_plugins.core import AlphaSchedule
+
+    step = AlphaSchedule.resolve("exponential", 1.0, end=end, total_steps=steps).end_step
     if end <= 1:
-        return f"{end:.3g} ({round(end * steps):,} of {steps:,} steps)"
-    return f"step {int(end):,} of {steps:,}"
+        return f"{end:.3g} ({step:,} of {steps:,} steps)"
+    return f"step {step:,} of {steps:,}"
 
 
 def _row(name: str, sp, steps: int) -> str:
