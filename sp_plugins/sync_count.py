@@ -20,6 +20,10 @@ API::
     counter.ops                                 # {"path:line": {"aten._local_scalar_dense": n, ...}}
     counter.ours()                              # the sites inside sp_plugins (and method_configs, patches)
     counter.report()                            # one line per site, most frequent first
+    SyncCounter(devices={"cuda"})               # on a GPU run: only ops on CUDA tensors (a CPU
+                                                # scalar's .item() does not stall the stream)
+    site_of("/abs/path/file.py", 12)            # ("sp_plugins/...:12", True): a warning's frame as a
+                                                # site (torch.cuda.set_sync_debug_mode's warnings)
 
 A site is ``path:line`` of the innermost frame inside ``sp_plugins`` (its ``method_configs`` and
 ``patches`` included), the path from the package's parent (``sp_plugins/tasks/image.py:358``); an
@@ -105,10 +109,17 @@ def _is_bool_index(indices: Any) -> bool:
     )
 
 
+def _on(devices: Optional[frozenset], args, kwargs) -> bool:
+    """Whether an op touches a tensor on one of ``devices`` (None: any device but meta)."""
+    tensors = [a for a in (*args, *kwargs.values()) if isinstance(a, torch.Tensor)]
+    tensors += [t for a in args if isinstance(a, (list, tuple)) for t in a if isinstance(t, torch.Tensor)]
+    if devices is None:
+        return not tensors or any(t.device.type != "meta" for t in tensors)
+    return any(t.device.type in devices for t in tensors)
+
+
 def _syncs(func, args, kwargs) -> bool:
     packet = getattr(func, "overloadpacket", func)
-    if args and isinstance(args[0], torch.Tensor) and args[0].device.type == "meta":
-        return False
     if packet in SYNC_OPS:
         return True
     if packet in _INDEX_OPS:
@@ -122,8 +133,9 @@ class SyncCounter(TorchDispatchMode):
     """Counts stalling ops per call site while active (a context manager; nestable with other
     modes). ``counts`` / ``ops`` are filled as ops run; see the module docstring."""
 
-    def __init__(self) -> None:
+    def __init__(self, devices: Optional[Any] = None) -> None:
         super().__init__()
+        self.devices = frozenset(devices) if devices is not None else None
         self.counts: Counter = Counter()
         self.ops: Dict[str, Counter] = defaultdict(Counter)
         self._roots = _our_roots()
@@ -160,7 +172,7 @@ class SyncCounter(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if _syncs(func, args, kwargs):
+        if _syncs(func, args, kwargs) and _on(self.devices, args, kwargs):
             self.record(f"aten.{func.overloadpacket.__name__}")
         return func(*args, **kwargs)
 
@@ -173,7 +185,7 @@ class SyncCounter(TorchDispatchMode):
             original = getattr(torch.Tensor, name)
 
             def reader(self, *args, **kwargs):
-                if when(self, *args, **kwargs) and self.device.type != "meta":
+                if when(self, *args, **kwargs) and _on(counter.devices, (self,), {}):
                     counter.record(f"Tensor.{name}")
                 return original(self, *args, **kwargs)
 
@@ -218,6 +230,13 @@ class SyncCounter(TorchDispatchMode):
             f"{n:5d}  {site}  ({', '.join(f'{op} x{k}' for op, k in self.ops[site].most_common())})"
             for site, n in sorted(rows.items(), key=lambda kv: (-kv[1], kv[0]))
         )
+
+
+def site_of(filename: str, lineno: int) -> tuple[str, bool]:
+    """``(site, ours)`` for a source position, named as :class:`SyncCounter` names its sites."""
+    roots = _our_roots()
+    path = os.path.abspath(filename)
+    return f"{_display(path, roots)}:{lineno}", path.startswith(roots)
 
 
 def count_syncs(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Dict[str, int]:
