@@ -13,12 +13,10 @@ from dataclasses import dataclass, field
 from typing import Type
 
 from nerfstudio.models.mipnerf import MipNerfModel
-from nerfstudio.models.tensorf import TensoRFModel, TensoRFModelConfig
-from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
+from nerfstudio.models.vanilla_nerf import VanillaModelConfig
 
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModel, NerfactoHashGridModelConfig
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
 MIPNERF_SP = presets.MIPNERF

@@ -40,14 +40,12 @@ import inspect
 from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Set, Tuple
 
-import torch
 import torch.nn.functional as F
-from jaxtyping import Float
 from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from nerfstudio.fields.sdf_field import SDFField
-from torch import Tensor, nn
+from torch import nn
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import SPFieldMixin

@@ -268,7 +268,7 @@ def test_killed_run_resumes_to_the_same_schedule_and_sp_state_and_drifts_only_by
         assert user_record[step]["alpha"] == full_record[step]["alpha"], step
         for key in schedule_keys & set(full_record[step]["metrics"]):
             assert user_record[step]["metrics"][key] == full_record[step]["metrics"][key], (step, key)
-    assert full_record[STEPS - 1]["alpha"] > 0  # SP is on across the kill
+    assert full_record[STEPS - 2]["alpha"] > 0 and full_record[STEPS - 1]["alpha"] == 0  # SP on across the kill; end 1.0: the last step is plain
     # the resumed run continues the noise stream where it stopped (later states need not match: how
     # many draws a step takes can depend on its rays, e.g. the samples kept inside the sphere)
     assert_same(user_record[KILL_AT + 1]["sp_state"], full_record[KILL_AT + 1]["sp_state"], "sp generator at K+1")
