@@ -22,6 +22,8 @@ API::
     counter.report()                            # one line per site, most frequent first
     SyncCounter(devices={"cuda"})               # on a GPU run: only ops on CUDA tensors (a CPU
                                                 # scalar's .item() does not stall the stream)
+    SyncCounter(skip_files=[__file__])          # a driver inside sp_plugins (sp-gpu-check) that calls
+                                                # the host's trainer: its frames are no site
     site_of("/abs/path/file.py", 12)            # ("sp_plugins/...:12", True): a warning's frame as a
                                                 # site (torch.cuda.set_sync_debug_mode's warnings)
 
@@ -133,9 +135,10 @@ class SyncCounter(TorchDispatchMode):
     """Counts stalling ops per call site while active (a context manager; nestable with other
     modes). ``counts`` / ``ops`` are filled as ops run; see the module docstring."""
 
-    def __init__(self, devices: Optional[Any] = None) -> None:
+    def __init__(self, devices: Optional[Any] = None, skip_files: Any = ()) -> None:
         super().__init__()
         self.devices = frozenset(devices) if devices is not None else None
+        self._skip = frozenset(os.path.abspath(f) for f in skip_files) | {_THIS_FILE}
         self.counts: Counter = Counter()
         self.ops: Dict[str, Counter] = defaultdict(Counter)
         self._roots = _our_roots()
@@ -151,7 +154,7 @@ class SyncCounter(TorchDispatchMode):
         while frame is not None:
             path = os.path.abspath(frame.f_code.co_filename)
             frame, lineno = frame.f_back, frame.f_lineno
-            if path == _THIS_FILE or path.startswith(_WRAPPERS):
+            if path in self._skip or path.startswith(_WRAPPERS):
                 continue
             if innermost and path.startswith(_CPU_BY_DESIGN):
                 return None

@@ -6,7 +6,7 @@ It stores its parameters exactly as tiny-cuda-nn's torch bindings do, one flat f
 ``GridEncodingTemplated``'s constructor, ``grid_index`` and ``fast_hash``, ``pos_fract`` and the
 corner loop of ``kernel_grid``). It shares no code with :mod:`sp_plugins.encodings.hashgrid_torch`,
 so the two agreeing on the same ``params`` checks that our ``table`` is tcnn's layout. Written
-for the tests and ``bench/gpu_check.py``'s CPU self-test: one level and one corner at a time.
+for the tests and ``sp-gpu-check`` where tcnn cannot run: one level and one corner at a time.
 """
 
 from __future__ import annotations
