@@ -84,6 +84,25 @@ def refused_global(exc: BaseException) -> Optional[str]:
     return found.group(1) if found else None
 
 
+_TORCH_BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation", "(1)", "(2)",
+                      "In PyTorch 2.6", "Re-running")
+
+
+def load_failure_reason(exc: BaseException, limit: int = 120) -> str:
+    """What ``torch.load`` said went wrong, in one line: for a weights-only refusal, torch's own
+    reason (``Unsupported operand 153``) rather than its first line, which suggests loading the
+    file with ``weights_only=False``."""
+    text = str(exc)
+    if "Weights only load failed" not in text:
+        return first_line(exc, limit)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    reasons = [line.split("WeightsUnpickler error:", 1)[-1].strip() for line in lines
+               if not line.startswith(_TORCH_BOILERPLATE)]
+    reason = "; ".join(r for r in reasons if r) or "refused"
+    reason = f"weights-only unpickling: {reason}"
+    return reason if len(reason) <= limit else reason[: limit - 3] + "..."
+
+
 def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> Optional[str]:
     """One line for a failure a user can fix that host code raised on a bad file, or None.
 
@@ -102,10 +121,10 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
             return f"{path}: checkpoint not found"
         refused = refused_global(exc)
         if refused:
-            return (f"{path}: holds a {refused} object, which torch's weights-only loading refuses (nothing in the file was "
+            return (f"{path}: holds a pickled {refused}, which torch's weights-only loading refuses (nothing in the file was "
                     "run); it was written by another version (e.g. nerfstudio's schedulers stored numpy learning rates) or "
                     "not by a training run: retrain with this version, and load checkpoints only from sources you trust")
-        return (f"{path}: cannot be read as a PyTorch checkpoint ({first_line(exc, 120)}); the file is truncated or "
+        return (f"{path}: cannot be read as a PyTorch checkpoint ({load_failure_reason(exc)}); the file is truncated or "
                 "damaged (an interrupted copy or save?) or is not a checkpoint: copy it again, or load another step")
     save = _torch_frame(tb, "save")
     if save is not None:

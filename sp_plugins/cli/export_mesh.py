@@ -62,6 +62,16 @@ def _load_saved_config(path: Path):
     return config
 
 
+def _raised_in(exc: BaseException, function: str) -> bool:
+    """``exc`` passed through a frame of ``function`` (by name)."""
+    tb = exc.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == function:
+            return True
+        tb = tb.tb_next
+    return False
+
+
 def _versions() -> str:
     from sp_plugins.adapter.checks import _versions as versions
 
@@ -102,6 +112,7 @@ def _export(args) -> int:
     from sp_plugins.geometry import save_mesh, sparse_extract_mesh
     from sp_plugins.nerfstudio.host.trainer import checkpoint_to_load
 
+    target = None
     try:
         config.load_dir, config.load_checkpoint = config.get_checkpoint_dir(), None
         target = checkpoint_to_load(config, dir_flag=f"--load-config {args.load_config}: its checkpoint folder")
@@ -112,10 +123,17 @@ def _export(args) -> int:
         with reading_configs_safely(eval_utils, where, _versions()), weights_only_checkpoints():
             _, pipeline, _, _ = eval_utils.eval_setup(args.load_config, test_mode="inference")
     except Exception as exc:  # noqa: BLE001  (a run folder the model cannot be set up from is answered in one line)
-        message = describe_failure(exc) or (
-            f"--load-config {args.load_config}: the model cannot be set up from this run ({type(exc).__name__}: "
-            f"{first_line(exc, 160)}); its config.yml was edited or written by another version: load it with the "
-            "version that wrote it, or retrain")
+        message = describe_failure(exc)
+        if message is None:
+            detail = first_line(exc, 160)
+            detail = detail if detail.startswith(type(exc).__name__) else f"{type(exc).__name__}: {detail}"
+            if target is not None and _raised_in(exc, "eval_load_checkpoint"):
+                message = (f"{target[0]}: not a checkpoint of this run ({detail}); it holds other contents than the "
+                           "training run saved: copy it again, load another step, or retrain")
+            else:
+                message = (f"--load-config {args.load_config}: the model cannot be set up from this run ({detail}); its "
+                           "config.yml was edited or written by another version: load it with the version that wrote it, "
+                           "or retrain")
         raise _Refused(message) from None
     model = pipeline.model
     if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):

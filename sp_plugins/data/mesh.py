@@ -63,6 +63,10 @@ def load_mesh(source: MeshSource) -> trimesh.Trimesh:
         raise ValueError(f"mesh {source!r} has no triangle faces (a point cloud or an empty file?): give a triangle mesh.")
     if not np.isfinite(mesh.vertices).all():
         raise ValueError(f"mesh {source!r} has non-finite vertex coordinates.")
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    if not 0.0 < extent < np.inf:
+        what = "all its vertices coincide" if extent == 0.0 else "its coordinates overflow"
+        raise ValueError(f"mesh {source!r} is degenerate ({what}): give a mesh with a surface.")
     return mesh
 
 

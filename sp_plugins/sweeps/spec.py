@@ -162,12 +162,22 @@ def load_spec(path: Path) -> SweepSpec:
     if not path.is_file():
         raise SpecError(f"spec file {path} does not exist")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise SpecError(f"{path}: not a YAML or JSON text file (not UTF-8)") from None
     except yaml.YAMLError as err:
         raise SpecError(f"{path}: not valid YAML/JSON ({str(err).splitlines()[0]})") from None
+    except RecursionError:
+        raise SpecError(f"{path}: not valid YAML/JSON (nested too deeply)") from None
     if not isinstance(raw, dict):
         raise SpecError(f"{path}: expected a mapping with at least 'command'")
-    return spec_from_dict(raw)
+    try:  # every answer names the file
+        return spec_from_dict(raw)
+    except SpecError as err:
+        raise SpecError(f"{path}: {err}") from None
+    except (TypeError, ValueError) as err:  # a number or list field holding something else
+        raise SpecError(f"{path}: a field holds a value of the wrong kind ({err}); expected e.g. seeds: [0, 1], "
+                        "sample: 4, sp_methods: [neus-hashgrid, sp-neus-hashgrid]") from None
 
 
 def flag_name(flag: str) -> str:

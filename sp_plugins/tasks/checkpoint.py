@@ -62,11 +62,11 @@ def load(path: Union[str, Path], task: str) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001  (any unpickling error: the file is not ours or is damaged)
-        from sp_plugins.adapter.errors import refused_global
+        from sp_plugins.adapter.errors import load_failure_reason, refused_global
 
         name = refused_global(exc)  # torch's first line would suggest loading it unsafely
-        detail = (f"it holds a {name} object, which weights-only loading refuses; nothing in it was run" if name else
-                  str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+        detail = (f"it holds a pickled {name}, which weights-only loading refuses; nothing in it was run" if name else
+                  load_failure_reason(exc, 200))
         raise ValueError(f"--resume: {path} cannot be read as an sp-fit checkpoint ({detail[:200]})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ValueError(f"--resume: {path} is not an sp-fit checkpoint")

@@ -220,7 +220,7 @@ def test_a_checkpoint_carrying_a_pickled_callable_is_refused_in_one_line(tmp_pat
         message = describe_failure(exc)
     else:
         raise AssertionError("the checkpoint loaded")
-    assert message.startswith(f"{path}: holds a posix.system object, which torch's weights-only loading refuses (nothing")
+    assert message.startswith(f"{path}: holds a pickled posix.system, which torch's weights-only loading refuses (nothing")
     assert "\n" not in message and not marker.exists()
 
 
@@ -280,7 +280,7 @@ def test_console_scripts_refuse_a_hostile_run_and_load_a_real_one(trained, tmp_p
     for name, prog in (("mesh-os.system", "sp-export-mesh"), ("train-os.system", "sp-train")):
         _one_line(procs[name], prog, f"--load-config {hostile}: refused line 1: the tag !!python/object/apply:os.system",
                   "would call os.system", "nothing was built or run")
-    _one_line(procs["mesh-evil-ckpt"], "sp-export-mesh", str(ckpt), "holds a posix.system object", "weights-only")
+    _one_line(procs["mesh-evil-ckpt"], "sp-export-mesh", str(ckpt), "holds a pickled posix.system", "weights-only")
     assert not (tmp_path / "m1").exists() and not (tmp_path / "m2").exists()
     for name in ("mesh-real", "train-real"):
         assert procs[name].returncode == 0, f"[{name}]\n{procs[name].stderr[-3000:]}"

@@ -109,7 +109,7 @@ def test_the_checkpoint_patch_allows_numpy_numbers_only(patched, tmp_path):
         message = describe_failure(exc)
     else:
         raise AssertionError("a checkpoint carrying os.system loaded")
-    assert "holds a posix.system object" in message and "\n" not in message and not marker.exists()
+    assert "holds a pickled posix.system" in message and "\n" not in message and not marker.exists()
 
 
 def _one_line(proc, prog: str, *says: str) -> str:

@@ -97,7 +97,7 @@ def test_cli_bad_spec_is_one_line_and_exit_2(sp_sweep, tmp_path):
     (tmp_path / "s.yaml").write_text("command: python train.py\n")
     proc = subprocess.run([sp_sweep, str(tmp_path / "s.yaml"), "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert proc.stderr.strip().splitlines()[-1].startswith("sp-sweep: error: command starts with 'python'")
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"sp-sweep: error: {tmp_path / 's.yaml'}: command starts with 'python'")
     proc = subprocess.run([sp_sweep, "--command", "sp-fit pointcloud m.ply", "--grid", "lr", "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "FLAG=V1,V2" in proc.stderr

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -100,9 +102,35 @@ def _load_json(path: Path, expected: str) -> dict:
         raise InputError(f"{path}: file not found; expected {expected}{_layout_hint(path.parent)}")
     try:
         with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except json.JSONDecodeError as err:
+            meta = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise InputError(f"{path}: not valid JSON ({err}); expected {expected}") from None
+    except RecursionError:
+        raise InputError(f"{path}: not valid JSON (nested too deeply); expected {expected}") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames", []), list):
+        raise InputError(f"{path}: holds a {type(meta).__name__ if not isinstance(meta, dict) else 'frames value that is not a list'}; "
+                         f"expected {expected}")
+    return meta
+
+
+def _numbers(value, *shape: int) -> bool:
+    """``value`` is a finite number (no shape) or nested lists of them with this shape."""
+    if not shape:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return isinstance(value, list) and len(value) == shape[0] and all(_numbers(v, *shape[1:]) for v in value)
+
+
+def _frame_image(data: Path, frame, i: int, key: str, source: Path, suffix: str = "") -> Path:
+    """The image frame ``i`` of ``source`` names under ``key``: a relative path inside the scene folder
+    ``data`` (checked on the path's text, so symlinks inside the folder still work)."""
+    if not isinstance(frame, dict) or not isinstance(frame.get(key), str) or not frame[key].strip() or "\0" in frame[key]:
+        raise InputError(f"{source}: frame {i} has no {key!r} (a file name of an image in the scene folder)")
+    relative = (frame[key].replace("./", "") if suffix else frame[key]) + suffix  # as the host's parser reads it
+    image = Path(os.path.normpath(data / relative))
+    if os.path.isabs(relative) or not image.is_relative_to(os.path.normpath(data)):
+        raise InputError(f"{source}: frame {i}'s {key} {frame[key]!r} points outside the scene folder {data}; keep a "
+                         "scene's images inside its folder and name them by relative paths")
+    return image
 
 
 _READABLE: Dict[Path, Tuple[int, int]] = {}
@@ -134,17 +162,24 @@ def _check_sdfstudio(data: Path) -> None:
     for key in ("height", "width", "frames", "scene_box"):
         if key not in meta:
             raise InputError(f"{data / 'meta_data.json'}: missing key {key!r}; expected {expected}")
-    if "aabb" not in meta["scene_box"]:
-        raise InputError(f"{data / 'meta_data.json'}: scene_box has no 'aabb' ([[xmin, ymin, zmin], [xmax, ymax, zmax]])")
+    source = data / "meta_data.json"
+    if not isinstance(meta["scene_box"], dict) or not _numbers(meta["scene_box"].get("aabb"), 2, 3):
+        raise InputError(f"{source}: scene_box has no 'aabb' ([[xmin, ymin, zmin], [xmax, ymax, zmax]])")
+    for key in ("height", "width"):
+        if not (isinstance(meta[key], int) and not isinstance(meta[key], bool) and meta[key] > 0):
+            raise InputError(f"{source}: {key} is {meta[key]!r}; expected the images' {key} in pixels")
     if not meta["frames"]:
-        raise InputError(f"{data / 'meta_data.json'}: 'frames' is empty; expected at least one image")
+        raise InputError(f"{source}: 'frames' is empty; expected at least one image")
     for i, frame in enumerate(meta["frames"]):
-        for key in ("rgb_path", "intrinsics", "camtoworld"):
+        image = _frame_image(data, frame, i, "rgb_path", source)
+        for key in ("intrinsics", "camtoworld"):
             if key not in frame:
-                raise InputError(f"{data / 'meta_data.json'}: frame {i} has no {key!r}")
-        if not (data / frame["rgb_path"]).is_file():
-            raise InputError(f"{data / frame['rgb_path']}: image not found (frame {i} of meta_data.json)")
-        check_image_readable(data / frame["rgb_path"], f"frame {i} of meta_data.json")
+                raise InputError(f"{source}: frame {i} has no {key!r}")
+            if not _numbers(frame[key], 4, 4):
+                raise InputError(f"{source}: frame {i}'s {key} is not a 4x4 matrix of numbers")
+        if not image.is_file():
+            raise InputError(f"{image}: image not found (frame {i} of meta_data.json)")
+        check_image_readable(image, f"frame {i} of meta_data.json")
 
 
 def _check_blender(data: Path, splits: Sequence[str]) -> None:
@@ -155,10 +190,15 @@ def _check_blender(data: Path, splits: Sequence[str]) -> None:
         for key in ("camera_angle_x", "frames"):
             if key not in meta:
                 raise InputError(f"{data / name}: missing key {key!r}; expected {expected}")
+        if not _numbers(meta["camera_angle_x"]) or not 0 < meta["camera_angle_x"] < math.pi:
+            raise InputError(f"{data / name}: camera_angle_x is {meta['camera_angle_x']!r}; expected the horizontal field "
+                             "of view in radians, between 0 and pi")
         if not meta["frames"]:
             raise InputError(f"{data / name}: 'frames' is empty; expected at least one image")
         for i, frame in enumerate(meta["frames"]):
-            image = data / (frame["file_path"].replace("./", "") + ".png")
+            image = _frame_image(data, frame, i, "file_path", data / name, ".png")
+            if not _numbers(frame.get("transform_matrix"), 4, 4):
+                raise InputError(f"{data / name}: frame {i}'s transform_matrix is not a 4x4 matrix of numbers")
             if not image.is_file():
                 raise InputError(f"{image}: image not found (frame {i} of {name}; file_path + '.png')")
             check_image_readable(image, f"frame {i} of {name}")
