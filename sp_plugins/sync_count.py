@@ -27,10 +27,11 @@ API::
     site_of("/abs/path/file.py", 12)            # ("sp_plugins/...:12", True): a warning's frame as a
                                                 # site (torch.cuda.set_sync_debug_mode's warnings)
 
-A site is ``path:line`` of the innermost frame inside ``sp_plugins`` (its ``method_configs`` and
-``patches`` included), the path from the package's parent (``sp_plugins/tasks/image.py:358``); an
-op that no frame of ours reached is keyed by the innermost frame outside torch (a host's site,
-path relative to its ``sys.path`` entry: ``nerfstudio/model_components/ray_samplers.py:120``).
+A site is ``path:line`` of the innermost frame outside torch, the line that asked for the value:
+ours when it lies inside ``sp_plugins`` (its ``method_configs`` and ``patches`` included; the path
+from the package's parent, ``sp_plugins/tasks/image.py:358``), the host's otherwise, also when our
+mixin called the host's method that syncs (path relative to its ``sys.path`` entry:
+``nerfstudio/model_components/ray_samplers.py:120``).
 
 What is counted: ``aten._local_scalar_dense`` (behind ``.item()``, ``bool()``, ``float()``,
 ``int()``, formatting), ``nonzero`` / ``argwhere``, every ``unique`` variant, ``masked_select``,
@@ -147,10 +148,12 @@ class SyncCounter(TorchDispatchMode):
 
     # -- recording ------------------------------------------------------------------------------
     def _site(self) -> Optional[str]:
-        """Innermost frame of ours, else innermost outside torch; None for a read torch makes of
-        its own CPU-by-design scalars (the innermost real frame is in ``torch/optim``)."""
+        """The innermost frame outside torch (the line that asked for the value: ours when it is in
+        sp_plugins, the host's when the host's code called, even from a method of our mixins); None
+        for a read torch makes of its own CPU-by-design scalars (the innermost real frame is in
+        ``torch/optim``)."""
         frame = sys._getframe(1)
-        outside_torch, innermost = None, True
+        innermost = True
         while frame is not None:
             path = os.path.abspath(frame.f_code.co_filename)
             frame, lineno = frame.f_back, frame.f_lineno
@@ -159,13 +162,13 @@ class SyncCounter(TorchDispatchMode):
             if innermost and path.startswith(_CPU_BY_DESIGN):
                 return None
             innermost = False
+            if path.startswith(_TORCH_DIR):
+                continue
+            site = f"{_display(path, self._roots)}:{lineno}"
             if path.startswith(self._roots):
-                site = f"{_display(path, self._roots)}:{lineno}"
                 self._ours.add(site)
-                return site
-            if outside_torch is None and not path.startswith(_TORCH_DIR):
-                outside_torch = f"{_display(path, self._roots)}:{lineno}"
-        return outside_torch or "<unknown>"
+            return site
+        return "<unknown>"
 
     def record(self, name: str) -> None:
         site = self._site()

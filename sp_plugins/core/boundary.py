@@ -147,10 +147,17 @@ def reflect(
     ``y``, e.g. the ``[N, dim]`` origins of ``[K, N, dim]`` draws), only coordinates whose origin lies inside the box
     are folded: a sample the host placed outside the box stays outside, for the host to treat as
     empty space. ``sparse`` folds only the coordinates that left the box (fastest on the CPU, but
-    it syncs with the host); the default uses it on the CPU and a dense, sync-free fold elsewhere."""
+    it syncs with the host); the default (:func:`sparse_fold_on`) uses it on the CPU and a dense,
+    sync-free fold elsewhere."""
     lo = torch.as_tensor(lo, dtype=y.dtype, device=y.device)
     hi = torch.as_tensor(hi, dtype=y.dtype, device=y.device)
-    return _Reflect.apply(y, origin, lo, hi, y.device.type == "cpu" if sparse is None else sparse)
+    return _Reflect.apply(y, origin, lo, hi, sparse_fold_on(y.device) if sparse is None else sparse)
+
+
+def sparse_fold_on(device: torch.device) -> bool:
+    """Whether :func:`reflect` folds sparsely by default on ``device``: on the CPU only, where a host
+    sync costs nothing (a test that counts a GPU run's syncs on the CPU takes the GPU's choice here)."""
+    return device.type == "cpu"
 
 
 def apply_boundary(
