@@ -583,6 +583,11 @@ def time_run(name: str, method: str, how: str, scene: Path, out: Path, device, s
         artifacts["checkpoint"] = {"config": config, "dir": trainer.checkpoint_dir, "step": last - 1,
                                    "backend": result["hash_grid"][0]}
     del trainer, step, losses
+    if device.type == "cuda":  # the next run's memory starts from what it allocates itself
+        import gc
+
+        gc.collect()
+        torch.cuda.empty_cache()
     return result
 
 
@@ -596,7 +601,7 @@ def check_runs(device, sizes: Sizes, out: Path, deadline: Deadline, artifacts: d
                                                f"CUDA_VISIBLE_DEVICES={device.index} and --device cuda"}
     from sp_plugins.data import make_tiny_scene
 
-    scene = make_tiny_scene(out / "scene", mesh="sphere", **sizes.scene).root
+    scene = make_tiny_scene(out / "scene", mesh="sphere", overwrite=True, **sizes.scene).root
     result: dict = {"runs": {}, "skipped": [], "scene": str(scene)}
     per_run = 25.0 if sizes.quick else 40.0
     for name, method, how, note in RUNS:
@@ -722,17 +727,19 @@ def run_command(cmd: List[str], env: Dict[str, str], timeout: float) -> dict:
 
 
 def check_fit(device, sizes: Sizes, deadline: Deadline) -> dict:
-    import torch
     from importlib.resources import files
 
     from sp_plugins.geometry import load_oriented_points
     from sp_plugins.tasks import PointCloudSDFConfig
     from sp_plugins.tasks.fields import EncodingConfig
 
+    from sp_plugins.core import SPConfig
+
     data = load_oriented_points(str(files("sp_plugins.data") / "assets" / "spot.ply"), 50_000, 0)
-    config = PointCloudSDFConfig(steps=sizes.fit_steps + 3)
+    sp = SPConfig(alpha0=0.03, schedule="step", end=1.0)  # SP on in every step, the counted ones too
+    config = PointCloudSDFConfig(steps=sizes.fit_steps + 3, sp=sp)
     if sizes.quick:
-        config = PointCloudSDFConfig(steps=sizes.fit_steps + 3, surface_batch=256, space_batch=256, hidden=(16,),
+        config = PointCloudSDFConfig(steps=sizes.fit_steps + 3, surface_batch=256, space_batch=256, hidden=(16,), sp=sp,
                                      encoding=EncodingConfig(levels=4, log2_table_size=12, base_resolution=8, max_resolution=64))
     trainer = config.setup(data, device=device)
     trainer.step()  # warm-up
@@ -750,7 +757,10 @@ def check_fit(device, sizes: Sizes, deadline: Deadline) -> dict:
     result["finite"] = math.isfinite(result["final_loss"])
     # the timer must see the queued work: on CUDA its mean is close to the wall clock's, not a fraction of it
     result["timer_ok"] = result["timer_over_wall"] is None or result["timer_over_wall"] > 0.5
-    result["status"] = "ok" if result["finite"] and not syncs["ours"] and result["timer_ok"] else "failed"
+    judged = syncs["ours"] if device.type == "cuda" else {}  # a CPU takes sync-ing fast paths on purpose (the sparse reflect)
+    if device.type != "cuda":
+        result["skipped"] = ["judging syncs of ours: on CUDA only (the CPU's sparse reflect syncs on purpose)"]
+    result["status"] = "ok" if result["finite"] and not judged and result["timer_ok"] else "failed"
     return result
 
 
