@@ -19,7 +19,7 @@ import importlib
 import sys
 import copy
 import dataclasses
-from typing import Any, Callable, Dict, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 PREFIX = "SP"
 SEPARATOR = "__"
@@ -153,3 +153,23 @@ def convert(config: Any, cls: type, **changes: Any) -> Any:
     }
     values.update(changes)
     return cls(**values)
+
+
+def table_refusal(config: Any, *tables: Any) -> Tuple[Optional[type], Optional[str]]:
+    """``(model class, reason)`` for a host trainer ``config``: why SP cannot be put on it as far as
+    classes tell (no model class; the first entry of ``tables``, dicts of class path -> reason or
+    of class path -> callable giving a reason or None, that names the model class or a base), or
+    ``(model class, None)``. A method that is ours already (its model config has ``sp``) passes."""
+    model_config = getattr(getattr(config, "pipeline", None), "model", None)
+    model = target_class(model_config)
+    if model is None:
+        return None, "its model config has no model class (_target) to subclass"
+    if hasattr(model_config, "sp"):
+        return model, None
+    for cls in model.__mro__:
+        for table in tables:
+            reason = table.get(class_path(cls))
+            reason = reason() if callable(reason) else reason
+            if reason:
+                return model, reason
+    return model, None

@@ -27,7 +27,7 @@ import sys
 from typing import Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter.variants import class_path, convert, target_class
+from sp_plugins.adapter.variants import class_path, convert, table_refusal, target_class
 from sp_plugins.core import SPConfig
 
 PROG = "sp-train"
@@ -73,20 +73,8 @@ def refusal(config: Any) -> Optional[str]:
     its model is built or after its first step (see :class:`sp_plugins.nerfstudio.model.SPModel`)."""
     if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
         return "it is an external method that is not installed; install it, then it is listed here"
-    model_config = getattr(getattr(config, "pipeline", None), "model", None)
-    model = target_class(model_config)
-    if model is None:
-        return "its model config has no model class (_target) to subclass"
-    if hasattr(model_config, "sp"):
-        return None  # one of ours: SP is already part of it
-    for cls in model.__mro__:
-        reason = REFUSED_MODELS.get(class_path(cls))
-        if reason:
-            return reason
-        reason = NEEDS_CUDA.get(class_path(cls))
-        if reason and not _cuda_available():
-            return reason
-    return None
+    cuda = {path: (lambda why=why: None if _cuda_available() else why) for path, why in NEEDS_CUDA.items()}
+    return table_refusal(config, REFUSED_MODELS, cuda)[1]
 
 
 def preset_for(model: type) -> SPConfig:

@@ -66,18 +66,12 @@ def refusal(config: Any) -> Optional[str]:
     from nerfstudio.fields.sdf_field import SDFFieldConfig
     from nerfstudio.models.base_surface_model import SurfaceModel
 
-    from sp_plugins.adapter.variants import class_path, target_class
+    from sp_plugins.adapter.variants import table_refusal
 
-    model_config = getattr(getattr(config, "pipeline", None), "model", None)
-    model = target_class(model_config)
-    if model is None:
-        return "its model config has no model class (_target) to subclass"
-    if hasattr(model_config, "sp"):
-        return None  # one of ours: SP is already part of it
-    for cls in model.__mro__:
-        reason = REFUSED_MODELS.get(class_path(cls))
-        if reason:
-            return reason
+    model, reason = table_refusal(config, REFUSED_MODELS)
+    model_config = config.pipeline.model if model is not None else None
+    if reason or model is None or hasattr(model_config, "sp"):
+        return reason
     if not isinstance(getattr(model_config, "sdf_field", None), SDFFieldConfig):
         return (
             f"its model ({model.__name__}) has no SDF field (no sdf_field: SDFFieldConfig in {type(model_config).__name__}); "
