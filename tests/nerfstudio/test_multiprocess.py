@@ -28,9 +28,9 @@ from radiance_tiny import tiny_radiance_config
 
 pytest.importorskip("nerfstudio")
 
-STEPS = 2
+STEPS = 3
 
-# family -> (build(scene, out), expected outcome); SP on in both steps (end=1.0)
+# family -> (build(scene, out), expected outcome); SP on in every step but the last (end=1.0)
 FAMILIES = {
     # a learnable alpha grid: DDP must all-reduce its gradients too (coarse lr so it visibly moves)
     "sp-neus-hashgrid": (lambda scene, out: _tiny_config(
@@ -57,8 +57,9 @@ def ddp_runs(tiny_scene, tmp_path_factory):
     """Every family trained by one pair of processes: (results, workdir, configs)."""
     root = tmp_path_factory.mktemp("ddp")
     configs = {name: build(tiny_scene, root / "runs" / name) for name, (build, _) in FAMILIES.items()}
-    # trained after sp-mipnerf by the same processes: steps 2..4 of a 3-step schedule (SP on at step 2)
-    resumed = tiny_radiance_config("sp-mipnerf", tiny_scene, root / "runs" / RESUMED, steps=STEPS + 1, seed=7)
+    # trained after sp-mipnerf by the same processes: steps 3..5, three more iterations; a constant alpha
+    # keeps SP on there (a schedule of that length would have ended before the resumed steps)
+    resumed = tiny_radiance_config("sp-mipnerf", tiny_scene, root / "runs" / RESUMED, steps=STEPS, seed=7, schedule="constant")
     resumed.load_dir = configs["sp-mipnerf"].get_checkpoint_dir()
     configs[RESUMED] = resumed
     results = run_ddp(configs, root / "record", world_size=2)
@@ -83,7 +84,7 @@ def test_each_family_trains_in_two_processes_or_is_refused_in_one_line(family, d
     for r in ranks:
         assert r["ddp"] is True and r["ddp_device_ids"] is None  # DDP's wrapper, the CPU form
         assert [s["step"] for s in r["steps"]] == list(range(STEPS))
-        assert all(s["alpha"] > 0 for s in r["steps"])  # SP on in every step
+        assert [s["alpha"] > 0 for s in r["steps"]] == [True] * (STEPS - 1) + [False]  # end 1.0: the last step is plain
         assert r["draws"] > 0 and r["perturbed_calls"] > 0  # SP reached a field through the wrapper
 
 
