@@ -59,6 +59,11 @@ OUR_BASELINES = {
 }
 """Our baselines (SP off) and the method that is the same with SP on."""
 
+SP_OFF_METHODS = {
+    "freenerf-lite": "FreeNeRF is a sparse-view method of its own, not SP's baseline: sp-train puts SP on it (FreeNeRF + SP)",
+}
+"""Our methods that have SP off by default but are no one's baseline: ``sp-train`` offers them, and why."""
+
 
 def _cuda_available() -> bool:
     import torch
@@ -128,7 +133,7 @@ def sp_methods(methods: Dict[str, Any], descriptions: Dict[str, str]) -> Tuple[D
     for method, config in methods.items():
         model = getattr(getattr(config, "pipeline", None), "model", None)
         sp = getattr(model, "sp", None)
-        if isinstance(sp, SPConfig) and not sp.enabled:
+        if isinstance(sp, SPConfig) and not sp.enabled and method not in SP_OFF_METHODS:
             counterpart = OUR_BASELINES.get(method, f"sp-{method}")
             refused[method] = f"it is the baseline of {counterpart}, the method with SP; train that one"
             continue
