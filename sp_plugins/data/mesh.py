@@ -51,7 +51,7 @@ def load_mesh(source: MeshSource) -> trimesh.Trimesh:
             try:
                 mesh = trimesh.load(path, force="mesh", process=True)
             except Exception as error:  # trimesh raises many kinds for unreadable files
-                raise ValueError(f"could not read mesh {path}: {error}. Give a mesh file trimesh reads (.ply, .obj, .off, .stl, .glb).") from None
+                raise ValueError(f"could not read mesh {path}: {str(error).rstrip('.')}. Give a mesh file trimesh reads (.ply, .obj, .off, .stl, .glb).") from None
         elif name in BUNDLED:
             mesh = trimesh.load(BUNDLED[name], force="mesh", process=True)
         elif name in PRIMITIVES:

@@ -60,19 +60,21 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from yaml.nodes import MappingNode, ScalarNode, SequenceNode
 
-EXAMPLES = {"config": 30, "checkpoint": 16, "fit-checkpoint": 8, "transforms": 20, "meta": 12, "mesh": 22, "image": 20,
-            "sweep": 40}
+EXAMPLES = {"config": 40, "checkpoint": 16, "fit-checkpoint": 8, "transforms": 20, "meta": 12, "mesh": 30, "image": 30,
+            "sweep": 60}
 MARKER = "sp-fuzz-marker"
 TOUCH = f"touch {MARKER}"
 BIN = Path(sys.executable).parent
 COLLECT = os.environ.get("SP_FUZZ_COLLECT") == "1"
+SCALE = int(os.environ.get("SP_FUZZ_SCALE", "1"))
+"""``SP_FUZZ_SCALE=N``: N times the examples (a longer hunt; the suite runs 1)."""
 MEMORY = 12 * 2**30
 """Address space of this process while the fuzz runs (nerfstudio and torch take about 4 GB of it)."""
 
 
 def _settings(kind: str):
     # no shrinking: a failure is reported as generated (its blob reproduces it), within a bounded time
-    return settings(max_examples=EXAMPLES[kind], deadline=None, database=None, derandomize=True, print_blob=True,
+    return settings(max_examples=EXAMPLES[kind] * SCALE, deadline=None, database=None, derandomize=True, print_blob=True,
                     suppress_health_check=list(HealthCheck), phases=(Phase.explicit, Phase.generate))
 
 
@@ -345,7 +347,7 @@ def _payloads():
 
     code = f"__import__('os').system('{TOUCH}')"
     return [Call(os.system, TOUCH), Call(subprocess.call, ["touch", MARKER]), Call(builtins.eval, code),
-            Call(builtins.exec, code), Call(builtins.print, "x"), Call(getattr, os, "system"), print, os.system,
+            Call(builtins.exec, code), Call(builtins.print, "x"), Call(builtins.__import__, "os"), print, os.system,
             np.array([TOUCH], dtype=object), np.str_("x"), {1, 2}, slice(1, 2), Counter(a=1), complex(1, 2)]
 
 
@@ -574,12 +576,11 @@ def mesh_files(draw):
         data, suffix = _cloud_ply(vertices, normals), ".ply"
     else:
         lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-        if suffix == ".obj":
-            data = ("\n".join(lines) + "\n").encode()
+        valid = faces[(faces >= 0).all(1) & (faces < len(vertices)).all(1)]
+        if suffix == ".obj" or len(valid) == 0:
+            data, suffix = ("\n".join(lines) + "\n").encode(), ".obj"
         else:
-            mesh = trimesh.Trimesh(np.nan_to_num(vertices, nan=0.0, posinf=1e30), faces[(faces >= 0).all(1)
-                                                                                     & (faces < len(vertices)).all(1)],
-                                   process=False)
+            mesh = trimesh.Trimesh(np.nan_to_num(vertices, nan=0.0, posinf=1e30), valid, process=False)
             kind = {".ply": draw(st.sampled_from(["ply", "ply-ascii"])), ".stl": "stl", ".off": "off"}[suffix]
             if kind == "ply-ascii":
                 data = trimesh.exchange.ply.export_ply(mesh, encoding="ascii")
@@ -652,7 +653,7 @@ def image_files(draw):
             im = {"L": lambda: im.convert("L"), "LA": lambda: im.convert("LA"), "RGB": lambda: im.convert("RGB"),
                   "RGBA": lambda: im, "P": lambda: im.convert("P"), "P-transparency": lambda: im.convert("P"),
                   "1": lambda: im.convert("1"), "jpeg": lambda: im.convert("RGB"), "bmp": lambda: im.convert("RGB")}[kind]()
-        fmt = {"jpeg": "JPEG", "tiff-float": "TIFF", "bmp": "BMP"}.get(kind, "PNG")
+        fmt = {"jpeg": "JPEG", "tiff-float": "TIFF", "I": "TIFF", "bmp": "BMP"}.get(kind, "PNG")  # PIL writes no 32-bit PNG
         extra = {"transparency": 0} if kind == "P-transparency" else {}
         im.save(buf, format=fmt, **extra)
         data, suffix = buf.getvalue(), {"JPEG": ".jpg", "TIFF": ".tif", "BMP": ".bmp"}.get(fmt, ".png")

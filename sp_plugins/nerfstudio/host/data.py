@@ -113,6 +113,12 @@ def _load_json(path: Path, expected: str) -> dict:
     return meta
 
 
+def _shown(value) -> str:
+    """``repr(value)``, cut to a length that fits in an error line."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def _numbers(value, *shape: int) -> bool:
     """``value`` is a finite number (no shape) or nested lists of them with this shape."""
     if not shape:
@@ -128,7 +134,7 @@ def _frame_image(data: Path, frame, i: int, key: str, source: Path, suffix: str 
     relative = (frame[key].replace("./", "") if suffix else frame[key]) + suffix  # as the host's parser reads it
     image = Path(os.path.normpath(data / relative))
     if os.path.isabs(relative) or not image.is_relative_to(os.path.normpath(data)):
-        raise InputError(f"{source}: frame {i}'s {key} {frame[key]!r} points outside the scene folder {data}; keep a "
+        raise InputError(f"{source}: frame {i}'s {key} {_shown(frame[key])} points outside the scene folder {data}; keep a "
                          "scene's images inside its folder and name them by relative paths")
     return image
 
@@ -167,7 +173,7 @@ def _check_sdfstudio(data: Path) -> None:
         raise InputError(f"{source}: scene_box has no 'aabb' ([[xmin, ymin, zmin], [xmax, ymax, zmax]])")
     for key in ("height", "width"):
         if not (isinstance(meta[key], int) and not isinstance(meta[key], bool) and meta[key] > 0):
-            raise InputError(f"{source}: {key} is {meta[key]!r}; expected the images' {key} in pixels")
+            raise InputError(f"{source}: {key} is {_shown(meta[key])}; expected the images' {key} in pixels")
     if not meta["frames"]:
         raise InputError(f"{source}: 'frames' is empty; expected at least one image")
     for i, frame in enumerate(meta["frames"]):
@@ -191,7 +197,7 @@ def _check_blender(data: Path, splits: Sequence[str]) -> None:
             if key not in meta:
                 raise InputError(f"{data / name}: missing key {key!r}; expected {expected}")
         if not _numbers(meta["camera_angle_x"]) or not 0 < meta["camera_angle_x"] < math.pi:
-            raise InputError(f"{data / name}: camera_angle_x is {meta['camera_angle_x']!r}; expected the horizontal field "
+            raise InputError(f"{data / name}: camera_angle_x is {_shown(meta['camera_angle_x'])}; expected the horizontal field "
                              "of view in radians, between 0 and pi")
         if not meta["frames"]:
             raise InputError(f"{data / name}: 'frames' is empty; expected at least one image")
