@@ -21,8 +21,7 @@ def gpu_code_paths(monkeypatch):
     escaped coordinates back on purpose, a path a CUDA run never takes."""
     import sp_plugins.core.boundary as boundary
 
-    original = boundary._Reflect.apply
-    monkeypatch.setattr(boundary._Reflect, "apply", lambda y, origin, lo, hi, sparse: original(y, origin, lo, hi, False))
+    monkeypatch.setattr(boundary, "sparse_fold_on", lambda device: False)
 
 
 def image(size=32):
