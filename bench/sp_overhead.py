@@ -160,6 +160,25 @@ def make_method_steps(name: str, scene, out, rays: int = 1024):
     return stepper(0), stepper(1)
 
 
+def seam_only_ms(n_rays: int, n_samples: int, repeats: int) -> tuple:
+    """``(seam_ms, noise_ms)``: the seam's copy of ``n_rays x n_samples`` RaySamples with moved
+    origins (:func:`sp_plugins.nerfstudio.seam.perturbed_samples`), and the noise and fold alone."""
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    from sp_plugins.nerfstudio.seam import perturbed_samples
+
+    sp = SPConfig(alpha0=0.02, schedule="constant", boundary="reflect").setup(total_steps=10**6, bounds=(-1.0, 1.0))
+    sp.train()
+    o = (torch.rand(n_rays, 1, 3) * 2 - 1).expand(n_rays, n_samples, 3)
+    d = F.normalize(torch.randn(n_rays, 1, 3), dim=-1).expand(n_rays, n_samples, 3)
+    t = torch.sort(torch.rand(n_rays, n_samples + 1), dim=-1).values[..., None]
+    samples = RaySamples(Frustums(origins=o, directions=d, starts=t[:, :-1], ends=t[:, 1:], pixel_area=torch.ones(n_rays, n_samples, 1)),
+                         camera_indices=torch.zeros(n_rays, n_samples, 1, dtype=torch.long))
+    x = samples.frustums.get_positions().reshape(-1, 3)
+    times = paired_timing({"seam": lambda: perturbed_samples(samples, sp), "noise": lambda: sp(x)}, repeats)
+    return tuple(1e3 * sorted(times[k])[len(times[k]) // 2] for k in ("seam", "noise"))
+
+
 def _before():
     from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
@@ -209,12 +228,14 @@ def main() -> None:
 
         tmp = Path(tempfile.mkdtemp(prefix="sp-overhead-"))
         scene = make_tiny_scene(tmp / "scene", mesh="sphere").root
+        seam_ms, noise_ms = seam_only_ms(1024, 64, args.repeats)
+        results["workloads"]["seam_alone"] = {"rays": 1024, "samples": 64, "seam_ms": seam_ms, "noise_and_fold_ms": noise_ms}
         for name in args.methods:
             base, spst = make_method_steps(name, scene, tmp)
             s = ratio_summary(paired_timing({"baseline": base, "sp": spst}, args.repeats), "baseline")
-            s["perturb_only_ms"] = float("nan")
+            s["perturb_only_ms"] = seam_ms
             results["workloads"][name] = {"rays": 1024, **s}
-            rows.append((f"{name} training step (1024 rays, SP on vs off)", s))
+            rows.append((f"{name} training step (1024 rays, SP on vs off; last column: the seam's copy of 1024 x 64 samples)", s))
     results["machine_after"] = machine_info()["loadavg_1_5_15"]
     path = write_json("sp_overhead", results)
     print("| workload | baseline ms | SP ms | SP / baseline (median of pairs) | SP arithmetic alone |\n|---|---|---|---|---|")
