@@ -29,8 +29,8 @@ def _end(end: float, steps: int) -> str:
     return f"step {step:,} of {steps:,}"
 
 
-def _row(name: str, sp, steps: int) -> str:
-    state = "on" if sp.enabled else "off (baseline)"
+def _row(name: str, sp, steps: int, baseline: bool = True) -> str:
+    state = "on" if sp.enabled else "off (baseline)" if baseline else "off (sp-train turns it on)"
     alpha0 = f"{sp.alpha0:g}" + (" x diagonal" if sp.relative_to_diagonal else "")
     if sp.alpha_grid:
         alpha0 += " (learned alpha grid)"
@@ -41,14 +41,15 @@ def rows() -> List[Tuple[str, str]]:
     """``(name, markdown row)`` for every registered nerfstudio method, then every task."""
     out = []
     try:
+        from sp_plugins.nerfstudio.registration import SP_OFF_METHODS
         from sp_plugins.nerfstudio.runs import our_methods
     except ImportError:  # base install without nerfstudio
-        specs = {}
+        specs, SP_OFF_METHODS = {}, {}
     else:
         specs = our_methods()
     for name in sorted(specs):
         config = specs[name].config
-        out.append((name, _row(name, config.pipeline.model.sp, config.max_num_iterations)))
+        out.append((name, _row(name, config.pipeline.model.sp, config.max_num_iterations, name not in SP_OFF_METHODS)))
     from sp_plugins.tasks.image import ImageFitConfig
     from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
     from sp_plugins.tasks.sdf import SDFFitConfig

@@ -11,7 +11,7 @@ def shrink_radiance_model(name: str, model) -> None:
     """Few samples, tiny grids and tables: a fraction of a second per iteration on one thread."""
     if "relu-field" in name:
         model.resolution, model.num_samples = 17, 16
-    elif name in ("sp-mipnerf", "sp-vanilla-nerf"):
+    elif name in ("sp-mipnerf", "sp-vanilla-nerf", "freenerf-lite"):
         model.num_coarse_samples, model.num_importance_samples = 8, 8
     elif name == "sp-nerfacto":
         model.num_nerf_samples_per_ray, model.num_proposal_samples_per_ray = 8, (8, 8)

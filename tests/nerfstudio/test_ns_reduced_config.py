@@ -34,6 +34,8 @@ BUILTIN = ("nerfacto", "nerfacto-big", "nerfacto-huge", "vanilla-nerf", "tensorf
 """nerfstudio's methods whose ``sp-train`` config runs on a CPU with Blender data (``BUILTIN_TRAIN``
 of test_with_sp.py)."""
 SP_TRAIN = "sp-train:"
+OURS_UNDER_SP_TRAIN = ("freenerf-lite",)
+"""Our methods with SP off by default that ``sp-train`` offers (``registration.SP_OFF_METHODS``)."""
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +79,13 @@ def reduced_config(name: str, data: Path, out: Path):
 
 
 def test_every_registered_method_is_covered():
-    assert len(METHODS) == 12 and {"sp-neus-hashgrid", "sp-mipnerf", "sp-relu-field", "sp-nerfacto"} <= set(METHODS)
+    assert len(METHODS) == 13 and {"sp-neus-hashgrid", "sp-mipnerf", "sp-relu-field", "sp-nerfacto", "freenerf-lite"} <= set(METHODS)
+
+
+def test_sp_train_offers_exactly_our_methods_with_sp_off_that_are_no_baseline():
+    from sp_plugins.nerfstudio.registration import SP_OFF_METHODS
+
+    assert set(OURS_UNDER_SP_TRAIN) == set(SP_OFF_METHODS)
 
 
 def test_the_builtin_list_is_the_one_sp_train_trains_end_to_end():
@@ -116,7 +124,7 @@ def watched(monkeypatch):
     return seen
 
 
-@pytest.mark.parametrize("name", METHODS + [SP_TRAIN + m for m in BUILTIN])
+@pytest.mark.parametrize("name", METHODS + [SP_TRAIN + m for m in BUILTIN + OURS_UNDER_SP_TRAIN])
 def test_nerfstudio_reduced_config_trains(name, one_view_scene, tmp_path, watched):
     from nerfstudio.scripts.train import train_loop
 
@@ -133,7 +141,8 @@ def test_nerfstudio_reduced_config_trains(name, one_view_scene, tmp_path, watche
     else:
         assert watched["sp_calls"] == 0, f"{name}: the baseline (SP off) perturbed queries"
     if name.startswith(SP_TRAIN):
-        assert type(model).__name__.startswith("SPModel__") and model.perturbed_calls() > 0, name
+        generic = name[len(SP_TRAIN):] in BUILTIN  # nerfstudio's methods get generated SP classes, ours keep theirs
+        assert type(model).__name__.startswith("SPModel__") == generic and model.perturbed_calls() > 0, name
 
     checkpoints = sorted(config.get_checkpoint_dir().glob("step-*.ckpt"))
     assert checkpoints, f"{name}: the 2-iteration run wrote no checkpoint"

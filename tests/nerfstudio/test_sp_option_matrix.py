@@ -11,9 +11,10 @@ design, not the full product: the product is 8 x 2 x 2 x 3 x 3 x 4 runs):
 | plain | off | 1 | gaussian | exponential | none |
 | constant | off | 1 | gaussian | constant | the method's default |
 
-The methods are ours (``sp-*``) and the ``sp-train`` configs of nerfstudio's ``nerfacto``,
+The methods are ours (``sp-*``), the ``sp-train`` configs of nerfstudio's ``nerfacto``,
 ``vanilla-nerf`` and ``tensorf`` (``sp-train:<method>``: ``sp_methods`` on nerfstudio's own list,
-the generic route that builds the host's fields as SP subclasses), shrunk for the CPU.
+the generic route that builds the host's fields as SP subclasses) and of our ``freenerf-lite``
+(SP off by default, switched on by ``sp-train``), shrunk for the CPU.
 
 Each run trains a few iterations on the CPU: every loss is finite, every setting reaches the
 model's preconditioner, in every step with alpha > 0 a field is handed samples that moved against
@@ -51,7 +52,11 @@ RADIANCE = ("sp-relu-field", "sp-mipnerf", "sp-vanilla-nerf", "sp-nerfacto", "sp
 SP_TRAIN = "sp-train:"
 WRAPPED = ("sp-train:nerfacto", "sp-train:vanilla-nerf", "sp-train:tensorf")
 """nerfstudio's own methods as ``sp-train`` offers them (the generic route)."""
-METHODS = SDF + RADIANCE + WRAPPED
+SP_OFF_OURS = ("freenerf-lite",)
+"""Our methods with SP off by default that are no one's baseline (``registration.SP_OFF_METHODS``)."""
+OURS_UNDER_SP_TRAIN = tuple(SP_TRAIN + m for m in SP_OFF_OURS)
+"""...and as ``sp-train`` offers them: our model class with SP switched on, not a generic variant."""
+METHODS = SDF + RADIANCE + WRAPPED + OURS_UNDER_SP_TRAIN
 CONTRACTED = {"sp-nerfacto", "sp-train:nerfacto"}
 """Scene contraction (the fields' ``spatial_distortion``): only boundary "none" applies."""
 GRID_CANNOT_LEARN = r"--pipeline\.model\.sp\.alpha-grid True cannot learn on \S+: nerfstudio's TensoRF encoding detaches"
@@ -213,8 +218,10 @@ def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_
     check_noise_kind(counter["offsets"], sp.config.noise, f"{name}/{run}")
     for key, value in settings.items():
         assert getattr(sp.config, key) == value, f"{name}: sp.{key} did not reach the model"
-    if name.startswith(SP_TRAIN):  # the generic route: the host's fields carry the seam
+    if name in WRAPPED:  # the generic route: the host's fields carry the seam
         assert type(model).__name__.startswith("SPModel__nerfstudio_dmodels_d") and model.sp_fields()
+    if name in OURS_UNDER_SP_TRAIN:  # our model class, SP switched on by sp-train
+        assert type(model).__module__.startswith("sp_plugins.nerfstudio.") and model.sp.config.enabled and model.sp_fields()
     if run == "grid":
         assert "sp_alpha_grid" in trainer.optimizers.optimizers
         values = sp.alpha_grid.values()
@@ -232,7 +239,7 @@ def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_
         assert sp2.alpha == pytest.approx(AlphaSchedule("exponential", 0.05, end_step=5)(start))  # end 1.0: the last step
 
 
-@pytest.mark.parametrize("name", BASELINES)
+@pytest.mark.parametrize("name", BASELINES + SP_OFF_OURS)
 @pytest.mark.parametrize("flag", [dict(alpha_grid=True), dict(num_samples=2)])
 def test_baselines_refuse_options_that_only_act_through_sp(name, flag, tiny_scene, tmp_path):
     from sp_plugins.adapter.errors import InputError
