@@ -31,6 +31,7 @@ Usage::
         --methods relu-field relu-field-flat relu-field-flat-sp-lr --sp 0.25@0.2857   # thr3ed_atom's ratios
     python -m bench.radiance_methods mipnerf
     python -m bench.radiance_methods mipnerf --dtu-like --views 3 --steps 2000 --end 667 --tag dtu --scenes spot   # DTU-like, object-masked PSNR
+    python -m bench.radiance_methods mipnerf --dtu-like --quick MESH   # mipnerf / sp-mipnerf / freenerf-lite (bench.sparse_views)
     python -m bench.radiance_methods cost
 
 Finished runs (one JSON per study / scene / setting) are skipped; ``--overwrite`` recomputes.
@@ -188,9 +189,9 @@ def budget_key(*parts) -> str:
 def scene_dir(scene: str, views: int, image: int, test_views: int) -> Path:
     from sp_plugins.data import make_scene
 
-    path = OUT / "scenes" / f"{scene}-{views}v-{image}px"
+    path = OUT / "scenes" / f"{Path(scene).stem}-{views}v-{image}px"
     if not (path / "scene.json").is_file():
-        make_scene(SCENES[scene], path, n_train=views, n_val=2, n_test=test_views, resolution=image,
+        make_scene(SCENES.get(scene, scene), path, n_train=views, n_val=2, n_test=test_views, resolution=image,
                    layouts=("blender",), seed=0, overwrite=True)
     return path / "blender"
 
@@ -199,13 +200,15 @@ DTU_UP_AXIS = {"spot": "z", "cow": "y", "bunny": "y"}
 """Up axis of each scene's mesh (the DTU-like scene stands it on its ground)."""
 
 
-def dtu_scene_dir(scene: str, **sizes) -> Path:
+def dtu_scene_dir(scene: str, up_axis: Optional[str] = None, **sizes) -> Path:
     """The DTU-like scene of ``bench.failure_regime`` at its full size (49 + 3 views of 96x72) unless
-    ``sizes`` (views, test_views, resolution) say otherwise; rendered once here."""
+    ``sizes`` (views, test_views, resolution) say otherwise; rendered once here. ``scene`` is a key
+    of :data:`SCENES` or any mesh file (standing on its ``up_axis``, z unless known)."""
     from bench.failure_regime import Setting, data_dir
     from bench.failure_regime import scene_dir as failure_scene_dir
 
-    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=DTU_UP_AXIS.get(scene, "z"), **sizes)
+    up = up_axis or DTU_UP_AXIS.get(scene, "z")
+    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=up, **sizes)
     return data_dir(setting, failure_scene_dir(setting, OUT))
 
 
@@ -299,7 +302,7 @@ class Run:
             from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
             lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
-        psnrs, ssims, lps, bg, fg, inside = [], [], [], [], [], []
+        psnrs, ssims, lps, bg, fg, inside, ssims_inside = [], [], [], [], [], [], []
         renders = []
         for i in range(len(dataset)):
             rgba = np.asarray(Image.open(dataset.image_filenames[i]).convert("RGBA"), dtype=np.float32) / 255.0
@@ -316,6 +319,9 @@ class Run:
             if object_masks is not None:
                 mask = torch.from_numpy(np.asarray(Image.open(object_masks[i]).convert("L")) > 127)
                 inside.append(-10.0 * math.log10(max(float(((rgb - gt)[mask] ** 2).mean()), 1e-10)))
+                m = mask[..., None].float()  # RegNeRF / FreeNeRF's masked SSIM on DTU: the background set to 1 in both images
+                fg_rgb, fg_gt = (img * m + (1.0 - m) for img in (rgb, gt))
+                ssims_inside.append(float(ssim(fg_rgb.permute(2, 0, 1)[None], fg_gt.permute(2, 0, 1)[None], data_range=1.0)))
             a, b = gt.permute(2, 0, 1)[None], rgb.permute(2, 0, 1)[None]
             ssims.append(float(ssim(b, a, data_range=1.0)))
             if lpips is not None:
@@ -338,6 +344,7 @@ class Run:
         if inside:
             result["psnr_object"] = statistics.mean(inside)
             result["psnr_object_per_view"] = inside
+            result["ssim_object"] = statistics.mean(ssims_inside)
         self.renders = renders
         return result
 
@@ -520,10 +527,12 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
 # -- MipNeRF -----------------------------------------------------------------------------------
 
 
-def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path):
+def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path, method: str = "sp-mipnerf",
+               name: Optional[str] = None):
+    """``method`` (sp-mipnerf, or freenerf-lite: the same MipNeRF) at ``budget``, SP on or off."""
     from sp_plugins.nerfstudio.runs import configure_run, method_config
 
-    config = method_config("sp-mipnerf")
+    config = method_config(method)
     m = config.pipeline.model
     m.num_coarse_samples, m.num_importance_samples = budget.coarse, budget.fine
     m.mlp_num_layers, m.mlp_layer_width, m.head_mlp_layer_width = budget.mlp_num_layers, budget.mlp_layer_width, budget.head_width
@@ -533,7 +542,7 @@ def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path):
     if budget.dtu_like:
         near, far = dtu_near_far(data)
         m.collider_params = {"near_plane": near, "far_plane": far}
-    name = "sp-mipnerf" if sp else "mipnerf"
+    name = name or ("sp-mipnerf" if sp else "mipnerf")
     configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
                   experiment_name=name)
     config.pipeline.datamanager.train_views = budget.views
@@ -715,6 +724,12 @@ def main(argv=None) -> None:
     relu.add_argument("--save-grids", action="store_true", help="keep each run's final grid (<result>.<run>.grid.pt)")
     mip = sub.add_parser("mipnerf", help="mipnerf vs sp-mipnerf on few views")
     mip.add_argument("--scenes", nargs="+", default=["spot", "cow"], choices=sorted(SCENES))
+    mip.add_argument("--quick", metavar="MESH",
+                     help="one paired triple (mipnerf, sp-mipnerf at --quick-sp, freenerf-lite) on MESH (a mesh file or a "
+                          "key of SCENES) at the cheapest failing size (bench.sparse_views.QUICK; flags still win), "
+                          "printing 'baseline PSNR X, SP PSNR Y, FreeNeRF PSNR Z (object)' last")
+    mip.add_argument("--quick-sp", default="0.04@0.333", metavar="ALPHA0@END[:grid]", help="the SP run of --quick")
+    mip.add_argument("--up-axis", choices=["x", "y", "z"], help="of the --quick mesh (known meshes: their own)")
     for f in dataclasses.fields(MipBudget):
         flag = "--" + f.name.replace("_", "-")
         if isinstance(f.default, bool):
@@ -743,6 +758,11 @@ def main(argv=None) -> None:
     if getattr(args, "paper_regime", False):
         relu.set_defaults(**PAPER_REGIME)
         args = parser.parse_args(argv)
+    if getattr(args, "quick", None):
+        from bench.sparse_views import QUICK
+
+        mip.set_defaults(**QUICK)
+        args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -757,6 +777,15 @@ def main(argv=None) -> None:
             for seed in args.seeds:
                 relu_study(scene, budget, args.sp, args.methods, seed, args.tag, args.overwrite, args.save_grids)
         table = relu_table(collect("relu", args.tag))
+    elif args.study == "mipnerf" and args.quick:
+        from bench import sparse_views
+
+        budget = MipBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(MipBudget)})
+        line = sparse_views.quick(args.quick, budget, args.seeds[0], args.tag if args.tag != "final" else "quick",
+                                  sparse_views.SPSetting.parse(args.quick_sp), args.up_axis, args.overwrite)
+        print(f"wall time {time.time() - t0:.0f} s; results in {sparse_views.out_dir()}")
+        print(line)
+        return
     elif args.study == "mipnerf":
         budget = MipBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(MipBudget)})
         for scene in args.scenes:
