@@ -38,7 +38,13 @@ import torch
 
 from bench.common import OUT_DIR, machine_info, seed_everything
 
-PAIRS = {"neus": ("neus-hashgrid", "sp-neus-hashgrid"), "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite")}
+PAIRS = {
+    "neus": ("neus-hashgrid", "sp-neus-hashgrid"),
+    "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite"),
+    # the paper's two Neuralangelo variants: the annealed scalar vs the learned alpha grid (issue 37)
+    "neuralangelo-grid": ("sp-neuralangelo-lite", "sp-neuralangelo-lite+grid"),
+}
+"""Pairs of registered methods; ``+grid`` is the method with ``--pipeline.model.sp.alpha-grid True``."""
 SCENES = {"spot": "spot", "bunny": "/work/shared/data/meshes/bunny.ply", "torus": "torus"}
 
 
@@ -68,8 +74,11 @@ class Budget:
 def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
     from sp_plugins.nerfstudio.runs import configure_run, method_config
 
-    config = method_config(name)
+    method, _, variant = name.partition("+")
+    config = method_config(method)
     model = config.pipeline.model
+    if variant == "grid":
+        model.sp.alpha_grid = True
     field = model.sdf_field
     field.hidden_dim = budget.hidden_dim
     field.hidden_dim_color = budget.hidden_dim
