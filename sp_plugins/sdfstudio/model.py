@@ -6,13 +6,17 @@ in the metrics; the same names as in ``sp_plugins.nerfstudio.model``), except th
 into the scene contraction's range (the hash grid's domain, where sdfstudio's SDF field is
 queried) and the run's length is ``--trainer.max-num-iterations``.
 
+After the first training step with alpha > 0 the model checks, once, that SP moved the positions
+its SDF field was queried at (:func:`sp_plugins.sdfstudio.seam.check_reached`), as the nerfstudio
+adapter does for its seam.
+
 (LPIPS without downloads is a patch here, :mod:`sp_plugins.patches.sdfstudio_lpips`, because
 sdfstudio's own ns-eval builds the same models.)
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, List
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
@@ -47,3 +51,23 @@ class SDFFieldSPModel(SPModel):
                 f"{type(field).__name__} (the model config's sdf_field must be SPSDFFieldConfig)"
             )
         field.use_preconditioner(self.sp)
+
+    def sp_host_name(self) -> str:
+        """The sdfstudio model class this SP variant is built on."""
+        return next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins.")).__name__
+
+    def check_sp_reached(self, step: int) -> None:
+        """After the first training step with alpha > 0: the field's queries moved (once per run)."""
+        if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
+            return
+        self._sp_reach_checked = True
+        from sp_plugins.sdfstudio.seam import check_reached
+
+        check_reached(self.field, self.sp_host_name(), step)  # type: ignore[attr-defined]
+
+    def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
+        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        reached = TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_sp_reached, update_every_num_iters=1)
+        return list(callbacks) + [reached]

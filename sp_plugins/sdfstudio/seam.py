@@ -21,6 +21,9 @@ nerfstudio's fields share no contraction, sdfstudio's SDF methods all share this
   perturbed.
 - Evaluation, rendering and mesh extraction (``forward_geonetwork`` called directly) always see
   the plain field.
+- "Reached" means *moved*: the contraction records the largest move of the first positions it
+  perturbed (a device scalar on the field's handle) and :func:`check_reached`, run by the model
+  after the first training step with alpha > 0, reads it once and refuses a run that moved none.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from nerfstudio.cameras.rays import RaySamples
 from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
+from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
 from sp_plugins.core import StochasticPreconditioner
 
@@ -65,13 +69,35 @@ class PerturbedContraction(nn.Module):
         self.sp_handle: Optional[PreconditionerHandle] = None
 
     def forward(self, x: Tensor) -> Tensor:
-        x = x if self.inner is None else self.inner(x)
+        plain = x if self.inner is None else self.inner(x)
         handle = self.sp_handle
-        if handle is None or handle.sp is None:
-            return x
-        if handle.sp.training and handle.sp.active:
-            handle.perturbed_calls += 1
-        return handle.sp(x)
+        if handle is None or handle.sp is None or not handle.sp.active:
+            return plain
+        handle.perturbed_calls += 1
+        moved = handle.sp(plain)
+        if handle.first_move is None:  # once per run, device-side: check_reached reads it
+            handle.first_move = (moved - plain).detach().abs().max()
+        return moved
+
+
+def check_reached(field: nn.Module, model_name: str, step: int) -> None:
+    """After the first training step with alpha > 0: the SDF field's queries went through the
+    perturbed contraction and the positions really moved. Runs once per run; one device read
+    (the first move), so a run whose perturbation is drawn but not applied stops at once instead
+    of training a baseline under an SP name."""
+    handle = getattr(field, "sp_handle", None)
+    calls = 0 if handle is None else handle.perturbed_calls
+    if not calls:
+        raise InputError(
+            f"SP reached no SDF query of {model_name} in training step {step}: the field's scene contraction was not "
+            "called while training with alpha > 0, so no position was perturbed; this is a bug of sp-plugins, please report it"
+        )
+    move = float(handle.first_move) if handle.first_move is not None else 0.0  # type: ignore[union-attr]
+    if not move > 0:
+        raise InputError(
+            f"SP reached the SDF field of {model_name} in training step {step} but moved no position (largest move "
+            f"{move:g}): the perturbation is not applied; this is a bug of sp-plugins, please report it"
+        )
 
 
 class SPSDFField(SPFieldMixin, SDFField):

@@ -114,9 +114,91 @@ def test_sp_method_trains_two_steps_with_sp_active(method, scene_with_pairs, tmp
     assert isinstance(model.field, SPSDFField) and model.field.sp is model.sp
     calls = model.field.sp_handle.perturbed_calls
     assert calls >= 2, f"SP perturbed {calls} field queries in the 2 steps with alpha > 0"
+    assert model._sp_reach_checked and float(model.field.sp_handle.first_move) > 0  # the model's own check ran
     assert int(model.sp.step) == 2 and int(model.sp.total_steps) == 3 and model.sp.alpha == 0
     assert (tmp_path / "exp" / f"sp-{method}" / "run" / "sdfstudio_models" / "step-000000002.ckpt").is_file()
     OUTCOMES[method] = f"trains with SP (`sp-{method}`, {'Neuralangelo preset, coarse-to-fine replaced' if method in CONTROLS_ANGELO else 'NeuS preset'})"
+
+
+@pytest.mark.parametrize("method", ["neus", "neuralangelo"])
+def test_the_fields_queries_move_against_the_plain_positions(method, scene_with_pairs, tmp_path):
+    """Measured where the field reads, not counted: every training query the SDF network gets is
+    the plain contracted position moved by noise of std alpha (and Neuralangelo's six stencil points
+    share that one offset). Counting calls passed with the contraction returning its input."""
+    import nerfstudio.configs.method_configs as host
+    import torch
+
+    torch.manual_seed(0)
+    config = tiny_config(host.method_configs[f"sp-{method}"], scene_with_pairs, tmp_path, steps=3)
+    config.pipeline.model.sp = dataclasses.replace(config.pipeline.model.sp, end=1.0)
+    events = []  # in call order: ("contract", positions, alpha) and ("geo", network input)
+    trainer = None
+
+    def record_contraction(module, args, output):
+        if module.training and trainer.pipeline.model.sp.active:
+            events.append(("contract", args[0].detach().clone(), trainer.pipeline.model.sp.alpha))
+
+    from nerfstudio.engine.trainer import Trainer
+
+    from sp_plugins.patches.sdfstudio_cuda import cpu_meaning
+
+    with cpu_meaning():
+        trainer = Trainer(config, local_rank=0, world_size=0)
+        trainer.setup()
+        field = trainer.pipeline.model.field
+        field.spatial_distortion.register_forward_hook(record_contraction)
+        network = field.forward_geonetwork
+
+        def record_network(inputs):  # a spy: the field's own network runs on what it was handed
+            events.append(("geo", inputs.detach().clone(), None))
+            return network(inputs)
+
+        field.forward_geonetwork = record_network
+        trainer.train()
+    inner = field.spatial_distortion.inner
+    checked = 0
+    for i, (kind, positions, alpha) in enumerate(events):
+        if kind != "contract":
+            continue
+        queried = next(t for k, t, _ in events[i + 1:] if k == "geo")
+        plain = positions if inner is None else inner(positions)
+        if queried.shape[0] == 6 * plain.shape[0]:  # gradient(): the stencil, centred on the moved point
+            stencil = queried.view(6, *plain.shape)
+            queried = (stencil[0] + stencil[1]) / 2
+        else:
+            assert queried.shape == plain.shape
+            following = [t for k, t, _ in events[i + 2:i + 3] if k == "geo"]
+            if method == "neuralangelo" and following:  # the stencil around the moved query: one offset
+                stencil = following[0].view(6, *plain.shape)
+                torch.testing.assert_close((stencil[0] + stencil[1]) / 2, queried, rtol=0, atol=1e-5)
+        move = queried - plain
+        inside = (plain.abs() < 2 - 4 * alpha).all(-1)  # away from the walls the reflection leaves alone
+        assert float(move.abs().max()) > 0, f"the field was queried at the plain positions (call {i}, alpha {alpha:g})"
+        assert float(move[inside].std()) == pytest.approx(alpha, rel=0.25), (float(move[inside].std()), alpha)
+        checked += 1
+    assert checked >= 2  # the two steps with alpha > 0
+    assert float(field.sp_handle.first_move) > 0
+
+
+def test_a_field_that_moved_nothing_is_refused_in_one_line():
+    """The product's own reach check (run after the first step with alpha > 0): a handle that
+    recorded no perturbed query, or a first move of 0, stops the run with one line."""
+    import torch
+    from torch import nn
+
+    from sp_plugins.adapter.errors import InputError
+    from sp_plugins.adapter.field import PreconditionerHandle
+    from sp_plugins.sdfstudio.seam import check_reached
+
+    field = nn.Module()
+    field.sp_handle = PreconditionerHandle(None)
+    with pytest.raises(InputError, match="SP reached no SDF query of NeuSModel in training step 0"):
+        check_reached(field, "NeuSModel", 0)
+    field.sp_handle.perturbed_calls, field.sp_handle.first_move = 3, torch.tensor(0.0)
+    with pytest.raises(InputError, match="moved no position .largest move 0.: the perturbation is not applied"):
+        check_reached(field, "NeuSModel", 0)
+    field.sp_handle.first_move = torch.tensor(0.01)
+    check_reached(field, "NeuSModel", 0)
 
 
 @pytest.mark.parametrize("method", sorted(CUDA_ONLY))
