@@ -16,11 +16,34 @@ def test_demo_writes_a_results_table_meshes_renders_and_a_plot(tmp_path, capsys)
         m = results["metrics"][name]
         assert m["chamfer"] > 0 and 0 <= m["fscore"] <= 1
         assert len(results["curves"][name]["loss"]) == 12
+    # the two runs share seed, init and batches (same config but for sp), so their losses differ
+    # only through SP: from the first step (SP perturbs step 0 on), not only later; a demo whose SP
+    # run is a second baseline has two identical curves
+    base_loss, sp_loss = results["curves"]["baseline"]["loss"], results["curves"]["SP"]["loss"]
+    assert results["sp"]["alpha0"] > 0 and results["sp"]["end"] > 0
+    assert sp_loss[0] != base_loss[0], "the SP run's first loss equals the baseline's: SP did not act"
+    assert sum(a != b for a, b in zip(base_loss, sp_loss)) >= 10
     assert (out / "meshes" / "baseline.ply").stat().st_size > 0
     assert (out / "meshes" / "sp.ply").stat().st_size > 0
     for png in ("renders.png", "slices.png", "convergence.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "scene" / "blender" / "transforms_train.json").is_file()
+
+
+def test_the_demos_two_runs_differ_only_in_sp():
+    """What the demo compares: the SP run is the baseline's config with SP switched on (alpha > 0,
+    ending inside training), nothing else changed, so any difference in results is SP's."""
+    from dataclasses import replace
+
+    args = demo.parse_args(["--budget", "quick"])
+    configs = demo._paired_configs(args)
+    base, sp = configs["baseline"], configs["SP"]
+    assert not base.sp.enabled or base.sp.alpha0 == 0
+    assert sp.sp.enabled and sp.sp.alpha0 == args.alpha0 > 0 and 0 < sp.sp.end < 1
+    assert replace(sp, sp=base.sp) == base
+    steps = base.steps
+    alphas = [sp.sp.setup(total_steps=steps, bounds=(-1.0, 1.0), dim=3).set_step(i, steps) for i in (0, steps - 1)]
+    assert alphas[0] > 0 and alphas[1] == 0  # on from step 0, off by the last step
 
 
 def test_demo_refuses_to_overwrite_earlier_results(tmp_path, capsys):
