@@ -60,10 +60,12 @@ sdf_venv="${SP_SDFSTUDIO_VENV:-$here/.venv-sdfstudio}"
 sdf_src="${SP_SDFSTUDIO_SRC:-$here/../shared/hosts/sdfstudio-370902a.tar.gz}"
 sdf_stamp="$sdf_venv/.sp-sdfstudio-stamp"
 
+sdf_get_one="get one: git clone https://github.com/autonomousvision/sdfstudio && SP_SDFSTUDIO_SRC=\$PWD/sdfstudio ./run.sh setup-sdfstudio"
+
 setup_sdfstudio() {
   if [ ! -e "$sdf_src" ]; then
-    echo "[sp-plugins] sdfstudio: no source at $sdf_src; skipping its environment and tests." >&2
-    echo "[sp-plugins]   get one: git clone https://github.com/autonomousvision/sdfstudio && SP_SDFSTUDIO_SRC=\$PWD/sdfstudio ./run.sh setup-sdfstudio" >&2
+    echo "[sp-plugins] sdfstudio: no source at $sdf_src; no sdfstudio environment (its tests are reported as skipped; with CI=true the run fails)." >&2
+    echo "[sp-plugins]   $sdf_get_one" >&2
     return 0
   fi
   local src_id want
@@ -95,10 +97,13 @@ setup_sdfstudio() {
   echo "$want" > "$sdf_stamp"
 }
 
-# ./run.sh test [pytest options] [paths]: the main suite in $venv and, when an sdfstudio source is
-# available, tests/sdfstudio in the sdfstudio environment (the main run never collects them: see
+# ./run.sh test [pytest options] [paths]: the main suite in $venv and tests/sdfstudio in the sdfstudio
+# environment (the main run then leaves them out: SP_SDFSTUDIO_TESTS=separate, see
 # tests/sdfstudio/conftest.py). Paths go to the run they belong to; options go to both. The exit
 # status is the worse of the two (pytest's 5, "no tests collected", counts only if both had none).
+# Without the sdfstudio environment (no source, see setup_sdfstudio) the sdfstudio tests are collected
+# by the main run and reported there as skipped, with the reason; in CI (CI=true) that fails the run
+# instead: a CI that cannot run a host's tests must not look green.
 run_tests() {
   cd "$here"
   local opts=() main_paths=() sdf_paths=() a
@@ -115,9 +120,26 @@ run_tests() {
   local main_rc=5 sdf_rc=5 run_main=0 run_sdf=0 sdf_log="" sdf_pid=""
   if [ ${#main_paths[@]} -gt 0 ] || [ ${#sdf_paths[@]} -eq 0 ]; then run_main=1; fi
   if [ ${#sdf_paths[@]} -gt 0 ] || [ ${#main_paths[@]} -eq 0 ]; then run_sdf=1; fi
+  local sdf_missing=""
+  if [ "$run_sdf" = 1 ]; then
+    setup_sdfstudio
+    if [ ! -f "$sdf_stamp" ]; then
+      sdf_missing="no sdfstudio environment at $sdf_venv (no source at $sdf_src to build it from; $sdf_get_one)"
+      run_sdf=0
+      if [ "${CI:-}" = true ]; then
+        echo "[sp-plugins] error: CI=true and the sdfstudio tests cannot run: $sdf_missing" >&2
+        sdf_rc=1
+      else
+        # the main run collects them and reports them as skipped, with this reason
+        [ ${#sdf_paths[@]} -gt 0 ] && { run_main=1; main_paths+=("${sdf_paths[@]}"); }
+        export SP_SDFSTUDIO_MISSING="$sdf_missing"
+      fi
+    else
+      export SP_SDFSTUDIO_TESTS=separate
+    fi
+  fi
   if [ "$run_main" = 1 ]; then setup; fi
-  if [ "$run_sdf" = 1 ]; then setup_sdfstudio; fi
-  if [ "$run_sdf" = 1 ] && [ -f "$sdf_stamp" ]; then
+  if [ "$run_sdf" = 1 ]; then
     # the two suites share nothing but the CPU: each runs one torch thread (tests/conftest.py), so on
     # two or more cores they run side by side; the sdfstudio report is printed after the main one
     [ ${#sdf_paths[@]} -gt 0 ] || sdf_paths=(tests/sdfstudio)
@@ -143,6 +165,9 @@ run_tests() {
     sdf_rc=0; wait "$sdf_pid" || sdf_rc=$?
     echo "[sp-plugins] sdfstudio tests, in $sdf_venv (ran beside the main suite)"
     cat "$sdf_log"; rm -f "$sdf_log"
+  fi
+  if [ -n "$sdf_missing" ] && [ "${CI:-}" = true ]; then
+    echo "[sp-plugins] error: CI=true and the sdfstudio tests did not run: $sdf_missing" >&2
   fi
   if [ "$main_rc" = 5 ] && [ "$sdf_rc" = 5 ]; then return 5; fi
   [ "$main_rc" = 5 ] && main_rc=0
