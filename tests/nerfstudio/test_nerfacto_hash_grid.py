@@ -9,7 +9,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.encodings import HashEncoding
 from radiance_tiny import tiny_radiance_config  # type: ignore[import-not-found]
 
-from sp_plugins.encodings import HashGrid
+from sp_plugins.encodings import HashGrid, tcnn_usable
 from sp_plugins.nerfstudio.host import hash_encoding
 from sp_plugins.adapter.errors import InputError
 
@@ -79,22 +79,55 @@ def test_gpu_layout_grid_weights_load_and_fused_tcnn_is_refused(tiny_scene, tmp_
         fresh.load_state_dict(fused)
 
 
-def test_where_tcnn_runs_the_host_modules_stay(tiny_scene, tmp_path, monkeypatch):
-    from sp_plugins.encodings import tcnn_usable
+def test_the_decision_follows_device_and_tinycudann(monkeypatch):
+    """Our grids exactly where tiny-cuda-nn cannot run: never on a CPU; on a CUDA device only when
+    tinycudann does not import. Both sides of the real decision, on any machine: tinycudann's
+    presence is the environment fact set here (an importable module), the decision is not touched."""
+    import sys
+    import types
 
-    # the real decision, unmocked: our grids exactly where tiny-cuda-nn cannot run (never on the CPU)
-    for device in ("cpu", "cuda", "cuda:0", None):
-        expected = not tcnn_usable(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
-        assert hash_encoding.use_sp_hash_grids(device) is expected, device
-    assert hash_encoding.use_sp_hash_grids("cpu") is True
-    if torch.cuda.is_available() and tcnn_usable("cuda"):  # a CUDA machine with tinycudann: the real thing
-        config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path).pipeline.model
-        model = config.setup(scene_box=BOX, num_train_data=8, metadata={}, device="cuda", grad_scaler=None)
-    else:  # elsewhere: the model as it is built where that decision says tcnn runs
-        monkeypatch.setattr(hash_encoding, "use_sp_hash_grids", lambda device: False)
-        config, model = build(tiny_scene, tmp_path)
+    from sp_plugins.encodings.hashgrid import _import_tcnn
+
+    real = _import_tcnn() is not None
+    for present in (False, True):
+        if present:
+            monkeypatch.setitem(sys.modules, "tinycudann", types.ModuleType("tinycudann"))
+        elif real:  # a machine with tinycudann: hide it (a None entry makes the import fail)
+            monkeypatch.setitem(sys.modules, "tinycudann", None)
+        assert hash_encoding.use_sp_hash_grids("cpu") is True
+        assert hash_encoding.use_sp_hash_grids(torch.device("cpu")) is True
+        for cuda in ("cuda", "cuda:0", "cuda:1", torch.device("cuda", 0)):
+            assert hash_encoding.use_sp_hash_grids(cuda) is (not present), (cuda, present)
+        assert hash_encoding.use_sp_hash_grids(None) is (not (present and torch.cuda.is_available()))
+        monkeypatch.undo()
+
+
+def test_where_the_decision_says_tcnn_runs_the_host_modules_stay(tiny_scene, tmp_path, monkeypatch):
+    """A model for a CUDA device with tinycudann importable keeps nerfstudio's tcnn setting and its own
+    encodings: populate_modules asks the real decision and swaps nothing. (Built on this machine's CPU:
+    nerfstudio, which found no tinycudann when it was imported, builds its torch fallbacks, so the
+    modules are nerfstudio's HashEncoding, not ours.)"""
+    import sys
+    import types
+
+    if not tcnn_usable("cuda"):
+        monkeypatch.setitem(sys.modules, "tinycudann", types.ModuleType("tinycudann"))
+    assert hash_encoding.use_sp_hash_grids("cuda") is False
+    config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path).pipeline.model
+    model = config.setup(scene_box=BOX, num_train_data=8, metadata={}, device="cuda", grad_scaler=None)
     assert config.implementation == "tcnn"  # not switched to torch
     assert not grids(model)  # nothing swapped: nerfstudio's own modules
     encodings = {n for n, m in model.named_modules(remove_duplicate=False) if isinstance(m, HashEncoding)}
-    assert {"proposal_networks.0.encoding", "proposal_networks.1.encoding"} <= encodings  # nerfstudio's own
-    assert all(model.get_submodule(n).tcnn_encoding is not None for n in encodings) or not tcnn_usable("cuda")
+    assert {"proposal_networks.0.encoding", "proposal_networks.1.encoding"} <= encodings
+    # and the same model for the CPU: our grids (the decision's other side, same config)
+    config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path).pipeline.model
+    model = config.setup(scene_box=BOX, num_train_data=8, metadata={}, device="cpu", grad_scaler=None)
+    assert config.implementation == "torch" and "field.mlp_base.model.0" in grids(model)
+
+
+@pytest.mark.skipif(not tcnn_usable("cuda"), reason="needs a CUDA device and tinycudann (tiny-cuda-nn's own modules)")
+def test_on_a_cuda_machine_with_tinycudann_the_modules_are_tcnns(tiny_scene, tmp_path):
+    config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path).pipeline.model
+    model = config.setup(scene_box=BOX, num_train_data=8, metadata={}, device="cuda", grad_scaler=None)
+    encodings = [m for m in model.modules() if isinstance(m, HashEncoding)]
+    assert encodings and all(m.tcnn_encoding is not None for m in encodings) and not grids(model)

@@ -57,6 +57,14 @@ def test_sp_follows_its_schedule_and_baseline_has_none(blob_points, small_config
     assert base.history["alpha"] == [0.0] * 20
     # same seed, same batches, same init: only the perturbation differs, and only while it is on
     assert base.history["loss"][0] != sp.history["loss"][0]
+    # after the end SP is off: from the SP run's weights, its step is exactly a plain step
+    plain = small_config(steps=20, sp=SPConfig(enabled=False)).setup(blob_points)
+    plain.field.load_state_dict(sp.field.state_dict())
+    plain.optimizer.load_state_dict(sp.optimizer.state_dict())
+    plain.scheduler.load_state_dict(sp.scheduler.state_dict())
+    plain.generator.set_state(sp.generator.get_state())
+    plain.step_index = sp.step_index = 15
+    assert sp.step()["loss"] == plain.step()["loss"]
 
 
 def test_runs_are_reproducible(blob_points, small_config):
