@@ -50,7 +50,8 @@ SLOW_FIRST = (
     "sweeps/test_sweep_cli.py", "nerfstudio/test_real_capture.py", "nerfstudio/test_with_sp.py",
     "nerfstudio/test_ns_commands.py", "nerfstudio/test_bad_input_ns.py", "bench/test_failure_regime.py",
     "nerfstudio/test_kill_resume.py", "nerfstudio/test_multiprocess.py", "nerfstudio/test_relu_field_thr3ed.py",
-    "cli/test_demo.py",
+    "cli/test_demo.py", "test_wheel.py", "nerfstudio/test_safe_config_ns.py", "nerfstudio/test_sp_option_matrix.py",
+    "cli/test_fuzz_inputs.py",
 )
 """Files of a minute or more (``--durations``, 2026-12-02). ``./run.sh test`` hands whole files to
 pytest-xdist workers in collection order (``--no-loadscope-reorder``: by default xdist starts with the
