@@ -128,7 +128,7 @@ def resolve_backend(backend: str, device: Union[str, torch.device] = "cpu", dtyp
         if not usable:
             raise ValueError(
                 f"backend='tcnn' cannot hold a {dtype} grid on {device}: it needs the tinycudann package, a CUDA "
-                "device and a float32 table; install it (pip install 'sp-plugins[tcnn]'), move the module to CUDA, "
+                "device and a float32 table; install it (pip install git+https://github.com/NVlabs/tiny-cuda-nn/#subdirectory=bindings/torch), move the module to CUDA, "
                 "or use backend='auto' / 'torch'"
             )
         return "tcnn"
