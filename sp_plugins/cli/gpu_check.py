@@ -73,9 +73,9 @@ def process_age() -> float:
 class Deadline:
     """The global deadline: what is left, and whether a part of a given length still fits."""
 
-    def __init__(self, seconds: float) -> None:
+    def __init__(self, seconds: float, since_process_start: bool = True) -> None:
         self.seconds = seconds
-        self.start = time.monotonic() - process_age()
+        self.start = time.monotonic() - (process_age() if since_process_start else 0.0)
 
     def elapsed(self) -> float:
         return time.monotonic() - self.start
@@ -873,9 +873,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     return args
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Optional[Sequence[str]] = None, own_process: bool = False) -> int:
+    """The check; ``own_process`` (the console command): the deadline counts from the process start
+    and, once reached, ends the process. Called from Python (a test, another tool), the deadline
+    counts from the call and a reached deadline only records itself: the caller's process lives on."""
     args = parse_args(argv)
-    deadline = Deadline(args.deadline)
+    deadline = Deadline(args.deadline, since_process_start=own_process)
     import torch
 
     device = torch.device(args.device)
@@ -910,7 +913,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         report.write()
         log(f"error: the deadline of {args.deadline:.0f} s was reached" + (f" during {part}" if part else "")
             + f"; report -> {report.path}")
-        os._exit(1)
+        if own_process:
+            os._exit(1)
 
     watchdog = threading.Timer(max(deadline.remaining(), 0.0), on_deadline)
     watchdog.daemon = True
@@ -945,6 +949,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             report.data["seconds"] = deadline.elapsed()
             report.write()
     watchdog.cancel()
+    report.data["seconds"] = deadline.elapsed()
+    report.write()
     for line in summary_lines(report.data):
         log(line)
     failed = [p for p, r in parts.items() if r.get("status") == "failed"]
@@ -954,7 +960,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def entrypoint() -> None:
-    sys.exit(main())
+    sys.exit(main(own_process=True))
 
 
 if __name__ == "__main__":

@@ -121,3 +121,12 @@ def test_report_is_strict_json_and_the_script_is_registered(tmp_path):
     assert json.loads(report.path.read_text()) == {"a": None, "b": [None, "x"]}
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts["sp-gpu-check"] == "sp_plugins.cli.gpu_check:entrypoint" and callable(gpu_check.entrypoint)
+
+
+def test_called_from_python_the_deadline_counts_from_the_call_and_never_ends_the_callers_process(tmp_path):
+    """A pytest worker that has lived past --deadline must not be killed by the watchdog (it was:
+    the deadline counted from the process start, and the watchdog called os._exit)."""
+    assert gpu_check.Deadline(1.0, since_process_start=False).remaining() > 0.5
+    code = gpu_check.main(["--device", "cpu", "--quick", "--parts", "grid", "--deadline", "0.5", "--out", str(tmp_path)])
+    report = json.loads((tmp_path / "gpu_check.json").read_text())
+    assert code == 1 and report["parts"]["grid"]["status"] == "failed"  # cut or refused by the deadline, process alive
