@@ -60,8 +60,3 @@ class SPFieldMixin:
         assert self.sp_handle is not None and self.sp_handle.sp is not None
         self.sp_handle.perturbed_calls += 1
         return self.sp_handle.sp.mean_over_draws(run_once)
-
-    def over_draws(self, run_once: Callable[[], T]) -> T:
-        """``run_once()`` averaged over ``num_samples`` draws (counted) while SP is active, else
-        one plain call: a field's ``forward`` wraps the host's with it."""
-        return self.perturbed(run_once) if self.sp_active() else run_once()
