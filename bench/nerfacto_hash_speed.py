@@ -5,7 +5,7 @@ offline LPIPS) at nerfacto's default field and proposal-network settings (16 lev
 resolution 16..2048; proposals 5 levels, 2^17 rows, 128 / 256), built with
 ``implementation="torch"`` (what nerfstudio falls back to without tiny-cuda-nn). Variant
 ``nerfstudio`` keeps nerfstudio's ``HashEncoding``; variant ``ours`` is what sp-nerfacto builds
-on a CPU (:mod:`sp_plugins.nerfstudio.host.hash_encoding`). A step is nerfacto's own training step on
+on a CPU (:mod:`sp_plugins.nerfstudio.components.hash_encoding`). A step is nerfacto's own training step on
 random rays through the unit box: forward, nerfacto's losses (RGB, interlevel, distortion),
 backward, Adam. Steps alternate between the two models in one process (A B B A ...), so load on
 the shared machine hits both alike; the result is the median of per-pair ratios.
@@ -25,8 +25,8 @@ import torch
 def build_model(variant: str, seed: int = 0):
     from nerfstudio.data.scene_box import SceneBox
 
-    from sp_plugins.nerfstudio.host import hash_encoding
-    from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModelConfig
+    from sp_plugins.nerfstudio.components import hash_encoding
+    from sp_plugins.nerfstudio.components.hash_encoding import NerfactoHashGridModelConfig
     from sp_plugins.nerfstudio.variants import variant
 
     config = variant("ModelConfig", NerfactoHashGridModelConfig)(implementation="torch")

@@ -56,7 +56,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 
 from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, seed_everything
-from sp_plugins.nerfstudio.host.views import VIEW_SELECTIONS
+from sp_plugins.nerfstudio.components.views import VIEW_SELECTIONS
 from sp_plugins.nerfstudio.relu_field.model import voxel_size
 
 OUT = OUT_DIR / "radiance_methods"
@@ -163,7 +163,7 @@ class MipBudget:
     views of 96x72, no masks; ``image`` and ``test_views`` do not apply) and score PSNR inside the
     object mask too, as RegNeRF / FreeNeRF do on DTU; the far plane then reaches the backdrop."""
     view_selection: str = "spread"
-    """which of the training views to keep (sp_plugins.nerfstudio.host.views): spread / first / random"""
+    """which of the training views to keep (sp_plugins.nerfstudio.components.views): spread / first / random"""
 
 
 OMITTED_FROM_KEY = {"background": "white", "align_corners": True, "density_units": "voxel", "loss": "mse",
@@ -292,7 +292,7 @@ class Run:
         from PIL import Image
         from torchmetrics.functional import structural_similarity_index_measure as ssim
 
-        from sp_plugins.nerfstudio.host.lpips import lpips_available
+        from sp_plugins.nerfstudio.components.lpips import lpips_available
 
         model = self.model
         model.eval()

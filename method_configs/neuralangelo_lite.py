@@ -1,6 +1,6 @@
 """neuralangelo-lite: hash grid, numerical gradients, curvature + eikonal losses, coarse-to-fine."""
 
-from sp_plugins.nerfstudio.sdf_methods import neuralangelo_method
+from sp_plugins.nerfstudio.sdf_configs import neuralangelo_method
 
 neuralangelo_lite = neuralangelo_method(
     "neuralangelo-lite",

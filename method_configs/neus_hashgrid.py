@@ -1,6 +1,6 @@
 """neus-hashgrid: NeuS on the paper's hash grid, no SP (the baseline of sp-neus-hashgrid)."""
 
-from sp_plugins.nerfstudio.sdf_methods import neus_method
+from sp_plugins.nerfstudio.sdf_configs import neus_method
 
 neus_hashgrid = neus_method(
     "neus-hashgrid",

@@ -1,6 +1,6 @@
 """relu-field: a dense ReLU field trained coarse-to-fine (4 stages, grid upsampled and optimizer reset per stage)."""
 
-from sp_plugins.nerfstudio.radiance_methods import relu_field_method
+from sp_plugins.nerfstudio.radiance_configs import relu_field_method
 
 relu_field = relu_field_method(
     "relu-field",

@@ -1,6 +1,6 @@
 """sp-mipnerf: MipNeRF with the SP offset on each conical frustum's Gaussian mean."""
 
-from sp_plugins.nerfstudio.radiance_methods import mipnerf_method
+from sp_plugins.nerfstudio.radiance_configs import mipnerf_method
 
 sp_mipnerf = mipnerf_method(
     "sp-mipnerf",

@@ -1,6 +1,6 @@
 """sp-nerfacto: nerfacto with SP on the main field's sample positions."""
 
-from sp_plugins.nerfstudio.radiance_methods import nerfacto_method
+from sp_plugins.nerfstudio.radiance_configs import nerfacto_method
 
 sp_nerfacto = nerfacto_method(
     "sp-nerfacto",

@@ -1,6 +1,6 @@
 """sp-neuralangelo-lite: neuralangelo-lite without coarse-to-fine, stochastic preconditioning instead."""
 
-from sp_plugins.nerfstudio.sdf_methods import neuralangelo_method
+from sp_plugins.nerfstudio.sdf_configs import neuralangelo_method
 
 sp_neuralangelo_lite = neuralangelo_method(
     "sp-neuralangelo-lite",

@@ -1,6 +1,6 @@
 """sp-neus: NeuS (frequency encoding) with stochastic preconditioning."""
 
-from sp_plugins.nerfstudio.sdf_methods import neus_method
+from sp_plugins.nerfstudio.sdf_configs import neus_method
 
 sp_neus = neus_method(
     "sp-neus",

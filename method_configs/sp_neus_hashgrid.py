@@ -1,6 +1,6 @@
 """sp-neus-hashgrid: NeuS on the paper's hash grid with stochastic preconditioning."""
 
-from sp_plugins.nerfstudio.sdf_methods import neus_method
+from sp_plugins.nerfstudio.sdf_configs import neus_method
 
 sp_neus_hashgrid = neus_method(
     "sp-neus-hashgrid",

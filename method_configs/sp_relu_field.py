@@ -1,6 +1,6 @@
 """sp-relu-field: the ReLU field at full resolution from step 0 with stochastic preconditioning."""
 
-from sp_plugins.nerfstudio.radiance_methods import relu_field_method
+from sp_plugins.nerfstudio.radiance_configs import relu_field_method
 
 sp_relu_field = relu_field_method(
     "sp-relu-field",

@@ -17,7 +17,7 @@ float and complex dtypes; not object, string, bytes, void or time dtypes): still
 code runs from a checkpoint), and only there; every other ``torch.load`` in the process keeps
 torch's default.
 (The nerfstudio adapter meets the same host bug by keeping our methods' learning rates Python
-floats, :mod:`sp_plugins.nerfstudio.host.schedulers`, because a nerfstudio checkpoint may be loaded
+floats, :mod:`sp_plugins.nerfstudio.components.schedulers`, because a nerfstudio checkpoint may be loaded
 where the plugin is not imported; sdfstudio at 370902a runs on torch 2.x only with these patches,
 and this way checkpoints already written, and sdfstudio's own methods', load too.) A torch
 without ``safe_globals`` (< 2.5) loads without weights-only by default: nothing to do there.

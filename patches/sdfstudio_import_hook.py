@@ -23,7 +23,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Callable, ContextManager, Dict, List, Optional
 
-from sp_plugins.sdfstudio.host import SDFSTUDIO_COMMIT, nerfstudio_dir, require_sdfstudio
+from sp_plugins.sdfstudio.detect import SDFSTUDIO_COMMIT, nerfstudio_dir, require_sdfstudio
 
 HOST_COMMIT = SDFSTUDIO_COMMIT
 HOST_PACKAGES = ("nerfstudio", "scripts")

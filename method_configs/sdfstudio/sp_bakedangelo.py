@@ -1,7 +1,7 @@
 """sp-bakedangelo: sdfstudio's bakedangelo with stochastic preconditioning instead of coarse-to-fine
 (the generic conversion, Neuralangelo preset; coarse-to-fine is replaced because the host enables it)."""
 
-from sp_plugins.sdfstudio.sdf_methods import NEURALANGELO_SP, sp_method
+from sp_plugins.sdfstudio.conversion import NEURALANGELO_SP, sp_method
 
 sp_bakedangelo = sp_method(
     "bakedangelo", NEURALANGELO_SP,

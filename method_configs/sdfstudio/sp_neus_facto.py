@@ -1,6 +1,6 @@
 """sp-neus-facto: sdfstudio's neus-facto with stochastic preconditioning (the generic conversion, NeuS preset)."""
 
-from sp_plugins.sdfstudio.sdf_methods import NEUS_SP, sp_method
+from sp_plugins.sdfstudio.conversion import NEUS_SP, sp_method
 
 sp_neus_facto = sp_method(
     "neus-facto", NEUS_SP,

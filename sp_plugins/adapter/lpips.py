@@ -7,7 +7,7 @@ wraps the metric class: it builds the real metric when torch hub's cache holds t
 :class:`MissingLPIPS` otherwise, after one log line. The real metric is held outside the module
 tree (:class:`DetachedMetric`), so a checkpoint trained offline loads where the weights are cached
 and vice versa. How the factory reaches the host differs: nerfstudio 1.x builds the metric inside
-our models' ``populate_modules`` (:mod:`sp_plugins.nerfstudio.host.lpips`), sdfstudio by a name bound at
+our models' ``populate_modules`` (:mod:`sp_plugins.nerfstudio.components.lpips`), sdfstudio by a name bound at
 import (:mod:`sp_plugins.patches.sdfstudio_lpips`).
 """
 

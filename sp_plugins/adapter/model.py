@@ -1,20 +1,17 @@
 """The model side of every adapter: the preconditioner, its optimizer group, callbacks, metrics.
 
-Put :class:`SPModelConfig` and the host's ``SPModel`` (this class plus the host's few
-differences) first among the bases of a host model's config and model::
+Each host's ``SPModel`` (``sp_plugins.nerfstudio.model``, ``sp_plugins.sdfstudio.model``) is this
+class plus the host's few differences; it and :class:`SPModelConfig` go first among the bases of
+an SP model and its config (the hosts' ``variants`` modules make those subclasses on demand)::
 
-    @dataclass
-    class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
-        _target: Type = field(default_factory=lambda: SPNeuSModel)
-
-    class SPNeuSModel(SPModel, NeuSModel):
-        def attach_sp(self):            # hand the preconditioner to the fields that perturb positions
-            self.field.use_preconditioner(self.sp)
+    class SPModelConfig__NeuSModelConfig(SPModelConfig, NeuSModelConfig): ...
+    class SPModel__NeuSModel(SPModel, NeuSModel):   # SPModel = SPModelBase + host differences
+        def attach_sp(self): ...    # put the seam on the fields the host built
 
 The mixin then
 
 - builds ``self.sp`` (a :class:`StochasticPreconditioner`) from ``config.sp`` before the host's
-  modules, bounded by :meth:`SPModel.sp_bounds` and with the scene box's diagonal as the scale
+  modules, bounded by :meth:`SPModelBase.sp_bounds` and with the scene box's diagonal as the scale
   for relative alphas;
 - registers it as a submodule, so its step, total and alpha grid are in every checkpoint;
 - exposes a learnable alpha grid as the optimizer group ``sp_alpha_grid``;
@@ -49,7 +46,7 @@ def box_diagonal(aabb: torch.Tensor) -> float:
     return float(torch.linalg.norm(aabb[1] - aabb[0]))
 
 
-class SPModel:
+class SPModelBase:
     """Mixin for a host ``Model``; list it before the host model class."""
 
     sp: StochasticPreconditioner

@@ -110,7 +110,7 @@ def _export(args) -> int:
 
     from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
     from sp_plugins.geometry import save_mesh, sparse_extract_mesh
-    from sp_plugins.nerfstudio.host.trainer import checkpoint_to_load
+    from sp_plugins.nerfstudio.components.trainer import checkpoint_to_load
 
     target = None
     try:

@@ -544,7 +544,7 @@ def train_in_process(config, device, backend: Optional[str] = None):
     """A set-up nerfstudio trainer, and ``step(i)``: one training iteration with its callbacks."""
     from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
-    from sp_plugins.nerfstudio.host.lpips import offline_lpips
+    from sp_plugins.nerfstudio.components.lpips import offline_lpips
 
     config.save_config()
     with grid_backend(backend), offline_lpips():

@@ -7,14 +7,14 @@ One shape, as in ``sp_plugins.sdfstudio``, on the host-neutral base ``sp_plugins
   ``get_positions()``, ``get_start_positions()`` and Gaussian means all move;
   :mod:`~sp_plugins.nerfstudio.sdf_field` is our SDF field (masked levels, numerical gradients);
 - models: :mod:`~sp_plugins.nerfstudio.model` (``SPModel``: attaches the seam, refuses where it
-  cannot act), :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.radiance_models`;
+  cannot act), :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.mipnerf`;
 - registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, ``sp-train``, the refusal
   table), :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
-  trainer configs of our registered methods (:mod:`~sp_plugins.nerfstudio.sdf_methods`,
-  :mod:`~sp_plugins.nerfstudio.radiance_methods`; ``runs`` runs them from Python).
+  trainer configs of our registered methods (:mod:`~sp_plugins.nerfstudio.sdf_configs`,
+  :mod:`~sp_plugins.nerfstudio.radiance_configs`; ``runs`` runs them from Python).
 
 Not SP, in their own sub-packages: :mod:`~sp_plugins.nerfstudio.relu_field` (a method of ours) and
-:mod:`~sp_plugins.nerfstudio.host` (data checks, the tcnn fallback, float schedulers, offline
+:mod:`~sp_plugins.nerfstudio.components` (data checks, the tcnn fallback, float schedulers, offline
 LPIPS). Importing this package imports no host module.
 """
 

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.radiance_models import MIPNERF_SP, SPMipNerfModel, SPMipNerfModelConfig
+from sp_plugins.nerfstudio.mipnerf import MIPNERF_SP, SPMipNerfModel, SPMipNerfModelConfig
 
 OCCLUSION_LOSS = "occ_reg_loss"
 OCCLUSION_OUTPUT = "occ_reg"
@@ -235,7 +235,7 @@ class FreeNeRFModel(SPMipNerfModel, FreeNeRFLosses):
 def freenerf_method(name: str, description: str):
     """``sp-mipnerf``'s trainer config (nerfstudio's MipNeRF settings, 7500 steps) on
     :class:`FreeNeRFModelConfig`, SP off."""
-    from sp_plugins.nerfstudio.radiance_methods import mipnerf_method
+    from sp_plugins.nerfstudio.radiance_configs import mipnerf_method
 
     spec = mipnerf_method(name, sp=False, description=description)
     model = spec.config.pipeline.model

@@ -1,6 +1,6 @@
 """The model of the nerfstudio adapter: one mixin for our methods and for ``with_sp`` on any method.
 
-:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from ``config.sp``
+:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModelBase` (the preconditioner from ``config.sp``
 over the scene box, checkpointed, its alpha-grid optimizer group, the schedule callbacks,
 ``sp_alpha`` in the metrics) plus, for nerfstudio 1.x:
 
@@ -29,7 +29,7 @@ from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, install_input_error_hook
-from sp_plugins.nerfstudio.host.lpips import detach_lpips, drop_missing_lpips, offline_lpips
+from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
 __all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
 
@@ -135,7 +135,7 @@ ALPHA_GRID_UNREACHABLE = {
 """Host models whose fields detach the positions they read: a learnable alpha grid cannot learn."""
 
 
-class SPModel(adapter_model.SPModel):
+class SPModel(adapter_model.SPModelBase):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
     def populate_modules(self) -> None:

@@ -39,7 +39,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
-from sp_plugins.nerfstudio.host import hash_encoding
+from sp_plugins.nerfstudio.components import hash_encoding
 from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig

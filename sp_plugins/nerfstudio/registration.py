@@ -100,10 +100,10 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     from nerfstudio.plugins.types import MethodSpecification
 
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-    from sp_plugins.nerfstudio.host.schedulers import with_float_schedulers
+    from sp_plugins.nerfstudio.components.schedulers import with_float_schedulers
     from sp_plugins.nerfstudio.variants import variant
 
-    from sp_plugins.nerfstudio.host.trainer import checked
+    from sp_plugins.nerfstudio.components.trainer import checked
 
     config = checked(copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec))  # ns-train checks before writing
     base_description = getattr(spec, "description", "") or config.method_name

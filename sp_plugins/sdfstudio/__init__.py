@@ -13,14 +13,14 @@ nerfstudio adapter's:
   ``REFUSED_MODELS``, ``preset_for``, ``sp_methods``, and our entry-point group
   ``sp_plugins.sdfstudio_methods`` (sp-neus, sp-neus-facto, sp-neuralangelo, sp-bakedangelo),
   added to ns-train with ``sp-<method>`` for every SDF method sdfstudio registers;
-  :mod:`~sp_plugins.sdfstudio.sdf_methods` builds those configs (host config, classes swapped,
+  :mod:`~sp_plugins.sdfstudio.conversion` builds those configs (host config, classes swapped,
   coarse-to-fine replaced where the host enables it);
 - :mod:`~sp_plugins.sdfstudio.variants`: the SP subclass of any sdfstudio SDF model / model config,
   made on demand and importable by a path that names the host class (``config.yml`` loads);
   :mod:`~sp_plugins.sdfstudio.neus` keeps the old class names of the NeuS family as aliases;
 - :mod:`~sp_plugins.sdfstudio.cli`: ``sp-sdfstudio-train``, ``sp-sdfstudio-extract-mesh``;
 - :mod:`~sp_plugins.sdfstudio.hook`: opt-in start-up hook for sdfstudio's unmodified ``ns-*``;
-- :mod:`~sp_plugins.sdfstudio.host`: is the installed ``nerfstudio`` sdfstudio's (marker file).
+- :mod:`~sp_plugins.sdfstudio.detect`: is the installed ``nerfstudio`` sdfstudio's (marker file).
 
 The runtime patches that make sdfstudio run on Python 3.11 / torch 2.x / CPU live in
 ``sp_plugins.patches.sdfstudio_*``.

@@ -30,7 +30,7 @@ def _error(prog: str, message: str) -> "NoReturn":  # noqa: F821
 
 
 def _prepare(prog: str) -> None:
-    from sp_plugins.sdfstudio.host import require_sdfstudio
+    from sp_plugins.sdfstudio.detect import require_sdfstudio
 
     try:
         require_sdfstudio()

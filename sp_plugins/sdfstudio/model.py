@@ -1,6 +1,6 @@
 """The models of the sdfstudio adapter: the shared mixin with sdfstudio's few differences.
 
-:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModel` (the preconditioner from
+:class:`SPModel` is :class:`sp_plugins.adapter.model.SPModelBase` (the preconditioner from
 ``config.sp``, checkpointed, its alpha-grid optimizer group, the schedule callbacks, ``sp_alpha``
 in the metrics; the same names as in ``sp_plugins.nerfstudio.model``), except that SP reflects
 into the scene contraction's range (the hash grid's domain, where sdfstudio's SDF field is
@@ -25,7 +25,7 @@ from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
 
-class SPModel(adapter_model.SPModel):
+class SPModel(adapter_model.SPModelBase):
     """Mixin for an sdfstudio ``Model``; list it before the host model class."""
 
     steps_flag = "--trainer.max-num-iterations"

@@ -4,7 +4,7 @@ group, and ``sp-<method>`` for every method sdfstudio registers; the names of
 :func:`preset_for`, :func:`sp_methods`).
 
 ``with_sp(config)`` turns sdfstudio's own config of a method into ``sp-<method>``
-(:func:`sp_plugins.sdfstudio.sdf_methods.sp_model_config`); a method that is already ours comes back
+(:func:`sp_plugins.sdfstudio.conversion.sp_model_config`); a method that is already ours comes back
 with SP on. Methods SP cannot reach are refused with "SP cannot be put on <method>: <reason>"
 (:func:`refusal`).
 
@@ -93,7 +93,7 @@ def preset_for(model_config: Any) -> "SPConfig":
     Neuralangelo's progressive hash encoding (neuralangelo, bakedangelo, neus-facto-angelo; SP then
     replaces coarse-to-fine), :data:`~sp_plugins.adapter.presets.NEUS` for every other SDF method."""
     from sp_plugins.adapter import presets
-    from sp_plugins.sdfstudio.sdf_methods import replaces_coarse_to_fine
+    from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
 
     return dataclasses.replace(presets.NEURALANGELO if replaces_coarse_to_fine(model_config) else presets.NEUS)
 
@@ -105,7 +105,7 @@ def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] =
     A method that is already ours (its model config has ``sp``) comes back with SP enabled (an
     explicit ``sp`` wins). Raises ``ValueError`` naming the reason when SP cannot reach the method."""
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-    from sp_plugins.sdfstudio.sdf_methods import describe, replaces_coarse_to_fine, sp_model_config
+    from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
 
     config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
     base = config.method_name
@@ -129,7 +129,7 @@ def sp_methods(method_configs: Dict[str, Any], descriptions: Dict[str, str]) -> 
     """``(configs, descriptions, refused)``, keyed by SP method name (``sp-<method>``): for every
     host method, its SP config or why it is refused. Methods that are already ours are skipped
     (they are in the dict under their own names)."""
-    from sp_plugins.sdfstudio.sdf_methods import describe, replaces_coarse_to_fine
+    from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine
 
     configs: Dict[str, Any] = {}
     texts: Dict[str, str] = {}

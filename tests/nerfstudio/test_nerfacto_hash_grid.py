@@ -10,7 +10,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 from radiance_tiny import tiny_radiance_config  # type: ignore[import-not-found]
 
 from sp_plugins.encodings import HashGrid, tcnn_usable
-from sp_plugins.nerfstudio.host import hash_encoding
+from sp_plugins.nerfstudio.components import hash_encoding
 from sp_plugins.adapter.errors import InputError
 
 BOX = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))

@@ -37,7 +37,7 @@ def test_ns_train_cli_trains_sp_neus_hashgrid_on_blender_data(tiny_scene, tmp_pa
     assert int(state["_model.sp.total_steps"]) == 2
     # the finest level's cell: the grid's [-2, 2] span over its max-res 64 vertices (63 cells)
     assert float(state["_model.field.fd_step"]) == pytest.approx(4.0 / 63, rel=1e-4)
-    from sp_plugins.nerfstudio.host.lpips import lpips_available
+    from sp_plugins.nerfstudio.components.lpips import lpips_available
 
     if not lpips_available():  # offline: one clear line, no download attempt, no crash
         assert (proc.stdout + proc.stderr).count("LPIPS skipped") == 1

@@ -23,7 +23,7 @@ from ns_tiny import SDF_METHODS, _tiny_config, run_recording
 from radiance_tiny import tiny_radiance_config
 
 from sp_plugins.nerfstudio.runs import our_methods
-from sp_plugins.nerfstudio.host.schedulers import FloatCosineDecaySchedulerConfig, FloatExponentialDecaySchedulerConfig
+from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig, FloatExponentialDecaySchedulerConfig
 
 ON_THE_FOX = ("sp-nerfacto", "sp-neus-hashgrid")
 OTHERS = sorted(set(our_methods()) - set(ON_THE_FOX))

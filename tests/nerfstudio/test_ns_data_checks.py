@@ -9,7 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
-from sp_plugins.nerfstudio.host.data import SurfaceDataset, ray_hits_box
+from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataset, ray_hits_box
 
 
 def _setup(config):

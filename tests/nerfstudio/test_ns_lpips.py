@@ -14,7 +14,7 @@ import torch
 import torchmetrics.image.lpip as lpip_module
 
 from sp_plugins.adapter import lpips as shared
-from sp_plugins.nerfstudio.host import lpips
+from sp_plugins.nerfstudio.components import lpips
 
 
 def test_missing_weights_give_a_stub_and_one_log_line(tmp_path, monkeypatch, caplog):

@@ -276,7 +276,7 @@ def test_checkpoint_round_trip_and_resume_restore_sp_state(alpha_grid, tiny_scen
 
 
 def test_eval_metrics_skip_missing_lpips_and_export_callable_works(sp_pipeline, tmp_path, caplog):
-    from sp_plugins.nerfstudio.host import lpips
+    from sp_plugins.nerfstudio.components import lpips
 
     pipeline = sp_pipeline.pipeline
     model = pipeline.model

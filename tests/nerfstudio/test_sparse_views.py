@@ -10,8 +10,8 @@ from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConf
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
 
-from sp_plugins.nerfstudio.host.data import CheckedDataManagerConfig
-from sp_plugins.nerfstudio.host.views import farthest_views, select_views, subset_views, view_indices
+from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig
+from sp_plugins.nerfstudio.components.views import farthest_views, select_views, subset_views, view_indices
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from sp_plugins.sdfstudio.host import is_sdfstudio
+from sp_plugins.sdfstudio.detect import is_sdfstudio
 
 HERE = is_sdfstudio()
 SEPARATE = os.environ.get("SP_SDFSTUDIO_TESTS") == "separate"

@@ -3,5 +3,5 @@
 A dense grid, trilinear interpolation, ReLU after interpolation (:mod:`.field`); the model with its
 coarse-to-fine hierarchy or SP from step 0 (:mod:`.model`); thr3ed_atom's per-stage learning-rate
 schedule (:mod:`.lr`). The methods ``relu-field``, ``relu-field-flat`` and ``sp-relu-field`` are
-built in :mod:`sp_plugins.nerfstudio.radiance_methods`.
+built in :mod:`sp_plugins.nerfstudio.radiance_configs`.
 """

@@ -20,7 +20,7 @@ from nerfstudio.engine.schedulers import Scheduler, SchedulerConfig
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LRScheduler
 
-from sp_plugins.nerfstudio.host.schedulers import FloatLambdaLR
+from sp_plugins.nerfstudio.components.schedulers import FloatLambdaLR
 
 
 def stage_at(step: int, total_steps: int, stages: int) -> int:

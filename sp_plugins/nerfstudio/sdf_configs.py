@@ -28,11 +28,11 @@ from nerfstudio.plugins.types import MethodSpecification
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-from sp_plugins.nerfstudio.host.data import SurfaceDataManagerConfig
+from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
-from sp_plugins.nerfstudio.host.schedulers import FloatCosineDecaySchedulerConfig
-from sp_plugins.nerfstudio.host.trainer import CheckedTrainerConfig
+from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig
+from sp_plugins.nerfstudio.components.trainer import CheckedTrainerConfig
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 

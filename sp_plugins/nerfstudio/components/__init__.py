@@ -1,6 +1,6 @@
 """nerfstudio 1.1.5 as our methods need it on a CPU, offline: none of it is SP.
 
-- :mod:`.data`: data managers that check their input (one-line errors) and feed surface models
+- :mod:`.datamanagers`: data managers that check their input (one-line errors) and feed surface models
   from any layout; :mod:`.views`: training on N of the views (sparse-view runs);
 - :mod:`.hash_encoding`: our hash grids where tiny-cuda-nn cannot run (nerfacto's, NeuS's background);
 - :mod:`.schedulers`: nerfstudio's schedulers with float learning rates (torch >= 2.6 loads

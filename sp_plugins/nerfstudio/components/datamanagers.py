@@ -39,7 +39,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
 from sp_plugins.adapter.checks import check_device
 from sp_plugins.adapter.errors import InputError
-from sp_plugins.nerfstudio.host.views import ViewSelection, select_views
+from sp_plugins.nerfstudio.components.views import ViewSelection, select_views
 
 
 class SurfaceDataset(SDFDataset):

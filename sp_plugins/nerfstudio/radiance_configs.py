@@ -8,7 +8,7 @@
   a third of training when a run is shortened).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
   SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on
-  :class:`~sp_plugins.nerfstudio.host.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
+  :class:`~sp_plugins.nerfstudio.components.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
   cannot run; ``sp-tensorf`` reflecting inside the scene box).
 
 All use the checked vanilla data manager (no worker processes), which also takes
@@ -35,12 +35,12 @@ from nerfstudio.plugins.types import MethodSpecification
 from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-from sp_plugins.nerfstudio.host.data import CheckedDataManagerConfig
-from sp_plugins.nerfstudio.host.hash_encoding import NerfactoHashGridModelConfig
-from sp_plugins.nerfstudio.radiance_models import SPMipNerfModelConfig
+from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig
+from sp_plugins.nerfstudio.components.hash_encoding import NerfactoHashGridModelConfig
+from sp_plugins.nerfstudio.mipnerf import SPMipNerfModelConfig
 from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
-from sp_plugins.nerfstudio.host.schedulers import FloatExponentialDecaySchedulerConfig
-from sp_plugins.nerfstudio.host.trainer import CheckedTrainerConfig
+from sp_plugins.nerfstudio.components.schedulers import FloatExponentialDecaySchedulerConfig
+from sp_plugins.nerfstudio.components.trainer import CheckedTrainerConfig
 
 
 @dataclass

@@ -56,7 +56,7 @@ def checkpoint_to_load(config: TrainerConfig, dir_flag: str = "--load-dir"):
 
 def preflight(config: TrainerConfig) -> None:
     """Everything that can be checked before the run writes its folder."""
-    from sp_plugins.nerfstudio.host.data import CheckedDataManagerConfig, check_data_layout
+    from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig, check_data_layout
     from sp_plugins.nerfstudio.model import install_process_settings
 
     install_process_settings()  # one of our methods is about to train: its input errors print as one line
