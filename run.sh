@@ -86,7 +86,7 @@ setup_sdfstudio() {
     "$sdf_venv/bin/python" -m pip install -q $torch_spec &&
     "$sdf_venv/bin/python" -m pip install -q --no-deps "$sdf_src" &&
     "$sdf_venv/bin/python" -m pip install -q -e "$here[sdfstudio,dev]" &&
-    "$sdf_venv/bin/python" -c "import sp_plugins.sdfstudio.host as h; h.require_sdfstudio()" &&
+    "$sdf_venv/bin/python" -c "import sp_plugins.sdfstudio.detect as h; h.require_sdfstudio()" &&
     # opt-in hook: sdfstudio's own ns-train / ns-eval / ns-extract-mesh see our patches and methods
     "$sdf_venv/bin/python" -m sp_plugins.sdfstudio.hook install
   } >"$log" 2>&1; then
