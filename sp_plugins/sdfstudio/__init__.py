@@ -17,7 +17,6 @@ nerfstudio adapter's:
   coarse-to-fine replaced where the host enables it);
 - :mod:`~sp_plugins.sdfstudio.variants`: the SP subclass of any sdfstudio SDF model / model config,
   made on demand and importable by a path that names the host class (``config.yml`` loads);
-  :mod:`~sp_plugins.sdfstudio.neus` keeps the old class names of the NeuS family as aliases;
 - :mod:`~sp_plugins.sdfstudio.cli`: ``sp-sdfstudio-train``, ``sp-sdfstudio-extract-mesh``;
 - :mod:`~sp_plugins.sdfstudio.hook`: opt-in start-up hook for sdfstudio's unmodified ``ns-*``;
 - :mod:`~sp_plugins.sdfstudio.detect`: is the installed ``nerfstudio`` sdfstudio's (marker file).

@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Dict
 
 import pytest
-import yaml
 
-from sdf_tiny import BIN, env, pairs_file, run, run_dir, tiny_config, train_args, train_in_process
+from tests.helpers.sdf_configs import BIN, env, pairs_file, run, run_dir, tiny_config, train_args, train_in_process
 
 pytestmark = pytest.mark.usefixtures("patched")
 
@@ -281,24 +280,6 @@ def test_help_of_both_commands_lists_the_generic_methods(capsys, tmp_path):
     proc = subprocess.run([str(BIN / "ns-train"), "--help"], cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-1000:]
     assert offered <= listed_methods(proc.stdout), "sdfstudio's ns-train (opt-in hook) does not list them"
-
-
-def test_config_yml_naming_the_old_classes_still_loads():
-    """Runs written before the generic route name sp_plugins.sdfstudio.neus.SP*ModelConfig / SP*Model."""
-    import nerfstudio.configs.method_configs as host
-
-    from sp_plugins.sdfstudio import neus
-
-    for method, old in [("neus", "SPNeuS"), ("neus-facto", "SPNeuSFacto"), ("neuralangelo", "SPNeuralangelo"),
-                        ("bakedangelo", "SPBakedAngelo")]:
-        model = host.method_configs[f"sp-{method}"].pipeline.model
-        text = yaml.dump(model)
-        for kind, cls in (("ModelConfig", type(model)), ("Model", model._target)):
-            new = f"sp_plugins.sdfstudio.variants.{cls.__name__}"
-            assert new in text
-            text = text.replace(new, f"sp_plugins.sdfstudio.neus.{old}{kind}")
-        loaded = yaml.load(text, Loader=yaml.Loader)
-        assert type(loaded) is getattr(neus, f"{old}ModelConfig") is type(model) and loaded == model
 
 
 def test_zz_method_table():

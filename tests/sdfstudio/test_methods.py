@@ -134,7 +134,7 @@ def test_both_hosts_have_the_same_adapter_names():
 def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):
     import subprocess
 
-    from sdf_tiny import BIN, env, train_args
+    from tests.helpers.sdf_configs import BIN, env, train_args
 
     args = train_args("sp-neus-facto", "neus-facto", sdf_scene, tmp_path, 3, "--pipeline.model.sp.end", "50")
     proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), *map(str, args)], env=env(), capture_output=True, text=True, timeout=300)
@@ -148,6 +148,5 @@ def test_the_sdfstudio_adapter_never_loads_the_nerfstudio_adapter():
     import sys
 
     import sp_plugins.sdfstudio.cli  # noqa: F401
-    import sp_plugins.sdfstudio.neus  # noqa: F401
 
     assert not any(name.startswith("sp_plugins.nerfstudio") for name in sys.modules)

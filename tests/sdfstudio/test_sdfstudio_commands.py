@@ -16,17 +16,17 @@ import torch
 import trimesh
 import yaml
 
-from sdf_tiny import run, run_dir, train_args
+from tests.helpers.sdf_configs import run, run_dir, train_args
 
 BASES = ["neus", "neus-facto", "neuralangelo", "bakedangelo"]
 STEPS = 3
 ALPHA_GRID = ["--pipeline.model.sp.alpha-grid", "True", "--pipeline.model.sp.alpha-grid-resolution", "4",
               "--pipeline.model.sp.end", "1.0"]
-MODEL_CLASS = {
-    "neus": "SPNeuSModelConfig",
-    "neus-facto": "SPNeuSFactoModelConfig",
-    "neuralangelo": "SPNeuralangeloModelConfig",
-    "bakedangelo": "SPBakedAngeloModelConfig",
+MODEL_CLASS = {  # the host model config each SP method's config is the variant of
+    "neus": "NeuSModelConfig",
+    "neus-facto": "NeuSFactoModelConfig",
+    "neuralangelo": "NeuralangeloModelConfig",
+    "bakedangelo": "BakedAngeloModelConfig",
 }
 
 
@@ -67,9 +67,7 @@ def test_sp_method_and_its_baseline_train(base, sdf_scene, sp_runs, tmp_path):
     for key, value in baseline.items():  # same field and network layout as the host's method
         assert key in state and state[key].shape == value.shape, key
     config = yaml.load((sp_run / "config.yml").read_text(), Loader=yaml.Loader)
-    from sp_plugins.sdfstudio import neus  # the old names are the generic variants
-
-    assert type(config.pipeline.model) is getattr(neus, MODEL_CLASS[base])
+    assert type(config.pipeline.model).__name__.endswith("_d" + MODEL_CLASS[base])
     assert type(config.pipeline.model).__module__ == "sp_plugins.sdfstudio.variants"
     assert config.pipeline.model.sp.enabled and config.pipeline.model.sp.alpha0 > 0
 
