@@ -20,7 +20,7 @@ import torch
 import trimesh
 from trimesh.exchange.ply import export_ply
 
-from fs_faults import listing, make_read_only, undo_read_only
+from tests.helpers.fs_faults import listing, make_read_only, undo_read_only
 
 BIN = Path(sys.executable).parent
 ENV = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
@@ -54,7 +54,7 @@ def runs(tmp_path_factory):
     """Every bad input through ``sp-fit``: ``name -> (result, out, before, after)``. Each runs as its own
     process, forked from a server that imported sp-fit once (``tests/forkserver.py``; an sp-fit
     start-up is 5-7 s here); the first case also runs as the real console script, to show the two agree."""
-    from forkserver import ForkServer
+    from tests.helpers.forkserver import ForkServer
 
     root = tmp_path_factory.mktemp("bad-fit")
     sphere = write_mesh(root / "sphere.ply", trimesh.creation.icosphere(2))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from ns_tiny import _tiny_config
+from tests.helpers.ns_configs import tiny_sdf_config
 
 
 @pytest.fixture(scope="session")
@@ -20,4 +20,4 @@ def tiny_scene(tmp_path_factory) -> Path:
 @pytest.fixture
 def tiny_config():
     """``tiny_config(name, scene, out, layout=, steps=, **sp_overrides)`` -> a small TrainerConfig."""
-    return _tiny_config
+    return tiny_sdf_config

@@ -14,8 +14,8 @@ import math
 
 import pytest
 import torch
-from builtin_tiny import in_process_data, shrink_model, sp_train_config
-from radiance_tiny import tiny_radiance_config
+from tests.helpers.ns_configs import in_process_data, shrink_model, sp_train_config
+from tests.helpers.ns_configs import tiny_radiance_config
 
 from sp_plugins.nerfstudio.runs import configure_run
 

@@ -27,10 +27,10 @@ import pytest
 import torch
 import yaml
 
-from forkserver import ForkServer
-from fs_faults import listing, make_read_only, undo_read_only
-from ns_commands import ENV, RUN_FLAGS, SDF_FLAGS, command
-from ns_tiny import _tiny_config
+from tests.helpers.forkserver import ForkServer
+from tests.helpers.fs_faults import listing, make_read_only, undo_read_only
+from tests.helpers.ns_commands import ENV, RUN_FLAGS, SDF_FLAGS, command
+from tests.helpers.ns_configs import tiny_sdf_config
 
 METHOD = "sp-neus-hashgrid"
 TRAIN = [*RUN_FLAGS, *SDF_FLAGS, "--max-num-iterations", "2", "--steps-per-save", "2"]
@@ -54,7 +54,7 @@ def saved_run(scene: Path, dest: Path, edit=None, checkpoint: str = "truncated")
     """The folder ``ns-train`` would leave for a tiny run of the method on ``scene`` (blender layout),
     without training: its config.yml (``edit`` applied) and a step-1 checkpoint that is a real
     PyTorch file, cut in half unless ``checkpoint`` is "intact". Returns the config.yml."""
-    config = _tiny_config(METHOD, scene, dest, layout="blender", steps=2)
+    config = tiny_sdf_config(METHOD, scene, dest, layout="blender", steps=2)
     if edit is not None:
         edit(config)
     base = Path(config.get_base_dir())

@@ -10,7 +10,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
-from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import run_recording, tiny_radiance_config
 
 from sp_plugins.nerfstudio.freenerf import (
     OCCLUSION_LOSS,
@@ -191,7 +191,7 @@ def test_it_trains_and_the_callback_moves_the_mask_every_step(tiny_scene, tmp_pa
 
 
 def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, tmp_path):
-    from ns_commands import ns_eval  # type: ignore[import-not-found]
+    from tests.helpers.ns_commands import ns_eval
 
     config = tiny_radiance_config("freenerf-lite", tiny_scene, tmp_path, steps=4)
     config.pipeline.model.freq_reg_end = 1.0  # the last step, 3, sees 12 of the 16 bands
@@ -206,7 +206,7 @@ def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, tmp_path):
 
 def test_a_training_step_of_freenerf_with_sp_has_no_sync_of_ours(tiny_scene, tmp_path, monkeypatch):
     """The mask moves on the device, the occlusion term stays a tensor (issue 36's counter)."""
-    from test_syncs_ns import steady_state_syncs  # type: ignore[import-not-found]
+    from test_syncs_ns import steady_state_syncs
 
     from sp_plugins.core import boundary
 

@@ -41,19 +41,16 @@ from __future__ import annotations
 import json
 import math
 import os
-import random
 import signal
 import subprocess
 import sys
-import time
-from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from ns_tiny import _tiny_config
-from radiance_tiny import tiny_radiance_config
+
+from tests.helpers.kill_resume import assert_same, model_params, own_global_rng, restore_global_rng, wait_for_ready
+from tests.helpers.ns_configs import tiny_radiance_config, tiny_sdf_config
 
 ROOT = Path(__file__).resolve().parents[2]
 STEPS, KILL_AT = 8, 4
@@ -61,7 +58,7 @@ STEPS, KILL_AT = 8, 4
 # family -> build(scene, out, sp seed) -> TrainerConfig (SP on across the kill: alpha > 0 to the end)
 FAMILIES = {
     # coarse-to-fine levels and finite-difference step move each step of a run this short
-    "neuralangelo-lite": lambda scene, out, seed: _tiny_config(
+    "neuralangelo-lite": lambda scene, out, seed: tiny_sdf_config(
         "sp-neuralangelo-lite", scene, out, steps=STEPS, end=1.0, seed=seed),
     "vanilla-nerf": lambda scene, out, seed: tiny_radiance_config("sp-vanilla-nerf", scene, out, steps=STEPS, seed=seed),
     "mipnerf": lambda scene, out, seed: tiny_radiance_config("sp-mipnerf", scene, out, steps=STEPS, seed=seed),
@@ -119,16 +116,6 @@ def build(family: str, scene: Path, out: Path):
     return config
 
 
-@contextmanager
-def own_global_rng():
-    """ns-train re-seeds the global RNGs; give the rest of the test session its own back."""
-    states = torch.get_rng_state(), np.random.get_state(), random.getstate()
-    try:
-        yield
-    finally:
-        torch.set_rng_state(states[0])
-        np.random.set_state(states[1])
-        random.setstate(states[2])
 
 
 def ns_train(config, *, stop_after=None, rng=None):
@@ -160,9 +147,7 @@ def ns_train(config, *, stop_after=None, rng=None):
 
             trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(stop_after,)))
         if rng is not None:
-            torch.set_rng_state(rng["torch"])
-            np.random.set_state(rng["numpy"])
-            random.setstate(rng["python"])
+            restore_global_rng(rng)
         trainer.train()
     return trainer, record
 
@@ -171,24 +156,8 @@ def checkpoint(config, step: int) -> dict:
     return torch.load(config.get_checkpoint_dir() / f"step-{step:09d}.ckpt", map_location="cpu", weights_only=False)
 
 
-def assert_same(a, b, where="") -> None:
-    """Nested dicts / lists of tensors and plain values, equal to the bit."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert set(a) == set(b), (where, set(a) ^ set(b))
-        for k in a:
-            assert_same(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (u, v) in enumerate(zip(a, b)):
-            assert_same(u, v, f"{where}[{i}]")
-    else:
-        assert a == b, (where, a, b)
 
 
-def params(trainer) -> dict:
-    return {k: v.detach().clone() for k, v in trainer.pipeline.model.named_parameters()}
 
 
 @pytest.fixture(scope="module")
@@ -211,15 +180,7 @@ def killed(tiny_scene, tmp_path_factory):
     reports = {}
     try:
         for run in runs:
-            ready, deadline = Path(run["ready"]), time.monotonic() + 240
-            while not ready.exists():
-                assert proc.poll() is None and time.monotonic() < deadline, (
-                    f"{run['name']}: no checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}")
-                time.sleep(0.05)
-            pid = ready.read_text()
-            if pid == "ended":
-                proc.kill()
-                pytest.fail(f"{run['name']} ended before its checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}")
+            pid = wait_for_ready(proc, Path(run["ready"]), f"{run['name']} (step {KILL_AT})")
             os.kill(int(pid), signal.SIGKILL)
             line = proc.stdout.readline()
             while line and not line.startswith("killed-run "):  # skip what the trainer prints
@@ -278,7 +239,7 @@ def test_killed_run_resumes_to_the_same_schedule_and_sp_state_and_drifts_only_by
 
     # ... but not the rays: the losses after K and the parameters drift (nerfstudio keeps no RNG / loader state)
     drift = max(abs(user_record[s]["loss"] - full_record[s]["loss"]) / abs(full_record[s]["loss"]) for s in after_k)
-    p_user, p_full = params(user), params(full)
+    p_user, p_full = model_params(user), model_params(full)
     param_drift = max(float((p_user[k] - p_full[k]).abs().max()) for k in p_full if p_full[k].numel())
     record_property("loss_rel_drift", drift)
     record_property("param_max_abs_drift", param_drift)
@@ -290,7 +251,7 @@ def test_killed_run_resumes_to_the_same_schedule_and_sp_state_and_drifts_only_by
     control, control_record = resume(tmp_path / "control", rng=rng_at_k)
     for step in after_k:
         assert_same(control_record[step], full_record[step], f"step {step}")
-    assert_same(params(control), params(full), "parameters")
+    assert_same(model_params(control), model_params(full), "parameters")
     assert_same({k: v.state_dict() for k, v in control.optimizers.optimizers.items()},
                 {k: v.state_dict() for k, v in full.optimizers.optimizers.items()}, "optimizers")
     assert_same(control.pipeline.model.sp.state_dict(), full.pipeline.model.sp.state_dict(), "sp")

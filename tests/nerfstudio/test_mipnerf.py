@@ -10,7 +10,7 @@ from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
-from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import run_recording, tiny_radiance_config
 
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
 from sp_plugins.nerfstudio.seam import SeamField, attach_seam

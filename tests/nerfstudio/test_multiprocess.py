@@ -2,7 +2,7 @@
 
 ``ns-train --machine.num-devices 2`` cannot run on a machine without CUDA (nerfstudio's launcher
 asserts CUDA, and its pipeline asks DDP for ``device_ids=[local_rank]``, which a CPU module refuses).
-``ddp_harness.py`` starts the two processes itself, initialises the process group as nerfstudio's
+``tests/helpers/ddp.py`` starts the two processes itself, initialises the process group as nerfstudio's
 worker does and adapts only that ``device_ids`` argument, inside the test processes. One pair of
 processes trains every family below for two steps on the tiny scene; then, per family:
 
@@ -21,10 +21,10 @@ import shutil
 
 import pytest
 import torch
-from ddp_harness import run_ddp, step_state
-from ns_commands import ns_eval
-from ns_tiny import _tiny_config
-from radiance_tiny import tiny_radiance_config
+from tests.helpers.ddp import run_ddp, step_state
+from tests.helpers.ns_commands import ns_eval
+from tests.helpers.ns_configs import tiny_sdf_config
+from tests.helpers.ns_configs import tiny_radiance_config
 
 pytest.importorskip("nerfstudio")
 
@@ -33,11 +33,11 @@ STEPS = 3
 # family -> (build(scene, out), expected outcome); SP on in every step but the last (end=1.0)
 FAMILIES = {
     # a learnable alpha grid: DDP must all-reduce its gradients too (coarse lr so it visibly moves)
-    "sp-neus-hashgrid": (lambda scene, out: _tiny_config(
+    "sp-neus-hashgrid": (lambda scene, out: tiny_sdf_config(
         "sp-neus-hashgrid", scene, out, steps=STEPS, end=1.0, alpha_grid=True, alpha_grid_resolution=8,
         alpha_grid_lr=1e-2), "trained"),
     # coarse-to-fine levels and finite-difference step set by callbacks on the unwrapped model
-    "sp-neuralangelo-lite": (lambda scene, out: _tiny_config(
+    "sp-neuralangelo-lite": (lambda scene, out: tiny_sdf_config(
         "sp-neuralangelo-lite", scene, out, steps=STEPS, end=1.0), "trained"),
     # the generic route (with_sp on nerfacto: frustum offsets, proposal networks stay plain)
     "sp-nerfacto": (lambda scene, out: tiny_radiance_config("sp-nerfacto", scene, out, steps=STEPS), "trained"),

@@ -7,7 +7,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.encodings import HashEncoding
-from radiance_tiny import tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import tiny_radiance_config
 
 from sp_plugins.encodings import HashGrid, tcnn_usable
 from sp_plugins.nerfstudio.components import hash_encoding

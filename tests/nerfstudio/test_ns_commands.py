@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from forkserver import ForkServer
-from ns_commands import ENV, check_eval, command, ns_eval_args, run_many
-from ns_tiny import SDF_METHODS, _tiny_config, run_recording
-from radiance_tiny import tiny_radiance_config
+from tests.helpers.forkserver import ForkServer
+from tests.helpers.ns_commands import ENV, check_eval, command, ns_eval_args, run_many
+from tests.helpers.ns_configs import SDF_METHODS, tiny_sdf_config, run_recording
+from tests.helpers.ns_configs import tiny_radiance_config
 
 from sp_plugins.nerfstudio.runs import our_methods
 from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig, FloatExponentialDecaySchedulerConfig
@@ -36,7 +36,7 @@ def checkpoints(tiny_scene, tmp_path_factory):
     for name in OTHERS:
         folder = tmp_path_factory.mktemp(name)
         if name in SDF_METHODS:
-            config = _tiny_config(name, tiny_scene, folder, steps=2)
+            config = tiny_sdf_config(name, tiny_scene, folder, steps=2)
             for group in config.optimizers.values():
                 if group["scheduler"] is not None:
                     group["scheduler"].warm_up_end = 1

@@ -49,7 +49,7 @@ def one_view_scene(tmp_path_factory) -> Path:
 
 def preset(name: str):
     """Our method ``name``, or the ``sp-train`` config of built-in ``sp-train:<method>``."""
-    from builtin_tiny import sp_train_config
+    from tests.helpers.ns_configs import sp_train_config
 
     return sp_train_config(name[len(SP_TRAIN):]) if name.startswith(SP_TRAIN) else method_config(name)
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from ns_tiny import SDF_METHODS, _tiny_config, run_recording  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import SDF_METHODS, tiny_sdf_config, run_recording
 
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from sp_plugins.core import AlphaSchedule
@@ -83,7 +83,7 @@ def _ray_samples(model, pipeline, n_rays=16):
 @pytest.fixture(scope="module")
 def sp_pipeline(tiny_scene, tmp_path_factory):
     """An sp-neus-hashgrid pipeline set up by the trainer (no iterations run)."""
-    config = _tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path_factory.mktemp("run"), steps=100, alpha0=0.05, end=0.5, seed=3)
+    config = tiny_sdf_config("sp-neus-hashgrid", tiny_scene, tmp_path_factory.mktemp("run"), steps=100, alpha0=0.05, end=0.5, seed=3)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
@@ -316,7 +316,7 @@ def test_sampler_queries_see_the_plain_field_unless_asked(sp_pipeline):
 
 
 def test_a_schedule_longer_than_training_names_the_flags(tiny_scene, tmp_path):
-    config = _tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path, steps=20, alpha0=0.05, end=500)
+    config = tiny_sdf_config("sp-neus-hashgrid", tiny_scene, tmp_path, steps=20, alpha0=0.05, end=500)
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     with pytest.raises(ValueError, match=r"--pipeline.model.sp.end 500 does not fit --max-num-iterations 20"):

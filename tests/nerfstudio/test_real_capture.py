@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fox_crop import fox_missing, make_fox_crop
-from ns_commands import NERFACTO_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
+from tests.helpers.fox_crop import fox_missing, make_fox_crop
+from tests.helpers.ns_commands import NERFACTO_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def test_a_configuration_error_in_model_construction_is_one_line(fox, tmp_path):
     import os
     import subprocess
 
-    from ns_commands import RUN_FLAGS
+    from tests.helpers.ns_commands import RUN_FLAGS
 
     cmd = [command("ns-train"), "sp-nerfacto", *RUN_FLAGS, "--output-dir", str(tmp_path),
            "--pipeline.model.sp.boundary", "reflect", *_data(fox)]  # reflect needs a bounded box; nerfacto contracts

@@ -8,7 +8,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
-from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import run_recording, tiny_radiance_config
 
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.relu_field.field import ReLUField, upsample_grid

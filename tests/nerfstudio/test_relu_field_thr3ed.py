@@ -13,7 +13,7 @@ from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.field_components.field_heads import FieldHeadNames
-from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import run_recording, tiny_radiance_config
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.relu_field.field import DIFFUSE_RGB, ReLUField
@@ -168,7 +168,7 @@ def test_a_schedule_with_other_stages_than_the_model_is_refused(tiny_scene, tmp_
 
 
 def test_thr3ed_flags_train_through_ns_train_and_a_misfit_is_one_line(tiny_scene, tmp_path):
-    from ns_commands import ENV, RUN_FLAGS, command, ns_train
+    from tests.helpers.ns_commands import ENV, RUN_FLAGS, command, ns_train
 
     data = ["blender-data", "--data", str(tiny_scene / "blender")]
     flags = ["--pipeline.model.resolution", "16", "--pipeline.model.align-corners", "False",

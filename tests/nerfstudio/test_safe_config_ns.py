@@ -25,9 +25,9 @@ import pytest
 import torch
 import yaml
 
-from forkserver import ForkServer
-from ns_commands import ENV, command
-from ns_tiny import _tiny_config, run_recording
+from tests.helpers.forkserver import ForkServer
+from tests.helpers.ns_commands import ENV, command
+from tests.helpers.ns_configs import tiny_sdf_config, run_recording
 
 from sp_plugins.adapter.safe_config import ConfigRefused, RunConfigLoader, load_run_config, reading_configs_safely
 
@@ -58,7 +58,7 @@ def relocate(config_path: Path, root: Path) -> Path:
 @pytest.fixture(scope="module")
 def trained(tiny_scene, tmp_path_factory) -> Path:
     """config.yml of a 2-step sp-neus-hashgrid run (the real trainer, in this process)."""
-    config = _tiny_config(METHOD, tiny_scene, tmp_path_factory.mktemp("trained"), steps=2)
+    config = tiny_sdf_config(METHOD, tiny_scene, tmp_path_factory.mktemp("trained"), steps=2)
     run_recording(config)
     return config.get_base_dir() / "config.yml"
 

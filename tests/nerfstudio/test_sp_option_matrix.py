@@ -40,9 +40,9 @@ import math
 
 import pytest
 import torch
-from builtin_tiny import in_process_data, shrink_model, sp_train_config
-from ns_tiny import _tiny_config, run_recording
-from radiance_tiny import tiny_radiance_config
+from tests.helpers.ns_configs import in_process_data, shrink_model, sp_train_config
+from tests.helpers.ns_configs import tiny_sdf_config, run_recording
+from tests.helpers.ns_configs import tiny_radiance_config
 
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.runs import configure_run
@@ -89,7 +89,7 @@ def wrapped_config(name, scene, out, *, steps, rays=64, **sp):
 def matrix_config(name, scene, out, *, steps, **sp):
     sp = {"alpha0": 0.05, "end": 1.0, "seed": 0, **sp}
     if name in SDF:
-        config = _tiny_config(name, scene, out, steps=steps, **sp)
+        config = tiny_sdf_config(name, scene, out, steps=steps, **sp)
     elif name.startswith(SP_TRAIN):
         config = wrapped_config(name, scene, out, steps=steps, **sp)
     else:
@@ -244,7 +244,7 @@ def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_
 def test_baselines_refuse_options_that_only_act_through_sp(name, flag, tiny_scene, tmp_path):
     from sp_plugins.adapter.errors import InputError
 
-    build = _tiny_config if name in ("neus-hashgrid", "neuralangelo-lite") else tiny_radiance_config
+    build = tiny_sdf_config if name in ("neus-hashgrid", "neuralangelo-lite") else tiny_radiance_config
     config = build(name, tiny_scene, tmp_path, steps=2, **flag)
     assert config.pipeline.model.sp.enabled is False
     with pytest.raises(InputError, match=r"--pipeline\.model\.sp\.(alpha-grid|num-samples).*enabled True"):

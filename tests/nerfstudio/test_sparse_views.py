@@ -8,7 +8,7 @@ import pytest
 import torch
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
-from radiance_tiny import run_recording, tiny_radiance_config  # type: ignore[import-not-found]
+from tests.helpers.ns_configs import run_recording, tiny_radiance_config
 
 from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig
 from sp_plugins.nerfstudio.components.views import farthest_views, select_views, subset_views, view_indices

@@ -11,9 +11,9 @@ that would stall a CUDA stream at a site inside sp_plugins fails the test; the h
 from __future__ import annotations
 
 import pytest
-from builtin_tiny import in_process_data, shrink_model, sp_train_config
-from ns_tiny import _tiny_config
-from radiance_tiny import tiny_radiance_config
+from tests.helpers.ns_configs import in_process_data, shrink_model, sp_train_config
+from tests.helpers.ns_configs import tiny_sdf_config
+from tests.helpers.ns_configs import tiny_radiance_config
 
 from sp_plugins.nerfstudio.runs import configure_run
 from sp_plugins.sync_count import SyncCounter
@@ -34,7 +34,7 @@ def config_for(name, scene, out):
             setattr(config.pipeline.model.sp, key, value)
         return configure_run(config, scene / "blender", steps=STEPS, output_dir=out, rays_per_batch=64)
     if name in ("sp-neus-hashgrid", "sp-neuralangelo-lite"):
-        return _tiny_config(name, scene, out, steps=STEPS, **sp)
+        return tiny_sdf_config(name, scene, out, steps=STEPS, **sp)
     return tiny_radiance_config(name, scene, out, steps=STEPS, **sp)
 
 

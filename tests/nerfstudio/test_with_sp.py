@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from ns_commands import ENV, RUN_FLAGS, _report, command
+from tests.helpers.ns_commands import ENV, RUN_FLAGS, _report, command
 
 pytest.importorskip("nerfstudio")
 
@@ -271,7 +271,7 @@ semantic data or downloaded models; instant-ngp needs CUDA)."""
 def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(method, tiny_scene, tmp_path):
     import copy
 
-    from builtin_tiny import in_process_data, shrink_model
+    from tests.helpers.ns_configs import in_process_data, shrink_model
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
 
     from sp_plugins.nerfstudio.registration import sp_methods
@@ -301,7 +301,7 @@ def test_depth_nerfacto_builds_with_sp_on_its_main_field():
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
     from nerfstudio.data.scene_box import SceneBox
 
-    from builtin_tiny import shrink_model
+    from tests.helpers.ns_configs import shrink_model
     from sp_plugins.nerfstudio.registration import sp_methods
 
     model_config = copy.deepcopy(sp_methods({"depth-nerfacto": all_methods["depth-nerfacto"]}, all_descriptions)[0]["depth-nerfacto"].pipeline.model)
@@ -318,7 +318,7 @@ def test_neus_keeps_its_background_plain_and_its_sdf_field_carries_the_seam():
     sphere) is listed in PLAIN_FIELDS; nerfstudio's own SDFField is built on our torch hash grid
     without tcnn, for that build only."""
     import torch
-    from builtin_tiny import shrink_model, sp_train_config
+    from tests.helpers.ns_configs import shrink_model, sp_train_config
     from nerfstudio.data.scene_box import SceneBox
     from nerfstudio.fields.sdf_field import SDFField
     from nerfstudio.fields.vanilla_nerf_field import NeRFField

@@ -44,19 +44,17 @@ from __future__ import annotations
 
 import math
 import os
-import random
 import signal
 import subprocess
 import sys
-import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from sdf_tiny import env, run_dir, train_args
+from tests.helpers.kill_resume import assert_same, model_params, own_global_rng, restore_global_rng, wait_for_ready
+from tests.helpers.sdf_configs import env, run_dir, train_args
 
 pytestmark = pytest.mark.usefixtures("patched")
 
@@ -125,16 +123,6 @@ def parse(args: list):
     return config
 
 
-@contextmanager
-def own_global_rng():
-    """train_loop re-seeds the global RNGs; give the rest of the test session its own back."""
-    states = torch.get_rng_state(), np.random.get_state(), random.getstate()
-    try:
-        yield
-    finally:
-        torch.set_rng_state(states[0])
-        np.random.set_state(states[1])
-        random.setstate(states[2])
 
 
 class _Stop(Exception):
@@ -172,9 +160,7 @@ def sdf_train(config, *, stop_after=None, rng=None):
 
         trainer.train_iteration = recording
         if rng is not None:
-            torch.set_rng_state(rng["torch"])
-            np.random.set_state(rng["numpy"])
-            random.setstate(rng["python"])
+            restore_global_rng(rng)
         try:
             trainer.train()
         except _Stop:
@@ -186,24 +172,8 @@ def checkpoint(run: Path, step: int) -> dict:
     return torch.load(run / "sdfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu", weights_only=False)
 
 
-def assert_same(a, b, where="") -> None:
-    """Nested dicts / lists of tensors and plain values, equal to the bit."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert set(a) == set(b), (where, set(a) ^ set(b))
-        for k in a:
-            assert_same(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (u, v) in enumerate(zip(a, b)):
-            assert_same(u, v, f"{where}[{i}]")
-    else:
-        assert a == b, (where, a, b)
 
 
-def params(trainer) -> dict:
-    return {k: v.detach().clone() for k, v in trainer.pipeline.model.named_parameters()}
 
 
 @pytest.fixture(scope="module")
@@ -220,14 +190,7 @@ def killed(sdf_scene, tmp_path_factory):
     proc = subprocess.Popen([sys.executable, "-c", HELPER, str(root / "spec.json")], env=child_env, cwd=root,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        ready, deadline = Path(spec["ready"]), time.monotonic() + 240
-        while not ready.exists():
-            assert proc.poll() is None and time.monotonic() < deadline, f"no checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}"
-            time.sleep(0.05)
-        if ready.read_text() == "ended":
-            proc.wait(30)
-            pytest.fail(f"the run ended before its checkpoint at step {KILL_AT}: {proc.communicate()[1][-3000:]}")
-        assert int(ready.read_text()) == proc.pid
+        assert int(wait_for_ready(proc, Path(spec["ready"]), f"the run (step {KILL_AT})")) == proc.pid
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(30)
     finally:
@@ -280,7 +243,7 @@ def test_killed_sp_neus_resumes_to_the_same_schedule_and_sp_stream_and_drifts_on
 
     # ... but not the rays: the losses after K and the parameters drift (sdfstudio keeps no RNG / loader state)
     drifts = {s: abs(user_record[s]["loss"] - full_record[s]["loss"]) / abs(full_record[s]["loss"]) for s in after_k}
-    p_user, p_full = params(user), params(full)
+    p_user, p_full = model_params(user), model_params(full)
     param_drift = max(float((p_user[k] - p_full[k]).abs().max()) for k in p_full if p_full[k].numel())
     # against how far the uninterrupted run moved them after K (NeuS warms its learning rates up over
     # 5000 steps, so a few steps move them little)
@@ -299,7 +262,7 @@ def test_killed_sp_neus_resumes_to_the_same_schedule_and_sp_stream_and_drifts_on
     control_record.pop("setup")
     for step in after_k:
         assert_same(control_record[step], full_record[step], f"step {step}")
-    assert_same(params(control), params(full), "parameters")
+    assert_same(model_params(control), model_params(full), "parameters")
     assert_same({k: v.state_dict() for k, v in control.optimizers.optimizers.items()},
                 {k: v.state_dict() for k, v in full.optimizers.optimizers.items()}, "optimizers")
     assert_same(control.pipeline.model.sp.state_dict(), full.pipeline.model.sp.state_dict(), "sp")

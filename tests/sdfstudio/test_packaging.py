@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sdf_tiny import env
+from tests.helpers.sdf_configs import env
 
 ROOT = Path(__file__).resolve().parents[2]
 

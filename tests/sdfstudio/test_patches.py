@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from sdf_tiny import env
+from tests.helpers.sdf_configs import env
 
 pytestmark = pytest.mark.usefixtures("patched")
 
@@ -102,7 +102,7 @@ def test_pair_loading_runs_on_the_cpu_outside_train_loop(sdf_scene, tmp_path):
     from nerfstudio.data.dataparsers import sdfstudio_dataparser
     from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 
-    from sdf_tiny import pairs_file
+    from tests.helpers.sdf_configs import pairs_file
 
     assert ".cuda()" in inspect.getsource(sdfstudio_dataparser.SDFStudio._generate_dataparser_outputs.__wrapped__)
     scene = tmp_path / "scene"

@@ -23,7 +23,7 @@ import pytest
 import torch
 import yaml
 
-from sdf_tiny import BIN, env, tiny_config, train_in_process
+from tests.helpers.sdf_configs import BIN, env, tiny_config, train_in_process
 
 from sp_plugins.adapter.safe_config import ConfigRefused, RunConfigLoader, load_run_config, reading_configs_safely
 
