@@ -7,30 +7,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sp_plugins.nerfstudio.runs import configure_run, method_config
+from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
 
 SDF_METHODS = ("sp-neus", "neus-hashgrid", "sp-neus-hashgrid", "neuralangelo-lite", "sp-neuralangelo-lite")
 
 
 def shrink_sdf_model(config) -> None:
     """Small MLPs, a small grid and few samples: seconds per run on one CPU thread."""
-    model = config.pipeline.model
-    field = model.sdf_field
-    field.hidden_dim = 32 if field.use_grid_feature else 48
-    field.num_layers = 2
-    field.hidden_dim_color = 32
-    field.geo_feat_dim = 15
-    field.num_levels = 8
-    field.max_res = 64
-    field.log2_hashmap_size = 12
-    model.num_samples = 16
-    model.num_samples_importance = 8
-    model.num_up_sample_steps = 1
-    model.background_model = "none"
-    model.background_color = "white"
-    model.eval_num_rays_per_chunk = 256
-    if hasattr(model, "c2f_init_levels"):
-        model.c2f_init_levels = 2
+    grid = config.pipeline.model.sdf_field.use_grid_feature
+    extra = {"c2f_init_levels": 2} if hasattr(config.pipeline.model, "c2f_init_levels") else {}
+    shrink(config, num_samples=16, num_samples_importance=8, num_up_sample_steps=1, background_model="none",
+           background_color="white", eval_num_rays_per_chunk=256, **extra,
+           field=dict(hidden_dim=32 if grid else 48, num_layers=2, hidden_dim_color=32, geo_feat_dim=15, num_levels=8,
+                      max_res=64, log2_hashmap_size=12))
 
 
 def tiny_sdf_config(name: str, scene: Path, out: Path, *, layout: str = "blender", steps: int = 3, **sp):
@@ -71,30 +60,26 @@ def run_recording(config, stop_after=None):
 
 
 # -- our radiance methods ---------------------------------------------------------------------------
-def shrink_radiance_model(name: str, model) -> None:
+def shrink_radiance_model(name: str, config) -> None:
     """Few samples, tiny grids and tables: a fraction of a second per iteration on one thread."""
     if "relu-field" in name:
-        model.resolution, model.num_samples = 17, 16
+        shrink(config, resolution=17, num_samples=16)
     elif name in ("sp-mipnerf", "sp-vanilla-nerf", "freenerf-lite"):
-        model.num_coarse_samples, model.num_importance_samples = 8, 8
+        shrink(config, num_coarse_samples=8, num_importance_samples=8)
     elif name == "sp-nerfacto":
-        model.num_nerf_samples_per_ray, model.num_proposal_samples_per_ray = 8, (8, 8)
-        model.log2_hashmap_size, model.max_res, model.hidden_dim = 12, 64, 16
-        model.proposal_net_args_list = [
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False},
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False},
-        ]
-        model.camera_optimizer.mode = "off"
+        proposal = {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False}
+        shrink(config, num_nerf_samples_per_ray=8, num_proposal_samples_per_ray=(8, 8), log2_hashmap_size=12, max_res=64,
+               hidden_dim=16, proposal_net_args_list=[dict(proposal), dict(proposal)])
+        config.pipeline.model.camera_optimizer.mode = "off"
     elif name == "sp-tensorf":
-        model.init_resolution, model.final_resolution, model.upsampling_iters = 16, 24, (2,)
-        model.num_samples, model.num_uniform_samples = 8, 16
-        model.num_den_components, model.num_color_components = 4, 8
-    model.eval_num_rays_per_chunk = 512
+        shrink(config, init_resolution=16, final_resolution=24, upsampling_iters=(2,), num_samples=8, num_uniform_samples=16,
+               num_den_components=4, num_color_components=8)
+    shrink(config, eval_num_rays_per_chunk=512)
 
 
 def tiny_radiance_config(name, scene, out, *, steps=3, rays=64, layout="blender", **sp):
     config = method_config(name)
-    shrink_radiance_model(name, config.pipeline.model)
+    shrink_radiance_model(name, config)
     for key, value in {"alpha0": 0.05, "end": 1.0, **sp}.items():
         setattr(config.pipeline.model.sp, key, value)
     configure_run(config, scene / layout, steps=steps, output_dir=out, layout=layout, rays_per_batch=rays)
