@@ -240,6 +240,20 @@ class _Checkpoints:
         """After ``--out`` is ready: drop what a killed writer left, and with --overwrite the old checkpoint."""
         self.io.remove_stale(out, checkpoint_too=self.saved is None)
 
+    def train(self, outputs: tuple[str, ...], setup):
+        """What every task does once its inputs are loaded: check their contents against a resumed
+        checkpoint, make ``--out`` (after the inputs: a bad file leaves no empty --out), build the
+        trainer with ``setup()``, restore the checkpoint into it and fit. Returns the trainer,
+        the output folder and the training seconds."""
+        from sp_plugins.tasks.common import prepare_output_dir
+
+        self.check_files()
+        out = prepare_output_dir(self.cmd.out, outputs, self.cmd.overwrite or self.cmd.resume)
+        self.prepare(out)
+        trainer = setup()
+        self.restore(trainer)
+        return trainer, out, self.fit(trainer)
+
     def restore(self, trainer) -> None:
         if self.saved is None:
             return
@@ -312,7 +326,7 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, PointCloudSDFConfig)
-    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device, stage
+    from sp_plugins.tasks.common import StagedOutputs, resolve_device, stage
 
     device = resolve_device(cmd.device)
     checkpoints = _Checkpoints(cmd, "pointcloud", config, device, {"estimate_normals": cmd.estimate_normals},
@@ -321,12 +335,7 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
     gt = load_mesh(cmd.gt) if cmd.gt is not None else data.mesh
     if data.mesh is not None:
         _warn_about_topology(cmd.input, data.mesh, "pointcloud")
-    checkpoints.check_files()
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)  # after the inputs: a bad file leaves no empty --out
-    checkpoints.prepare(out)
-    trainer = config.setup(data, device=device)
-    checkpoints.restore(trainer)
-    seconds = checkpoints.fit(trainer)
+    trainer, out, seconds = checkpoints.train(outputs, lambda: config.setup(data, device=device))
     if gt is not None:
         mesh, metrics = trainer.evaluate(gt, progress=not cmd.quiet)
     else:
@@ -353,7 +362,7 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
 
 def run_image(cmd: ImageCommand) -> dict:
-    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device
+    from sp_plugins.tasks.common import StagedOutputs, resolve_device
     from sp_plugins.tasks.image import load_image, save_image
 
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
@@ -361,12 +370,7 @@ def run_image(cmd: ImageCommand) -> dict:
     device = resolve_device(cmd.device)
     checkpoints = _Checkpoints(cmd, "image", config, device, {}, {"input": cmd.input})
     image = load_image(cmd.input)
-    checkpoints.check_files()
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
-    checkpoints.prepare(out)
-    trainer = config.setup(image, device=device)
-    checkpoints.restore(trainer)
-    seconds = checkpoints.fit(trainer)
+    trainer, out, seconds = checkpoints.train(outputs, lambda: config.setup(image, device=device))
     fitted = trainer.render()
     from sp_plugins.tasks.image import psnr
 
@@ -395,7 +399,7 @@ def run_image(cmd: ImageCommand) -> dict:
 
 def run_sdf(cmd: SDFCommand) -> dict:
     from sp_plugins.geometry import load_mesh, save_mesh
-    from sp_plugins.tasks.common import StagedOutputs, prepare_output_dir, resolve_device
+    from sp_plugins.tasks.common import StagedOutputs, resolve_device
 
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
@@ -403,12 +407,7 @@ def run_sdf(cmd: SDFCommand) -> dict:
     checkpoints = _Checkpoints(cmd, "sdf", config, device, {}, {"input": cmd.input})
     gt = load_mesh(cmd.input)
     _warn_about_topology(cmd.input, gt, "sdf")
-    checkpoints.check_files()
-    out = prepare_output_dir(cmd.out, outputs, cmd.overwrite or cmd.resume)
-    checkpoints.prepare(out)
-    trainer = config.setup(gt, device=device)
-    checkpoints.restore(trainer)
-    seconds = checkpoints.fit(trainer)
+    trainer, out, seconds = checkpoints.train(outputs, lambda: config.setup(gt, device=device))
     mesh, metrics = trainer.evaluate(progress=not cmd.quiet)
     _warn_if_empty(mesh)
     metrics.update(

@@ -397,3 +397,81 @@ class ResumableTrainer:
 
     def _load_extra_state(self, state: dict) -> None:
         pass
+
+    @property
+    def done(self) -> bool:
+        return self.step_index >= self.config.steps
+
+    # -- set-up shared by the tasks (each trainer's __init__ calls these in this order) -------------
+    def _setup_sp(self, bounds: tuple[float, float], dim: int):
+        """``self.sp`` from ``config.sp``, in training mode, on the trainer's device; returns the
+        config it was built from. Unless ``sp.seed`` is set, the noise is seeded with ``seed + 1``:
+        a stream of its own, not the batches' (``seed``), and the same for every run of one seed."""
+        import dataclasses
+
+        config = self.config
+        sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
+        self.sp = sp_config.setup(total_steps=config.steps, bounds=bounds, dim=dim).to(self.device)
+        self.sp.train()
+        return sp_config
+
+    def _param_groups(self, sp_config) -> list[dict]:
+        """The optimizer groups: the field at ``config.lr``, and SP's learnable alpha grid (when
+        ``sp.alpha_grid`` built one) at ``sp.alpha_grid_lr``."""
+        groups = [{"params": list(self.field.parameters()), "lr": self.config.lr}]
+        if self.sp.alpha_grid is not None:
+            groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": sp_config.alpha_grid_lr})
+        return groups
+
+    def _start_steps(self) -> None:
+        """Step 0: the batch generator seeded with ``config.seed``, empty history, a step timer."""
+        from collections import defaultdict
+
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(self.config.seed)
+        self.step_index = 0
+        self.history = defaultdict(list)
+        self.timer = StepTimer(self.device)
+
+
+class SDFTrainer(ResumableTrainer):
+    """What the two SDF tasks (point cloud, direct SDF) share once trained: the plain field in the
+    ``[-1, 1]^3`` frame, its mesh, and a mesh's metrics against the ground truth, raw and of its
+    largest component. A trainer has ``field`` (``[n, 3] -> [n, 1]``) and ``config.mesh_resolution``,
+    ``refine``, ``metric_points``, ``fscore_threshold`` and ``seed``."""
+
+    def sdf(self, x: torch.Tensor) -> torch.Tensor:
+        """The plain (unperturbed) field in the frame."""
+        self.field.eval()
+        return self.field(x).squeeze(-1)
+
+    def mesh(self, resolution: Optional[int] = None, refine: Optional[int] = None, progress: bool = False):
+        """Zero level set in the frame, and field diagnostics: ``negative_fraction`` of the grid
+        (a sound SDF of an object is mostly positive), the resolution and refinement. ``progress``
+        shows what it is doing (it takes a while at high resolutions)."""
+        from sp_plugins.geometry import evaluate_grid, mesh_from_grid
+
+        res = resolution or self.config.mesh_resolution
+        ref = self.config.refine if refine is None else refine
+        with stage(f"meshing: the field on a {res}^3 grid", progress):
+            sdf, bar = counting_bar(self.sdf, res**3, "grid points", progress)
+            with torch.no_grad():
+                volume = evaluate_grid(sdf, (-1.0, 1.0), res, device=self.device)
+            bar.close()
+        with stage(f"meshing: marching cubes, {ref} bisection steps per vertex", progress):
+            mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=ref, device=self.device)
+        info = {"negative_fraction": float((volume < 0).mean()), "resolution": res, "refine": ref}
+        return mesh, info
+
+    def mesh_metrics(self, mesh, gt, metric_points: Optional[int] = None, progress: bool = False) -> dict:
+        """Chamfer, normal consistency and F-score of ``mesh`` against ``gt`` (both in the frame),
+        and the same after keeping the largest component of ``mesh`` (``clean_*``)."""
+        from sp_plugins.geometry import largest_component, mesh_metrics
+
+        c = self.config
+        n = metric_points or c.metric_points
+        with stage(f"measuring: Chamfer, normal consistency and F-score on {n} points per mesh", progress):
+            m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+        with stage("measuring: the same for the largest component", progress):
+            mc = mesh_metrics(largest_component(mesh), gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
+        return dict(m, **{f"clean_{k}": v for k, v in mc.items() if k not in ("unit", "n_points", "fscore_threshold")})

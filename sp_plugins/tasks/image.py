@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Optional, Tuple, Type, Union
@@ -36,7 +35,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
-from sp_plugins.tasks.common import ResumableTrainer, StepTimer, run_to_end
+from sp_plugins.tasks.common import ResumableTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -270,10 +269,8 @@ class ImageFitTrainer(ResumableTrainer):
             from sp_plugins.encodings.level_mask import PerPointLevelMask
 
             self.field.encoding = PerPointLevelMask(self.field.encoding)  # inactive until phase 2
-        sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
-        self.sp = sp_config.setup(total_steps=config.steps, bounds=(0.0, 1.0), dim=2).to(self.device)
-        self.sp.train()
-        groups = [{"params": list(self.field.parameters()), "lr": config.lr}]
+        sp_config = self._setup_sp(bounds=(0.0, 1.0), dim=2)
+        groups = self._param_groups(sp_config)  # the field's (validate refuses SP's own alpha grid here)
         if config.adaptive_alpha:
             if not sp_config.enabled or sp_config.alpha0 <= 0:
                 raise ValueError("adaptive_alpha needs SP on with alpha0 > 0 (its initial value)")
@@ -293,11 +290,7 @@ class ImageFitTrainer(ResumableTrainer):
                 )
         # fused: about 5-10x faster on a CPU for a 2^17+ table (bench/hashgrid_speed.py)
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(config.seed)
-        self.step_index = 0
-        self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer(self.device)
+        self._start_steps()
         self.phase2_step: Optional[int] = None
         """First step of phase 2 (the map guides the fit), once it has started."""
         self._pixel_cdf: Optional[Tensor] = None
@@ -363,10 +356,6 @@ class ImageFitTrainer(ResumableTrainer):
 
     def _diverged(self, step: int, loss: float) -> str:
         return super()._diverged(step, loss) + (" or --alpha-map-lr" if self.config.adaptive_alpha else "")
-
-    @property
-    def done(self) -> bool:
-        return self.step_index >= self.config.steps
 
     def _extra_state(self) -> dict:
         return {"phase2_step": self.phase2_step}

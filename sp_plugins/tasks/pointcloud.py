@@ -17,28 +17,17 @@ the input's coordinates and metrics are relative to the ground truth's diagonal.
 
 from __future__ import annotations
 
-import dataclasses
-import math
-from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, Optional, Tuple, Type
 
-import numpy as np
 import torch
 import trimesh
 from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import SPConfig
-from sp_plugins.geometry import (
-    Frame,
-    OrientedPoints,
-    evaluate_grid,
-    largest_component,
-    mesh_from_grid,
-    mesh_metrics,
-)
-from sp_plugins.tasks.common import ResumableTrainer, StepTimer, counting_bar, run_to_end, stage
+from sp_plugins.geometry import Frame, OrientedPoints
+from sp_plugins.tasks.common import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -144,7 +133,7 @@ def siren_sdf_losses(
     )
 
 
-class PointCloudSDFTrainer(ResumableTrainer):
+class PointCloudSDFTrainer(SDFTrainer):
     """Holds the field, optimiser and data of one fit; :meth:`step` runs one iteration, so
     several trainers can be interleaved step by step in one process (paired benchmarks)."""
 
@@ -169,20 +158,11 @@ class PointCloudSDFTrainer(ResumableTrainer):
             if config.output_bias is not None and not config.geometric_init:
                 with torch.no_grad():
                     self.field.mlp[-1].bias.fill_(config.output_bias)
-        sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
-        self.sp = sp_config.setup(total_steps=config.steps, bounds=(-1.0, 1.0), dim=3).to(self.device)
-        self.sp.train()
-        groups = [{"params": list(self.field.parameters()), "lr": config.lr}]
-        if self.sp.alpha_grid is not None:
-            groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": sp_config.alpha_grid_lr})
-        self.optimizer = torch.optim.Adam(groups)
+        sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)
+        self.optimizer = torch.optim.Adam(self._param_groups(sp_config))
         gamma = config.lr_final_ratio ** (1.0 / max(config.steps - 1, 1))
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, gamma)
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(config.seed)
-        self.step_index = 0
-        self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer(self.device)
+        self._start_steps()
 
     # ------------------------------------------------------------------------------------------
     def step(self) -> Mapping[str, float]:
@@ -217,34 +197,7 @@ class PointCloudSDFTrainer(ResumableTrainer):
     def _diverged(self, step: int, loss: float) -> str:
         return super()._diverged(step, loss) + " or clip harder (--grad-clip)"
 
-    @property
-    def done(self) -> bool:
-        return self.step_index >= self.config.steps
-
-    # ------------------------------------------------------------------------------------------
-    def sdf(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n"]:
-        """The plain (unperturbed) field in the frame."""
-        self.field.eval()
-        return self.field(x).squeeze(-1)
-
-    def mesh(
-        self, resolution: Optional[int] = None, refine: Optional[int] = None, progress: bool = False
-    ) -> Tuple[trimesh.Trimesh, dict]:
-        """Zero level set in the frame, and field diagnostics: ``negative_fraction`` of the grid
-        (a sound SDF of an object is mostly positive) and the number of components. ``progress``
-        shows what it is doing (it takes a while at high resolutions)."""
-        res = resolution or self.config.mesh_resolution
-        ref = self.config.refine if refine is None else refine
-        with stage(f"meshing: the field on a {res}^3 grid", progress):
-            sdf, bar = counting_bar(self.sdf, res**3, "grid points", progress)
-            with torch.no_grad():
-                volume = evaluate_grid(sdf, (-1.0, 1.0), res, device=self.device)
-            bar.close()
-        with stage(f"meshing: marching cubes, {ref} bisection steps per vertex", progress):
-            mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=ref, device=self.device)
-        info = {"negative_fraction": float((volume < 0).mean()), "resolution": res, "refine": ref}
-        return mesh, info
-
+    # sdf(), mesh() and mesh_metrics(): SDFTrainer's
     def evaluate(
         self,
         gt_mesh: trimesh.Trimesh,
@@ -257,17 +210,10 @@ class PointCloudSDFTrainer(ResumableTrainer):
     ) -> Tuple[trimesh.Trimesh, dict]:
         """Mesh (in the frame) and metrics against ``gt_mesh`` (input coordinates unless
         ``gt_in_frame``): raw, and after keeping the largest component (``clean_*``)."""
-        c = self.config
         gt = gt_mesh if gt_in_frame else self.frame.mesh_to_frame(gt_mesh)
         mesh, info = self.mesh(resolution, refine, progress)
-        n = metric_points or c.metric_points
-        with stage(f"measuring: Chamfer, normal consistency and F-score on {n} points per mesh", progress):
-            m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-        with stage("measuring: the same for the largest component", progress):
-            clean = largest_component(mesh)
-            mc = mesh_metrics(clean, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-            components = len(mesh.split(only_watertight=False)) if len(mesh.faces) else 0
-        metrics = dict(m, **{f"clean_{k}": v for k, v in mc.items() if k not in ("unit", "n_points", "fscore_threshold")})
+        metrics = self.mesh_metrics(mesh, gt, metric_points, progress)
+        components = len(mesh.split(only_watertight=False)) if len(mesh.faces) else 0
         metrics.update(info, components=components, step=self.step_index)
         return mesh, metrics
 

@@ -10,8 +10,6 @@ mix and minimises the mean absolute percentage error ``|f - d| / (|d| + 0.01)``.
 
 from __future__ import annotations
 
-import dataclasses
-from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Mapping, Optional, Tuple, Type
 
@@ -22,8 +20,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import SPConfig
-from sp_plugins.geometry import Frame, evaluate_grid, largest_component, mesh_from_grid, mesh_metrics, sample_surface
-from sp_plugins.tasks.common import ResumableTrainer, StepTimer, counting_bar, run_to_end, stage
+from sp_plugins.geometry import Frame, sample_surface
+from sp_plugins.tasks.common import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 
 
@@ -90,7 +88,7 @@ def mape(pred: Tensor, target: Tensor, eps: float = 0.01) -> Tensor:
     return ((pred - target).abs() / (target.abs() + eps)).mean()
 
 
-class SDFFitTrainer(ResumableTrainer):
+class SDFFitTrainer(SDFTrainer):
     """One direct SDF fit; :meth:`step` runs one iteration."""
 
     def __init__(self, config: SDFFitConfig, mesh: trimesh.Trimesh, *, device: str = "cpu") -> None:
@@ -119,18 +117,9 @@ class SDFFitTrainer(ResumableTrainer):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
             self.field = NeuralField(config.encoding, dim=3, out_dim=1, hidden=config.hidden, include_input=False).to(self.device)
-        sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
-        self.sp = sp_config.setup(total_steps=config.steps, bounds=(-1.0, 1.0), dim=3).to(self.device)
-        self.sp.train()
-        groups = [{"params": list(self.field.parameters()), "lr": config.lr}]
-        if self.sp.alpha_grid is not None:
-            groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": sp_config.alpha_grid_lr})
-        self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(config.seed)
-        self.step_index = 0
-        self.history: dict[str, list[float]] = defaultdict(list)
-        self.timer = StepTimer(self.device)
+        sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)
+        self.optimizer = torch.optim.Adam(self._param_groups(sp_config), betas=(0.9, 0.99), eps=1e-15)
+        self._start_steps()
 
     def step(self) -> Mapping[str, float]:
         c = self.config
@@ -150,33 +139,14 @@ class SDFFitTrainer(ResumableTrainer):
             self.optimizer.step()
         return self._finish_step({"loss": loss, "alpha": alpha})  # read later, with the non-finite check
 
-    @property
-    def done(self) -> bool:
-        return self.step_index >= self.config.steps
-
-    def sdf(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n"]:
-        self.field.eval()
-        return self.field(x).squeeze(-1)
-
     def evaluate(self, gt_mesh: Optional[trimesh.Trimesh] = None, *, resolution: Optional[int] = None,
                  metric_points: Optional[int] = None, progress: bool = False) -> Tuple[trimesh.Trimesh, dict]:
         """Mesh in the frame and metrics against the (input) mesh, raw and ``clean_*``; ``progress``
         says what it is doing."""
-        c = self.config
         gt = self.mesh_in_frame if gt_mesh is None else self.frame.mesh_to_frame(gt_mesh)
-        res = resolution or c.mesh_resolution
-        with stage(f"meshing: the field on a {res}^3 grid, marching cubes, {c.refine} bisection steps", progress):
-            sdf, bar = counting_bar(self.sdf, res**3, "grid points", progress)
-            with torch.no_grad():
-                volume = evaluate_grid(sdf, (-1.0, 1.0), res, device=self.device)
-            bar.close()
-            mesh = mesh_from_grid(volume, (-1.0, 1.0), self.sdf, refine=c.refine, device=self.device)
-        n = metric_points or c.metric_points
-        with stage(f"measuring: Chamfer and F-score on {n} points per mesh, raw and largest component", progress):
-            m = mesh_metrics(mesh, gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-            mc = mesh_metrics(largest_component(mesh), gt, n_points=n, fscore_threshold=c.fscore_threshold, seed=c.seed)
-        metrics = dict(m, **{f"clean_{k}": v for k, v in mc.items() if k not in ("unit", "n_points", "fscore_threshold")})
-        metrics.update(negative_fraction=float((volume < 0).mean()), resolution=res, refine=c.refine, step=self.step_index)
+        mesh, info = self.mesh(resolution, progress=progress)
+        metrics = self.mesh_metrics(mesh, gt, metric_points, progress)
+        metrics.update(info, step=self.step_index)
         # Also how well the field fits distances on held-in samples near the surface.
         with torch.no_grad():
             pts, dist = self.groups[1]
