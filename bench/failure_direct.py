@@ -34,7 +34,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Dict, List, Type
 
@@ -43,7 +42,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from bench import failure_regime as fr
-from bench.common import OUT_DIR, machine_info
+from bench.harness.common import OUT_DIR, machine_info, start
 from sp_plugins.core import perturb
 from sp_plugins.core.schedule import AlphaSchedule
 from sp_plugins.nerfstudio.neus import SPNeuSModel, SPNeuSModelConfig
@@ -149,11 +148,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=OUT_DIR / "failure_regime")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    torch.set_num_threads(1)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for noisy in ("nerfstudio", "PIL", "trimesh"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    start(1, quiet=("nerfstudio", "PIL", "trimesh"))
     args.out.mkdir(parents=True, exist_ok=True)
     for name in args.settings:
         setting = SETTINGS[name]

@@ -21,7 +21,7 @@ from typing import List
 
 import numpy as np
 
-from bench.common import OUT_DIR
+from bench.harness.common import OUT_DIR
 
 
 def test_camera(scene: Path):
@@ -41,7 +41,7 @@ def object_meshes(result: dict, out: Path, scene: Path, train_outputs) -> List:
     """True object mesh and the pair's meshes, cropped as ``failure_regime.evaluate`` crops them."""
     import trimesh
 
-    from bench.failure_regime import crop_to_object
+    from bench.harness.metrics import crop_to_object
     from sp_plugins.data import load_gt_mesh, read_scene
 
     gt, info = load_gt_mesh(scene, train_outputs), read_scene(scene)

@@ -6,7 +6,7 @@ frontal cap of cameras, no masks) against the plain object-on-white scenes, the 
 geometric init, the hash-grid learning rate, the grid's finest resolution and table size, the
 number of views and the number of steps. Each setting trains `neus-hashgrid` and
 `sp-neus-hashgrid` side by side in one process, from the same weights and on the same rays at
-every step (`bench.sdf_methods.Run`), so a difference is SP's.
+every step (`bench.harness.lockstep`), so a difference is SP's.
 
 Per run: test PSNR over whole images and inside the object mask, Chamfer / normal consistency /
 F-score of a 128^3 marching-cubes mesh against the true object (both cropped above the ground,
@@ -32,8 +32,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import math
-import os
 import statistics
 import time
 from pathlib import Path
@@ -42,7 +40,11 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from bench.common import OUT_DIR, machine_info
+from bench.harness import nerfstudio as ns
+from bench.harness import scenes
+from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.metrics import crop_to_object, geometry, no_geometry, num, pair_figure, psnr, sdf_mesh
+from bench.harness.scenes import REAL, SHARED_MESHES, mesh_source  # noqa: F401  (the captures and meshes a setting may name)
 
 PAIRS = {"neus": ("neus-hashgrid", "sp-neus-hashgrid"), "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite")}
 """Baseline and SP method of each family (Neuralangelo's baseline is its coarse-to-fine schedule)."""
@@ -161,42 +163,19 @@ QUICK_RUN = SCREEN["q-grid-lr-1e-1"]
 that holds over seeds, so this is the smallest pair that shows the failure and SP's tendency."""
 
 
-SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
-REAL = {"fox": Path(os.environ.get("SP_FOX_CAPTURE", SHARED_MESHES.parent / "real" / "fox"))}
-"""Real captures a setting's ``mesh`` may name (instant-ngp format, COLMAP poses): no true mesh and no
-object mask, so only whole-image test PSNR (nerfstudio's instant-ngp parser: 90/10 split); a mesh is
-still extracted for the figure."""
-
-
 def is_real(setting: "Setting") -> bool:
-    return setting.mesh in REAL
-
-
-def mesh_source(mesh: str) -> str:
-    """A file as given; else a shared test mesh by stem (``homer``); else a bundled or primitive name."""
-    shared = SHARED_MESHES / f"{mesh}.ply"
-    return str(shared) if not Path(mesh).is_file() and shared.is_file() else mesh
+    """A real capture (:data:`bench.harness.scenes.REAL`): its own images, views and split, no true mesh
+    and no object mask, so only whole-image test PSNR; a mesh is still extracted for the figure."""
+    return scenes.is_real(setting.mesh)
 
 
 def scene_dir(setting: Setting, out: Path, layout: str = "blender") -> Path:
     """Render (once) the scene a setting trains on; scenes are shared by settings that agree on them.
-    A real capture (:data:`REAL`) is used where it lies."""
-    from sp_plugins.data import make_scene
-
+    A real capture is used where it lies."""
     if is_real(setting):
-        capture = REAL[setting.mesh]
-        if not (capture / "transforms.json").is_file():
-            raise SystemExit(f"{setting.mesh}: no capture at {capture} (transforms.json); set SP_FOX_CAPTURE to its folder")
-        return capture
-
-    name = Path(setting.mesh).stem
-    key = f"{name}_{'dtu' if setting.dtu_like else 'white'}_{setting.views}v_{setting.resolution[0]}x{setting.resolution[1]}"
-    root = out / "scenes" / key
-    if not (root / "scene.json").is_file():
-        logging.info("rendering scene %s", key)
-        make_scene(mesh_source(setting.mesh), root, up_axis=setting.up_axis, n_train=setting.views, n_val=1, n_test=setting.test_views, resolution=setting.resolution,
-                   layouts=(layout,), seed=0, dtu_like=setting.dtu_like, overwrite=True)
-    return root
+        return scenes.capture(REAL[setting.mesh], setting.mesh)
+    return scenes.rendered(setting.mesh, out, up_axis=setting.up_axis, dtu_like=setting.dtu_like, views=setting.views,
+                           test_views=setting.test_views, resolution=setting.resolution, layout=layout)
 
 
 def data_dir(setting: Setting, scene: Path) -> Path:
@@ -206,37 +185,25 @@ def data_dir(setting: Setting, scene: Path) -> Path:
 
 def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     from sp_plugins.nerfstudio.neus import GRID_GROUP
-    from sp_plugins.nerfstudio.runs import configure_run, method_config
+    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
 
     config = method_config(name)
     model = config.pipeline.model
-    field = model.sdf_field
-    field.hidden_dim = setting.hidden_dim
-    field.hidden_dim_color = setting.hidden_dim
-    field.geo_feat_dim = setting.hidden_dim - 1
-    field.num_levels = setting.num_levels
-    field.max_res = setting.max_res
-    field.log2_hashmap_size = setting.log2_hashmap_size
-    field.geometric_init = setting.geometric_init
-    field.bias = 0.5
-    model.num_samples = setting.num_samples
-    model.num_samples_importance = setting.num_samples_importance
-    model.num_up_sample_steps = 2
-    model.background_model = setting.background_model
-    model.background_mlp_layers, model.background_mlp_width = setting.background_mlp
-    if not setting.dtu_like:  # object on white; a DTU-like scene keeps the host default behind its background model
-        model.background_color = "white"
-    model.eval_num_rays_per_chunk = 1024
     model.sp.seed = setting.seed
     if setting.sp_alpha0 is not None:
         model.sp.alpha0 = setting.sp_alpha0
     if setting.sp_end is not None:
         model.sp.end = setting.sp_end
-    for group, lr in (("fields", setting.lr), (GRID_GROUP, setting.grid_lr), ("field_background", setting.lr)):
-        entry = config.optimizers[group]
-        entry["optimizer"].lr = lr
-        entry["scheduler"].warm_up_end = setting.warm_up_end
-        entry["scheduler"].max_steps = setting.steps
+    if not setting.dtu_like:  # object on white; a DTU-like scene keeps the host default behind its background model
+        model.background_color = "white"
+    layers, width = setting.background_mlp
+    shrink(config, field=dict(hidden_dim=setting.hidden_dim, hidden_dim_color=setting.hidden_dim, geo_feat_dim=setting.hidden_dim - 1,
+                              num_levels=setting.num_levels, max_res=setting.max_res, log2_hashmap_size=setting.log2_hashmap_size,
+                              geometric_init=setting.geometric_init, bias=0.5),
+           num_samples=setting.num_samples, num_samples_importance=setting.num_samples_importance, num_up_sample_steps=2,
+           background_model=setting.background_model, background_mlp_layers=layers, background_mlp_width=width,
+           eval_num_rays_per_chunk=1024, lr={"fields": setting.lr, GRID_GROUP: setting.grid_lr, "field_background": setting.lr},
+           warm_up_end=setting.warm_up_end, max_steps=setting.steps)
     configure_run(config, data, steps=setting.steps, output_dir=out, layout="blender", rays_per_batch=setting.rays,
                   experiment_name=f"{name}-{tag}")
     if is_real(setting):
@@ -246,22 +213,11 @@ def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     return config
 
 
-def no_geometry() -> dict:
-    """The geometry metrics of a run with no true mesh to compare against (a real capture)."""
-    return dict.fromkeys(("chamfer", "normal_consistency", "fscore", "area_ratio"))
-
-
-def _psnr(pred: np.ndarray, target: np.ndarray) -> float:
-    mse = float(np.mean((pred - target) ** 2))
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
-
-
 def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = None) -> dict:
     """Test PSNR (whole image, object mask) and object geometry of a trained run."""
     import imageio.v2 as imageio
 
     from sp_plugins.data import load_gt_mesh, read_scene
-    from sp_plugins.geometry import extract_mesh, mesh_metrics
 
     pipeline = run.trainer.pipeline
     pipeline.eval()
@@ -280,20 +236,17 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
             mask = imageio.imread(mask_path) > 127
         else:  # object on white: the object is where the target is not background
             mask = imageio.imread(scene / "blender" / "test" / f"r_{index}.png")[..., 3] > 127
-        whole.append(_psnr(pred, target))
-        masked.append(_psnr(pred[mask], target[mask]))
+        whole.append(psnr(pred, target))
+        masked.append(psnr(pred[mask], target[mask]))
         if first is None:
             first = pred
-    field = pipeline.model.field
-    with torch.no_grad():
-        mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.5, 1.5),
-                            resolution=setting.mesh_resolution, chunk=1 << 16)
+    mesh = sdf_mesh(pipeline.model.field, (-1.5, 1.5), setting.mesh_resolution)
     if is_real(setting):  # no true mesh
-        geometry = no_geometry()
+        shape = no_geometry()
     else:
         gt = load_gt_mesh(scene, pipeline.datamanager.train_dataparser_outputs)
         gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
-        geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
+        shape = geometry(pred, gt_cropped, 50_000)
     if render_out is not None:
         render_out.parent.mkdir(parents=True, exist_ok=True)
         mesh.export(render_out.with_suffix(".ply"))
@@ -303,81 +256,35 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Optional[Path] = No
         "psnr_object": statistics.mean(masked),
         "psnr_views": whole,
         "psnr_object_views": masked,
-        "chamfer": geometry["chamfer"],
-        "normal_consistency": geometry["normal_consistency"],
-        "fscore": geometry["fscore"],
-        "area_ratio": geometry["area_ratio"],
+        "chamfer": shape["chamfer"],
+        "normal_consistency": shape["normal_consistency"],
+        "fscore": shape["fscore"],
+        "area_ratio": shape["area_ratio"],
     }
-
-
-def crop_to_object(gt, pred, info: dict, dtu_like: bool):
-    """The true object above the ground (+0.03) and the prediction inside the object's box + 0.1 above
-    that floor: the ground and the backdrop are not the object. Returns ``(gt, pred)`` cropped."""
-    floor = info["dtu_like"]["ground_z"] + 0.03 if dtu_like else -np.inf
-    low, high = gt.bounds[0] - 0.1, gt.bounds[1] + 0.1
-    low[2] = max(low[2], floor)
-    return _crop(gt, np.array([-np.inf, -np.inf, floor]), np.full(3, np.inf)), _crop(pred, low, high)
-
-
-def _crop(mesh, low, high):
-    centres = mesh.triangles_center if len(mesh.faces) else np.zeros((0, 3))
-    keep = np.all((centres >= low) & (centres <= high), axis=1)
-    out = mesh.copy()
-    out.update_faces(keep)
-    out.remove_unreferenced_vertices()
-    return out
 
 
 def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> dict:
     """Baseline and SP (or ``names``: any runs, the first the baseline) side by side, paired."""
-    from bench.sdf_methods import Run
-
     scene = scene_dir(setting, out)
     if is_real(setting):
         logging.info("%s is a real capture: its own images, views and split are used (the setting's views, test_views, "
                      "resolution and up_axis do not apply; its training sizes do)", setting.mesh)
     pair = tuple(names or PAIRS[setting.method])
     make = make or make_config
-    runs = {name: Run(make(name, data_dir(setting, scene), setting, out / "runs", tag), setting.seed) for name in pair}
-    start = time.time()
-    for step in range(setting.steps):
-        for name in pair if step % 2 == 0 else pair[::-1]:
-            runs[name].step(step, setting.seed)
-        if step % 100 == 0 or step == setting.steps - 1:
-            logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
-                         ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "setting": dataclasses.asdict(setting), "pair": list(pair), "train_wall_s": time.time() - start,
+    runs = {name: ns.Run(name, make(name, data_dir(setting, scene), setting, out / "runs", tag), setting.seed) for name in pair}
+    wall = ns.train_together(runs, setting.steps, setting.seed, tag)
+    result = {"tag": tag, "setting": dataclasses.asdict(setting), "pair": list(pair), "train_wall_s": wall,
               "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         t0 = time.time()
         metrics = evaluate(run, scene, setting, out / "renders" / tag / name)
         metrics["eval_s"] = time.time() - t0
-        metrics["median_step_s"] = statistics.median(run.times[min(10, len(run.times) // 10):])
-        metrics["final_loss"] = statistics.mean(run.losses[-20:])
-        metrics["losses"] = run.losses
+        metrics.update(ns.step_stats(run))
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
-    _figure(out / "renders" / tag, runs[pair[0]].trainer.pipeline.datamanager.eval_dataset.image_filenames[0], pair)
+    pair_figure(out / "renders" / tag, runs[pair[0]].trainer.pipeline.datamanager.eval_dataset.image_filenames[0], pair)
     return result
-
-
-def _figure(folder: Path, target_image: Path, pair) -> None:
-    """Ground truth | baseline | SP for the first test view (a convenience: never loses results)."""
-    try:
-        import imageio.v2 as imageio
-
-        target = imageio.imread(target_image)[..., :3]
-        tiles = [target]
-        for name in pair:
-            tiles.append((np.load(folder / f"{name}.npy").astype(np.float32) * 255).round().astype(np.uint8))
-        imageio.imwrite(folder / "test0_gt_baseline_sp.png", np.concatenate(tiles, axis=1))
-    except Exception as error:  # noqa: BLE001
-        logging.warning("figure skipped: %s", error)
-
-
-def _num(value: Optional[float], digits: int) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def summarise(results: List[dict], out: Path) -> str:
@@ -389,7 +296,7 @@ def summarise(results: List[dict], out: Path) -> str:
         b, s = (r[name] for name in r.get("pair", PAIR)[:2])
         lines.append(
             f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR)[:2])} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
-            f"{_num(b['chamfer'], 4)} | {_num(s['chamfer'], 4)} | {_num(b['normal_consistency'], 3)} | {_num(s['normal_consistency'], 3)} | "
+            f"{num(b['chamfer'], 4)} | {num(s['chamfer'], 4)} | {num(b['normal_consistency'], 3)} | {num(s['normal_consistency'], 3)} | "
             f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f} | {r['train_wall_s'] / 60:.0f} min |"
         )
     table = "\n".join(lines)
@@ -430,11 +337,7 @@ def main(argv=None) -> None:
         parser.error("--quick needs a MESH (a mesh file, spot, or a primitive name)")
     if args.mesh and not args.quick:
         parser.error("a MESH is taken only with --quick")
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for noisy in ("nerfstudio", "PIL", "trimesh"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    start(args.threads, quiet=("nerfstudio", "PIL", "trimesh"))
     args.out.mkdir(parents=True, exist_ok=True)
     if args.quick:
         print(quick(args.mesh, args.out))

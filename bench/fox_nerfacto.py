@@ -3,6 +3,7 @@ CPU recipe: paired in one process (same seed, same rays per step, steps alternat
 PSNR / SSIM and seconds per step.
 
     python -m bench.fox_nerfacto --steps 1500          # writes bench/out/fox_nerfacto.json
+    python -m bench.fox_nerfacto --data PATH/TO/fox   # the capture (default: SP_FOX_CAPTURE, or ../shared/data/real/fox)
 
 The recipe (``RECIPE``) is what the README gives as ``ns-train`` flags; ``--print-flags`` prints them.
 """
@@ -12,16 +13,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Dict, List
 
-import torch
-
-from bench.common import machine_info, write_json
-
-FOX = Path(os.environ.get("SP_FOX_CAPTURE", "/work/shared/data/real/fox"))
+from bench.harness import nerfstudio as ns
+from bench.harness.common import OUT_DIR, machine_info, start, write_json
+from bench.harness.scenes import FOX, capture
 
 RECIPE: Dict[str, object] = {
     "pipeline.datamanager.train-num-rays-per-batch": 256,
@@ -44,19 +42,15 @@ def recipe_flags() -> List[str]:
 def fox_config(sp: bool, steps: int, out: Path, data: Path):
     from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
 
-    from sp_plugins.nerfstudio.runs import configure_run, method_config
+    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
 
     config = method_config("sp-nerfacto")
     configure_run(config, data, steps=steps, output_dir=out, experiment_name=f"fox-{'sp' if sp else 'baseline'}")
     dm = config.pipeline.datamanager
     dm.dataparser = InstantNGPDataParserConfig(data=data)
     dm.train_num_rays_per_batch = RECIPE["pipeline.datamanager.train-num-rays-per-batch"]
-    model = config.pipeline.model
-    model.log2_hashmap_size = RECIPE["pipeline.model.log2-hashmap-size"]
-    model.num_nerf_samples_per_ray = RECIPE["pipeline.model.num-nerf-samples-per-ray"]
-    model.num_proposal_samples_per_ray = RECIPE["pipeline.model.num-proposal-samples-per-ray"]
-    model.eval_num_rays_per_chunk = RECIPE["pipeline.model.eval-num-rays-per-chunk"]
-    model.sp = dataclasses.replace(model.sp, enabled=sp)
+    shrink(config, **{key.rpartition(".")[2].replace("-", "_"): value for key, value in RECIPE.items() if key.startswith("pipeline.model.")},
+           sp=dataclasses.replace(config.pipeline.model.sp, enabled=sp))
     config.mixed_precision = False  # no AMP on a CPU
     return config
 
@@ -65,29 +59,26 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--data", type=Path, default=FOX)
+    parser.add_argument("--data", type=Path, default=FOX, help="the fox capture (instant-ngp format; default %(default)s)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--print-flags", action="store_true", help="print the recipe as ns-train flags and exit")
     args = parser.parse_args(argv)
     if args.print_flags:
         print(" ".join(recipe_flags()))
         return
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    torch.set_num_threads(args.threads)
-    from bench.common import OUT_DIR
-    from bench.radiance_methods import Run, run_summary, train_together
-
+    data = capture(args.data, hint="pass --data or set SP_FOX_CAPTURE")
+    start(args.threads, quiet=())
     out = OUT_DIR / "fox_nerfacto_runs"
-    runs = {name: Run(name, fox_config(name == "sp", args.steps, out, args.data), args.seed) for name in ("baseline", "sp")}
+    runs = {name: ns.Run(name, fox_config(name == "sp", args.steps, out, data), args.seed) for name in ("baseline", "sp")}
     cpu = time.process_time()
-    wall = train_together(runs, args.steps, args.seed, "fox", log_every=max(1, args.steps // 10))
+    wall = ns.train_together(runs, args.steps, args.seed, "fox", log_every=max(1, args.steps // 10))
     cpu_per_step = (time.process_time() - cpu) / (2 * args.steps)  # one thread: CPU time is near idle wall time
     results = {}
     for name, run in runs.items():
-        start = time.perf_counter()
+        t0 = time.perf_counter()
         metrics = run.evaluate()
-        seconds = time.perf_counter() - start
-        results[name] = {k: v for k, v in run_summary(run, metrics).items() if k not in ("losses", "alphas")}
+        seconds = time.perf_counter() - t0
+        results[name] = {k: v for k, v in ns.run_summary(run, metrics).items() if k not in ("losses", "alphas")}
         results[name]["eval_s_per_image"] = seconds / len(metrics["psnr_per_view"])
         logging.info("%s: %s", name, results[name])
     payload = {

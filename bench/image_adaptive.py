@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import OUT_DIR, machine_info
+from bench.harness.common import OUT_DIR, machine_info
 
 IMAGES = ("astronaut", "chelsea", "coffee", "rocket", "hubble_deep_field")
 VARIANTS = ("baseline", "sp", "adaptive")

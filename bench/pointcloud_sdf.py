@@ -21,7 +21,6 @@ Writes ``bench/out/pointcloud_sdf/<tag>/<mesh>.json`` per mesh and ``results.jso
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import statistics
@@ -31,7 +30,7 @@ from typing import Dict, List
 
 import torch
 
-from bench.common import OUT_DIR, machine_info
+from bench.harness.common import OUT_DIR, machine_info
 from sp_plugins import SPConfig
 from sp_plugins.geometry import load_oriented_points
 from sp_plugins.tasks.fields import EncodingConfig

@@ -43,29 +43,22 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import logging
-import math
-import os
-import statistics
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, seed_everything
+from bench.harness import nerfstudio as ns
+from bench.harness import radiance as rd
+from bench.harness.common import machine_info, paired_timing, ratio_summary, safe_name, start
+from bench.harness.metrics import fmt, loss_figure
+from bench.harness.radiance import BOX, SCALE, SCENES, MipBudget, budget_key
+from bench.harness.scenes import object_mask_paths
 from sp_plugins.nerfstudio.components.views import VIEW_SELECTIONS
 from sp_plugins.nerfstudio.relu_field.model import voxel_size
-
-OUT = OUT_DIR / "radiance_methods"
-SCENES = {"spot": "spot", "cow": "/work/shared/data/meshes/cow.ply", "bunny": "/work/shared/data/meshes/bunny.ply"}
-SCALE = 1.5
-"""Blender-data scale factor: the [-1.5, 1.5]^3 box nerfstudio fixes for Blender scenes then holds the
-object (radius 0.85 * 1.5) as [-1, 1]^3 holds it unscaled."""
-BOX = torch.tensor([[-1.5] * 3, [1.5] * 3])
-"""nerfstudio's fixed scene box for Blender data."""
 
 
 # -- settings -----------------------------------------------------------------------------------
@@ -140,293 +133,6 @@ class SPVariant:
             raise argparse.ArgumentTypeError(f"{text!r}: expected VOXELS@END[:SCHEDULE[:FINAL_RATIO]], e.g. 8@0.3") from None
 
 
-@dataclasses.dataclass
-class MipBudget:
-    """CPU-sized MipNeRF: nerfstudio's 8x256 MLP with 128+128 samples x 1024 rays takes >1 s per
-    step here even at a quarter of that, so the MLP is narrower and the batch smaller."""
-
-    steps: int = 3000
-    rays: int = 256
-    coarse: int = 32
-    fine: int = 32
-    mlp_num_layers: int = 4
-    mlp_layer_width: int = 128
-    head_width: int = 64
-    lr: float = 5e-4
-    views: int = 6
-    alpha0: float = 0.04
-    end: int = 1000
-    image: int = 64
-    test_views: int = 8
-    dtu_like: bool = False
-    """train on the DTU-like scene (``sp-scene --dtu-like``: ground, backdrop, a frontal cap of 49
-    views of 96x72, no masks; ``image`` and ``test_views`` do not apply) and score PSNR inside the
-    object mask too, as RegNeRF / FreeNeRF do on DTU; the far plane then reaches the backdrop."""
-    view_selection: str = "spread"
-    """which of the training views to keep (sp_plugins.nerfstudio.components.views): spread / first / random"""
-
-
-OMITTED_FROM_KEY = {"background": "white", "align_corners": True, "density_units": "voxel", "loss": "mse",
-                    "diffuse_loss_weight": 0.0, "lr_schedule": "exponential", "decay_every": 3 / 28, "stage_gamma": 1.0,
-                    "sp_first_decay": 12 / 28, "dtu_like": False, "view_selection": "spread"}
-"""Settings added after the first tables: left out of the key at their defaults, so finished runs stay found."""
-
-
-def budget_key(*parts) -> str:
-    def plain(p):
-        if not dataclasses.is_dataclass(p):
-            return p
-        d = dataclasses.asdict(p)
-        return {k: v for k, v in d.items() if OMITTED_FROM_KEY.get(k, object()) != v}
-
-    text = json.dumps([plain(p) for p in parts], sort_keys=True, default=str)
-    return hashlib.sha1(text.encode()).hexdigest()[:10]
-
-
-# -- scenes and runs --------------------------------------------------------------------------
-
-
-def scene_dir(scene: str, views: int, image: int, test_views: int) -> Path:
-    from sp_plugins.data import make_scene
-
-    path = OUT / "scenes" / f"{Path(scene).stem}-{views}v-{image}px"
-    if not (path / "scene.json").is_file():
-        make_scene(SCENES.get(scene, scene), path, n_train=views, n_val=2, n_test=test_views, resolution=image,
-                   layouts=("blender",), seed=0, overwrite=True)
-    return path / "blender"
-
-
-DTU_UP_AXIS = {"spot": "z", "cow": "y", "bunny": "y"}
-"""Up axis of each scene's mesh (the DTU-like scene stands it on its ground)."""
-
-
-def dtu_scene_dir(scene: str, up_axis: Optional[str] = None, **sizes) -> Path:
-    """The DTU-like scene of ``bench.failure_regime`` at its full size (49 + 3 views of 96x72) unless
-    ``sizes`` (views, test_views, resolution) say otherwise; rendered once here. ``scene`` is a key
-    of :data:`SCENES` or any mesh file (standing on its ``up_axis``, z unless known)."""
-    from bench.failure_regime import Setting, data_dir
-    from bench.failure_regime import scene_dir as failure_scene_dir
-
-    up = up_axis or DTU_UP_AXIS.get(scene, "z")
-    setting = Setting(mesh=SCENES.get(scene, scene), up_axis=up, **sizes)
-    return data_dir(setting, failure_scene_dir(setting, OUT))
-
-
-def dtu_near_far(data: Path) -> Tuple[float, float]:
-    """Near and far planes that hold the whole DTU-like scene for every camera: from just inside the
-    closest approach of the object's sphere to the far side of the backdrop sphere."""
-    info = json.loads((data.parent / "scene.json").read_text())
-    distance = info["cameras"]["distance"]
-    near = max(0.05, distance - info["normalization"]["radius"] - 0.5)
-    return near, distance + info["dtu_like"]["backdrop_radius"] + 0.5
-
-
-def object_mask_paths(data: Path, image_filenames: Sequence[Path]) -> List[Path]:
-    """The object mask of each test image of a DTU-like scene's Blender layout (same file name)."""
-    masks = [data / "object_mask" / "test" / Path(f).name for f in image_filenames]
-    missing = [m for m in masks if not m.is_file()]
-    if missing:
-        raise FileNotFoundError(f"no object mask {missing[0]}: render the scene with sp-scene --dtu-like")
-    return masks
-
-
-class Run:
-    """One nerfstudio trainer driven step by step (``Trainer.train`` without viewer and writers)."""
-
-    def __init__(self, name: str, config, seed: int) -> None:
-        from nerfstudio.engine.callbacks import TrainingCallbackLocation
-
-        self.name = name
-        self.where = TrainingCallbackLocation
-        seed_everything(seed)  # the cached image order comes from Python's random
-        self.trainer = config.setup(local_rank=0, world_size=1)
-        self.trainer.setup(test_mode="test")
-        self.losses: List[float] = []
-        self.times: List[float] = []
-        self.alphas: List[float] = []
-
-    @property
-    def model(self):
-        return self.trainer.pipeline.model
-
-    def step(self, step: int, seed: int) -> None:
-        trainer = self.trainer
-        trainer.pipeline.train()
-        for cb in trainer.callbacks:
-            cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
-        seed_everything(seed * 1_000_003 + step)  # the same rays and jitter for every run
-        t0 = time.perf_counter()
-        loss, _, _ = trainer.train_iteration(step)
-        self.times.append(time.perf_counter() - t0)
-        for cb in trainer.callbacks:
-            cb.run_callback_at_location(step, self.where.AFTER_TRAIN_ITERATION)
-        self.losses.append(float(loss))
-        self.alphas.append(float(self.model.sp.alpha))
-
-    @torch.no_grad()
-    def train_psnr(self, max_views: int = 24) -> float:
-        """Mean PSNR over (up to ``max_views``) training views: with the test PSNR it tells
-        under-determination (train high, test low) from an optimisation failure (both low)."""
-        model = self.model
-        model.eval()
-        dataset = self.trainer.pipeline.datamanager.train_dataset
-        psnrs = []
-        for i in range(min(max_views, len(dataset))):
-            gt = dataset.get_image_float32(i)
-            if gt.shape[-1] == 4:  # RGBA (random training background): straight alpha over white
-                gt = gt[..., :3] * gt[..., 3:] + (1.0 - gt[..., 3:])
-            out = model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))
-            rgb = out["rgb"]
-            if getattr(model.config, "background_color", "white") == "random":  # rendered over black
-                rgb = rgb + (1.0 - out["accumulation"])
-            mse = float(((rgb.clamp(0, 1) - gt) ** 2).mean())
-            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
-        model.train()
-        return statistics.mean(psnrs)
-
-    @torch.no_grad()
-    def evaluate(self, rgb_key: str = "rgb", acc_key: str = "accumulation", object_masks: Optional[Sequence[Path]] = None) -> dict:
-        """Test-view PSNR, SSIM, (LPIPS when cached) and background opacity; keeps the renders.
-        With ``object_masks`` (one image per test view) also the PSNR inside each mask."""
-        import numpy as np
-        from PIL import Image
-        from torchmetrics.functional import structural_similarity_index_measure as ssim
-
-        from sp_plugins.nerfstudio.components.lpips import lpips_available
-
-        model = self.model
-        model.eval()
-        dataset = self.trainer.pipeline.datamanager.eval_dataset
-        lpips = None
-        if lpips_available():
-            from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-            lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
-        psnrs, ssims, lps, bg, fg, inside, ssims_inside = [], [], [], [], [], [], []
-        renders = []
-        for i in range(len(dataset)):
-            rgba = np.asarray(Image.open(dataset.image_filenames[i]).convert("RGBA"), dtype=np.float32) / 255.0
-            alpha = torch.from_numpy(rgba[..., 3:])
-            gt = torch.from_numpy(rgba[..., :3]) * alpha + (1.0 - alpha)  # straight alpha over white
-            out = model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))
-            acc = out[acc_key][..., 0]
-            rgb = out[rgb_key]
-            if getattr(model.config, "background_color", "white") == "random":  # rendered over black
-                rgb = rgb + (1.0 - acc[..., None])
-            rgb = rgb.clamp(0, 1)
-            mse = float(((rgb - gt) ** 2).mean())
-            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
-            if object_masks is not None:
-                mask = torch.from_numpy(np.asarray(Image.open(object_masks[i]).convert("L")) > 127)
-                inside.append(-10.0 * math.log10(max(float(((rgb - gt)[mask] ** 2).mean()), 1e-10)))
-                m = mask[..., None].float()  # RegNeRF / FreeNeRF's masked SSIM on DTU: the background set to 1 in both images
-                fg_rgb, fg_gt = (img * m + (1.0 - m) for img in (rgb, gt))
-                ssims_inside.append(float(ssim(fg_rgb.permute(2, 0, 1)[None], fg_gt.permute(2, 0, 1)[None], data_range=1.0)))
-            a, b = gt.permute(2, 0, 1)[None], rgb.permute(2, 0, 1)[None]
-            ssims.append(float(ssim(b, a, data_range=1.0)))
-            if lpips is not None:
-                lps.append(float(lpips(b, a)))
-            empty = alpha[..., 0] == 0
-            bg.append(float(acc[empty].mean()) if empty.any() else float("nan"))
-            fg.append(float(acc[alpha[..., 0] >= 0.999].mean()))
-            if i < 4:
-                renders.append((gt, rgb, acc))
-        model.train()
-        result = {
-            "psnr": statistics.mean(psnrs),
-            "ssim": statistics.mean(ssims),
-            "background_opacity": statistics.mean(bg),
-            "foreground_opacity": statistics.mean(fg),
-            "psnr_per_view": psnrs,
-        }
-        if lps:
-            result["lpips"] = statistics.mean(lps)
-        if inside:
-            result["psnr_object"] = statistics.mean(inside)
-            result["psnr_object_per_view"] = inside
-            result["ssim_object"] = statistics.mean(ssims_inside)
-        self.renders = renders
-        return result
-
-
-def train_together(runs: Dict[str, Run], steps: int, seed: int, label: str, log_every: int = 100) -> float:
-    t0 = time.time()
-    names = list(runs)
-    for step in range(steps):
-        for name in names if step % 2 == 0 else names[::-1]:
-            runs[name].step(step, seed)
-        if step % log_every == 0 or step == steps - 1:
-            logging.info("%s step %d: %s", label, step, ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()))
-    return time.time() - t0
-
-
-def run_summary(run: Run, metrics: dict) -> dict:
-    skip = min(10, len(run.times) // 10)
-    return {
-        **metrics,
-        "median_step_s": statistics.median(run.times[skip:]),
-        "total_train_s": sum(run.times),
-        "final_loss": statistics.mean(run.losses[-20:]),
-        "losses": run.losses,
-        "alphas": run.alphas[:: max(1, len(run.alphas) // 200)],
-    }
-
-
-def save_renders(runs: Dict[str, Run], path: Path) -> None:
-    """Rows: test views; columns: ground truth, then each run's colour and opacity."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        names = list(runs)
-        n_views = len(next(iter(runs.values())).renders)
-        cols = 1 + 2 * len(names)
-        fig, axes = plt.subplots(n_views, cols, figsize=(1.6 * cols, 1.7 * n_views), squeeze=False)
-        for v in range(n_views):
-            axes[v, 0].imshow(runs[names[0]].renders[v][0].numpy())
-            for k, name in enumerate(names):
-                _, rgb, acc = runs[name].renders[v]
-                axes[v, 1 + 2 * k].imshow(rgb.numpy())
-                axes[v, 2 + 2 * k].imshow(acc.numpy(), cmap="magma", vmin=0, vmax=1)
-                if v == 0:
-                    axes[0, 1 + 2 * k].set_title(name, fontsize=6)
-                    axes[0, 2 + 2 * k].set_title("opacity", fontsize=6)
-        axes[0, 0].set_title("ground truth", fontsize=6)
-        for ax in axes.flat:
-            ax.set_axis_off()
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    except Exception as err:  # a picture is a convenience, never a reason to lose results
-        logging.warning("render figure skipped: %s", err)
-
-
-def save_losses(result: dict, names: Sequence[str], path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(6, 3.2))
-        for name in names:
-            losses = torch.tensor(result[name]["losses"])
-            k = 25
-            smooth = torch.nn.functional.avg_pool1d(losses[None, None], k, 1)[0, 0] if len(losses) > k else losses
-            ax.plot(smooth.numpy(), label=name, lw=1)
-        ax.set_yscale("log")
-        ax.set_xlabel("step")
-        ax.set_ylabel("training MSE")
-        ax.legend(fontsize=6)
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    except Exception as err:
-        logging.warning("loss figure skipped: %s", err)
-
-
 # -- ReLU fields ----------------------------------------------------------------------------------
 
 
@@ -440,29 +146,22 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from sp_plugins.nerfstudio.relu_field.lr import StagedStepDecaySchedulerConfig
-    from sp_plugins.nerfstudio.runs import configure_run, method_config
+    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
 
     late_lr = variant is not None or name == SP_LR_FLAT
     config = method_config("relu-field-flat" if name == SP_LR_FLAT else name)
     m = config.pipeline.model
-    m.resolution = budget.resolution
-    m.num_samples = budget.num_samples
-    m.color_mode = budget.color_mode  # type: ignore[assignment]
-    m.sh_degree = budget.sh_degree
-    m.density_init = tuple(budget.density_init)  # type: ignore[assignment]
-    m.density_scale = budget.density_scale
-    m.eval_num_rays_per_chunk = 4096
-    m.background_color = budget.background  # type: ignore[assignment]
-    m.align_corners = budget.align_corners
-    m.density_units = budget.density_units  # type: ignore[assignment]
-    m.loss = budget.loss  # type: ignore[assignment]
-    m.diffuse_loss_weight = budget.diffuse_loss_weight
+    sp = m.sp
     if variant is not None:
         voxel = voxel_size(BOX, budget.resolution, budget.align_corners)
-        m.sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
-                                   schedule=variant.schedule, final_ratio=variant.final_ratio, seed=seed)
+        sp = dataclasses.replace(m.sp, enabled=True, alpha0=variant.voxels * voxel, end=variant.end,
+                                 schedule=variant.schedule, final_ratio=variant.final_ratio, seed=seed)
+    shrink(config, resolution=budget.resolution, num_samples=budget.num_samples, color_mode=budget.color_mode,
+           sh_degree=budget.sh_degree, density_init=tuple(budget.density_init), density_scale=budget.density_scale,
+           eval_num_rays_per_chunk=4096, background_color=budget.background, align_corners=budget.align_corners,
+           density_units=budget.density_units, loss=budget.loss, diffuse_loss_weight=budget.diffuse_loss_weight, sp=sp,
+           lr={"fields": budget.lr})
     opt = config.optimizers["fields"]
-    opt["optimizer"].lr = budget.lr
     if budget.lr_schedule == "staged":
         opt["scheduler"] = StagedStepDecaySchedulerConfig(
             max_steps=budget.steps, stages=m.hierarchy_stages, decay_every=budget.decay_every,
@@ -470,7 +169,7 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     elif budget.lr_final != budget.lr:
         opt["scheduler"] = ExponentialDecaySchedulerConfig(lr_final=budget.lr_final, max_steps=budget.steps)
     configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
-                  experiment_name=(label or name).replace("[", "_").replace("]", "").replace(",", "_"))
+                  experiment_name=safe_name(label or name))
     config.pipeline.datamanager.dataparser.scale_factor = SCALE
     if budget.background == "random":  # keep the alpha channel so the loss can composite
         config.pipeline.datamanager.dataparser.alpha_color = None
@@ -479,29 +178,28 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
 
 
 def grid_path(result_path: Path, run_name: str) -> Path:
-    safe = run_name.replace("[", "_").replace("]", "").replace(",", "_")
-    return result_path.with_name(f"{result_path.stem}.{safe}.grid.pt")
+    return result_path.with_name(f"{result_path.stem}.{safe_name(run_name)}.grid.pt")
 
 
 def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], methods: Sequence[str], seed: int,
                tag: str, overwrite: bool, save_grids: bool = False) -> dict:
     key = budget_key(scene, budget, list(variants), list(methods), seed)
-    path = OUT / "relu" / f"{tag}_{scene}_{key}.json"
+    path = rd.OUT / "relu" / f"{tag}_{scene}_{key}.json"
     if path.is_file() and not overwrite:
         logging.info("done already: %s", path.name)
         return json.loads(path.read_text())
-    data = scene_dir(scene, budget.views, budget.image, budget.test_views)
-    work = OUT / "runs" / f"relu-{scene}-{key}"
-    runs: Dict[str, Run] = {}
+    data = rd.scene_dir(scene, budget.views, budget.image, budget.test_views)
+    work = rd.OUT / "runs" / f"relu-{scene}-{key}"
+    runs: Dict[str, ns.Run] = {}
     for name in methods:
-        runs[name] = Run(name, relu_config(name, data, budget, None, seed, work), seed)
+        runs[name] = ns.Run(name, relu_config(name, data, budget, None, seed, work), seed)
     for variant in variants:
-        runs[variant.name] = Run(variant.name, relu_config("sp-relu-field", data, budget, variant, seed, work, variant.name), seed)
-    wall = train_together(runs, budget.steps, seed, f"relu/{scene}", log_every=max(100, budget.steps // 30))
+        runs[variant.name] = ns.Run(variant.name, relu_config("sp-relu-field", data, budget, variant, seed, work, variant.name), seed)
+    wall = ns.train_together(runs, budget.steps, seed, f"relu/{scene}", log_every=max(100, budget.steps // 30))
     result = {"study": "relu", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
               "variants": [dataclasses.asdict(v) for v in variants], "train_wall_s": wall, "runs": list(runs)}
     for name, run in runs.items():
-        result[name] = run_summary(run, {**run.evaluate(), "train_psnr": run.train_psnr()})
+        result[name] = ns.run_summary(run, {**run.evaluate(), "train_psnr": run.train_psnr()})
         logging.info("%s %s: PSNR %.2f, background opacity %.4f", scene, name, result[name]["psnr"],
                      result[name]["background_opacity"])
         if save_grids:
@@ -510,73 +208,43 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
             torch.save({"grid": field.grid.detach().cpu(), "aabb": field.aabb.cpu(), "density_scale": field.density_scale},
                        grid_path(path, name))
     if "relu-field-flat" in runs:
-        flat = runs["relu-field-flat"].times
         for variant in variants:
-            sp_times = runs[variant.name].times
-            active = [s / b for s, b, a in zip(sp_times, flat, runs[variant.name].alphas) if a > 0][10:]
-            result[variant.name]["time_ratio_while_active"] = statistics.median(active) if active else None
-            result[variant.name]["time_ratio_whole_run"] = sum(sp_times) / sum(flat)
+            result[variant.name].update(ns.active_time_ratios(runs[variant.name], runs["relu-field-flat"]))
     result["machine"] = machine_info()
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1))
-    save_renders(runs, path.with_suffix(".png"))
-    save_losses(result, list(runs), path.with_name(path.stem + "_loss.png"))
+    ns.save_renders(runs, path.with_suffix(".png"))
+    loss_figure([("", {name: result[name]["losses"] for name in runs})], path.with_name(path.stem + "_loss.png"))
     return result
 
 
 # -- MipNeRF -----------------------------------------------------------------------------------
 
 
-def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path, method: str = "sp-mipnerf",
-               name: Optional[str] = None):
-    """``method`` (sp-mipnerf, or freenerf-lite: the same MipNeRF) at ``budget``, SP on or off."""
-    from sp_plugins.nerfstudio.runs import configure_run, method_config
-
-    config = method_config(method)
-    m = config.pipeline.model
-    m.num_coarse_samples, m.num_importance_samples = budget.coarse, budget.fine
-    m.mlp_num_layers, m.mlp_layer_width, m.head_mlp_layer_width = budget.mlp_num_layers, budget.mlp_layer_width, budget.head_width
-    m.eval_num_rays_per_chunk = 4096
-    m.sp = dataclasses.replace(m.sp, enabled=sp, alpha0=budget.alpha0, end=budget.end, seed=seed)
-    config.optimizers["fields"]["optimizer"].lr = budget.lr
-    if budget.dtu_like:
-        near, far = dtu_near_far(data)
-        m.collider_params = {"near_plane": near, "far_plane": far}
-    name = name or ("sp-mipnerf" if sp else "mipnerf")
-    configure_run(config, data, steps=budget.steps, output_dir=out, layout="blender", rays_per_batch=budget.rays,
-                  experiment_name=name)
-    config.pipeline.datamanager.train_views = budget.views
-    config.pipeline.datamanager.train_view_selection = budget.view_selection
-    return config
-
-
 def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: bool) -> dict:
     key = budget_key(scene, budget, seed)
-    path = OUT / "mipnerf" / f"{tag}_{scene}_{key}.json"
+    path = rd.OUT / "mipnerf" / f"{tag}_{scene}_{key}.json"
     if path.is_file() and not overwrite:
         logging.info("done already: %s", path.name)
         return json.loads(path.read_text())
-    data = dtu_scene_dir(scene) if budget.dtu_like else scene_dir(scene, 24, budget.image, budget.test_views)
-    work = OUT / "runs" / f"mip-{scene}-{key}"
-    runs = {"mipnerf": Run("mipnerf", mip_config(False, data, budget, seed, work), seed),
-            "sp-mipnerf": Run("sp-mipnerf", mip_config(True, data, budget, seed, work), seed)}
-    wall = train_together(runs, budget.steps, seed, f"mipnerf/{scene}")
+    data = rd.dtu_scene_dir(scene) if budget.dtu_like else rd.scene_dir(scene, 24, budget.image, budget.test_views)
+    work = rd.OUT / "runs" / f"mip-{scene}-{key}"
+    runs = {"mipnerf": ns.Run("mipnerf", rd.mip_config(False, data, budget, seed, work), seed),
+            "sp-mipnerf": ns.Run("sp-mipnerf", rd.mip_config(True, data, budget, seed, work), seed)}
+    wall = ns.train_together(runs, budget.steps, seed, f"mipnerf/{scene}")
     result = {"study": "mipnerf", "tag": tag, "scene": scene, "seed": seed, "budget": dataclasses.asdict(budget),
               "train_wall_s": wall, "runs": list(runs)}
     for name, run in runs.items():
         masks = object_mask_paths(data, run.trainer.pipeline.datamanager.eval_dataset.image_filenames) if budget.dtu_like else None
-        result[name] = run_summary(run, run.evaluate("rgb_fine", "accumulation_fine", masks))
+        result[name] = ns.run_summary(run, run.evaluate("rgb_fine", "accumulation_fine", masks))
         logging.info("%s %s: PSNR %.2f (object %s), background opacity %.4f", scene, name, result[name]["psnr"],
                      fmt(result[name].get("psnr_object")), result[name]["background_opacity"])
-    sp_times, base = runs["sp-mipnerf"].times, runs["mipnerf"].times
-    active = [s / b for s, b, a in zip(sp_times, base, runs["sp-mipnerf"].alphas) if a > 0][10:]
-    result["sp-mipnerf"]["time_ratio_while_active"] = statistics.median(active) if active else None
-    result["sp-mipnerf"]["time_ratio_whole_run"] = sum(sp_times) / sum(base)
+    result["sp-mipnerf"].update(ns.active_time_ratios(runs["sp-mipnerf"], runs["mipnerf"]))
     result["machine"] = machine_info()
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1))
-    save_renders(runs, path.with_suffix(".png"))
-    save_losses(result, list(runs), path.with_name(path.stem + "_loss.png"))
+    ns.save_renders(runs, path.with_suffix(".png"))
+    loss_figure([("", {name: result[name]["losses"] for name in runs})], path.with_name(path.stem + "_loss.png"))
     return result
 
 
@@ -659,10 +327,6 @@ def cost_study(resolution: int, rays: int, samples: int, color_mode: str, repeat
 # -- summaries ------------------------------------------------------------------------------
 
 
-def fmt(value, spec=".2f") -> str:
-    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, spec)
-
-
 def relu_table(results: List[dict]) -> str:
     lines = ["| tag | scene | grid | steps | run | train PSNR | test PSNR | SSIM | bg opacity | fg opacity | final train loss | s/step | SP time ratio (active / whole run) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -694,7 +358,7 @@ def mip_table(results: List[dict]) -> str:
 
 def collect(study: str, tag: Optional[str]) -> List[dict]:
     results = []
-    for path in sorted((OUT / study).glob("*.json")):
+    for path in sorted((rd.OUT / study).glob("*.json")):
         r = json.loads(path.read_text())
         if tag is None or r.get("tag") == tag:
             results.append(r)
@@ -763,12 +427,8 @@ def main(argv=None) -> None:
 
         mip.set_defaults(**QUICK)
         args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for noisy in ("nerfstudio", "PIL", "sp_plugins"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
-    OUT.mkdir(parents=True, exist_ok=True)
+    start(args.threads, quiet=("nerfstudio", "PIL", "sp_plugins"))
+    rd.OUT.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     if args.study == "relu":
         budget = ReLUBudget(**{f.name: getattr(args, f.name) for f in dataclasses.fields(ReLUBudget)})
@@ -795,7 +455,7 @@ def main(argv=None) -> None:
     else:
         results = [cost_study(r, args.rays, args.samples, args.color_mode, args.repeats, v, args.end)
                    for r in args.resolutions for v in args.voxels]
-        (OUT / f"cost_{args.tag}.json").write_text(json.dumps(results, indent=1))
+        (rd.OUT / f"cost_{args.tag}.json").write_text(json.dumps(results, indent=1))
         lines = ["| grid | alpha | s/step plain | SP total | SP arithmetic | slower lookups | alpha = 0 | averaged over the schedule |",
                  "|---|---|---|---|---|---|---|---|"]
         for r in results:
@@ -804,7 +464,7 @@ def main(argv=None) -> None:
                          f"+{100 * r['sp_arithmetic_share']:.1f}% | +{100 * r['lookup_slowdown_share']:.1f}% | "
                          f"{s['sp_inactive']['ratio_vs_plain']:.3f} | {r['schedule_average_ratio']:.3f} (end {r['end']}) |")
         table = "\n".join(lines)
-    (OUT / f"{args.study}_{args.tag}.md").write_text(table + "\n")
+    (rd.OUT / f"{args.study}_{args.tag}.md").write_text(table + "\n")
     print(table)
     print(f"\nwall time {time.time() - t0:.0f} s; machine: {machine_info()}")
 

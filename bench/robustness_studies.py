@@ -32,7 +32,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench.common import OUT_DIR
+from bench.harness.common import OUT_DIR
 
 ROOT = OUT_DIR / "robustness"
 SPOT = Path(__file__).resolve().parents[1] / "sp_plugins" / "data" / "assets" / "spot.ply"

@@ -8,7 +8,7 @@ Run it in the sdfstudio environment::
 sdfstudio's own ``neus`` with a hash encoding (``use_grid_feature``, the paper's grid unless the
 setting says otherwise) against our ``sp-neus`` at the same settings, on the same DTU-like scenes
 (SDFStudio layout; no masks), trained side by side in one process from the same weights on the
-same rays (`bench.sdfstudio_neus_facto.Run`). Test PSNR (whole image and object mask) is computed
+same rays (`bench.harness.lockstep`). Test PSNR (whole image and object mask) is computed
 on the scene's held-out test views (``meta_data_test.json``; sdfstudio's parser has no test
 split); Chamfer as in `bench.failure_regime`.
 
@@ -36,20 +36,21 @@ import functools
 import json
 import logging
 import math
-import os
 import shutil
 import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from bench.common import OUT_DIR, machine_info
-import bench.failure_regime as failure_regime
-from bench.failure_regime import FAILED_PSNR, REAL, SETTINGS, Setting, _figure, _psnr, crop_to_object, is_real, no_geometry
+from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, is_real
+from bench.failure_regime import scene_dir as rendered_scene
+from bench.harness import scenes
+from bench.harness import sdfstudio as host
+from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.metrics import crop_to_object, geometry, no_geometry, num, pair_figure, psnr, sdf_mesh
 
 PAIR = ("neus", "sp-neus")
 CAPTURE_CAMERA_DISTANCE = 3.0
@@ -77,9 +78,7 @@ def capture_scene(setting: Setting, out: Path) -> Path:
     root = out / "scenes" / f"{setting.mesh}_sdfstudio"
     if (root / "sdfstudio_test" / "meta_data.json").is_file():
         return root
-    capture = REAL[setting.mesh]
-    if not (capture / "transforms.json").is_file():
-        raise SystemExit(f"{setting.mesh}: no capture at {capture} (transforms.json); set SP_FOX_CAPTURE to its folder")
+    capture = scenes.capture(scenes.REAL[setting.mesh], setting.mesh)
     converted = root / "converted"
     logging.info("converting %s with sdfstudio's process_nerfstudio_to_sdfstudio", capture)
     done = subprocess.run([sys.executable, "-m", "scripts.datasets.process_nerfstudio_to_sdfstudio", "--data", str(capture),
@@ -114,7 +113,7 @@ def scene_dir(setting: Setting, out: Path) -> Path:
     """The setting's scene in the SDFStudio layout, plus its held-out views as a dataset of their own."""
     if is_real(setting):
         return capture_scene(setting, out)
-    root = failure_regime.scene_dir(setting, out, layout="sdfstudio")
+    root = rendered_scene(setting, out, layout="sdfstudio")
     test = root / "sdfstudio_test"
     if not (test / "meta_data.json").is_file():  # the held-out views as a dataset of their own
         test.mkdir(exist_ok=True)
@@ -137,52 +136,25 @@ GRID_GROUP = "grid"
 
 
 def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
-    import nerfstudio.configs.method_configs as host
-    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
-
-    config = copy.deepcopy(host.method_configs[name])
-    config.machine.num_gpus = 0
-    config.machine.seed = setting.seed
-    config.vis = "tensorboard"
-    config.output_dir = out
-    config.experiment_name = f"{name}-{tag}"
-    config.timestamp = "bench"
-    config.trainer.max_num_iterations = setting.steps
-    config.trainer.steps_per_save = 10**9
-    config.trainer.steps_per_eval_batch = config.trainer.steps_per_eval_image = 10**9
-    dm = config.pipeline.datamanager
-    dm.dataparser = SDFStudioDataParserConfig(data=data)
-    dm.train_num_rays_per_batch = setting.rays
-    dm.eval_num_rays_per_batch = 1024
+    config = host.configure(name, data, out, steps=setting.steps, seed=setting.seed, rays=setting.rays, experiment=f"{name}-{tag}")
     model = config.pipeline.model
-    model.num_samples = setting.num_samples
-    model.num_samples_importance = setting.num_samples_importance
-    model.num_up_sample_steps = 2
-    model.background_model = setting.background_model
     if not setting.dtu_like:
         model.background_color = "white"
-    model.eval_num_rays_per_chunk = 1024
-    f = model.sdf_field
-    f.use_grid_feature = True
-    f.encoding_type = "hash"
-    f.num_layers, f.num_layers_color = 2, 2
-    f.hidden_dim, f.hidden_dim_color, f.geo_feat_dim = setting.hidden_dim, setting.hidden_dim, setting.hidden_dim - 1
-    f.num_levels, f.max_res, f.log2_hashmap_size = setting.num_levels, setting.max_res, setting.log2_hashmap_size
-    f.inside_outside = False  # an object seen from outside
-    f.geometric_init = setting.geometric_init
-    f.bias = 0.5
     if hasattr(model, "sp"):
-        model.sp.seed = setting.seed
         if setting.sp_alpha0 is not None:
             model.sp.alpha0 = setting.sp_alpha0
         if setting.sp_end is not None:
             model.sp.end = setting.sp_end
     config.optimizers[GRID_GROUP] = copy.deepcopy(config.optimizers["fields"])
-    for group, lr in (("fields", setting.lr), (GRID_GROUP, setting.grid_lr), ("field_background", setting.lr)):
-        entry = config.optimizers[group]
-        entry["optimizer"].lr = lr
-        entry["scheduler"].warm_up_end = setting.warm_up_end
-        entry["scheduler"].max_steps = setting.steps
+    s = setting
+    host.shrink(config, field=dict(use_grid_feature=True, encoding_type="hash", num_layers=2, num_layers_color=2, hidden_dim=s.hidden_dim,
+                                   hidden_dim_color=s.hidden_dim, geo_feat_dim=s.hidden_dim - 1, num_levels=s.num_levels,
+                                   max_res=s.max_res, log2_hashmap_size=s.log2_hashmap_size,
+                                   inside_outside=False,  # an object seen from outside
+                                   geometric_init=s.geometric_init, bias=0.5),
+                num_samples=s.num_samples, num_samples_importance=s.num_samples_importance, num_up_sample_steps=2,
+                background_model=s.background_model, lr={"fields": s.lr, GRID_GROUP: s.grid_lr, "field_background": s.lr},
+                warm_up_end=s.warm_up_end, max_steps=s.steps)
     return config
 
 
@@ -230,7 +202,6 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
     from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 
     from sp_plugins.data import read_scene
-    from sp_plugins.geometry import extract_mesh, mesh_metrics
 
     pipeline = run.trainer.pipeline
     pipeline.eval()
@@ -250,51 +221,39 @@ def evaluate(run, scene: Path, setting: Setting, render_out: Path) -> dict:
             mask = imageio.imread(mask_path) > 127
         else:  # object on white: the object is where the target is not background
             mask = np.any(target < 0.999, axis=-1)
-        whole.append(_psnr(pred, target))
-        masked.append(_psnr(pred[mask], target[mask]))
+        whole.append(psnr(pred, target))
+        masked.append(psnr(pred[mask], target[mask]))
         first = pred if first is None else first
-    field = pipeline.model.field
-    with torch.no_grad():
-        mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=setting.mesh_resolution)
+    mesh = sdf_mesh(pipeline.model.field, (-1.0, 1.0), setting.mesh_resolution)
     if is_real(setting):  # no true mesh
-        geometry = no_geometry()
+        shape = no_geometry()
     else:
         gt = trimesh.load(scene / "gt_mesh.ply", force="mesh")  # sdfstudio's parser does not move the world
         gt_cropped, pred = crop_to_object(gt, mesh, read_scene(scene), setting.dtu_like)
-        geometry = mesh_metrics(pred, gt_cropped, n_points=50_000)
+        shape = geometry(pred, gt_cropped, 50_000)
     render_out.parent.mkdir(parents=True, exist_ok=True)
     mesh.export(render_out.with_suffix(".ply"))
     np.save(render_out.with_suffix(".npy"), first.astype(np.float16))
     return {"psnr": statistics.mean(whole), "psnr_object": statistics.mean(masked), "psnr_views": whole,
-            "psnr_object_views": masked, "chamfer": geometry["chamfer"], "normal_consistency": geometry["normal_consistency"],
-            "fscore": geometry["fscore"], "area_ratio": geometry["area_ratio"]}
+            "psnr_object_views": masked, "chamfer": shape["chamfer"], "normal_consistency": shape["normal_consistency"],
+            "fscore": shape["fscore"], "area_ratio": shape["area_ratio"]}
 
 
 def run_pair(setting: Setting, out: Path, tag: str) -> dict:
-    from bench.sdfstudio_neus_facto import Run
-
     scene = scene_dir(setting, out)
     with background_mlp(*setting.background_mlp), grid_group():
-        runs = {name: Run(make_config(name, scene / "sdfstudio", setting, out / "runs", tag), setting.seed) for name in PAIR}
-    start = time.time()
-    for step in range(setting.steps):
-        for name in PAIR if step % 2 == 0 else PAIR[::-1]:
-            runs[name].step(step, setting.seed)
-        if step % 100 == 0 or step == setting.steps - 1:
-            logging.info("%s step %d/%d: %s (%.0f s)", tag, step, setting.steps,
-                         ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()), time.time() - start)
-    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "grid_lr_effective": setting.grid_lr, "train_wall_s": time.time() - start,
+        runs = {name: host.Run(name, make_config(name, scene / "sdfstudio", setting, out / "runs", tag), setting.seed) for name in PAIR}
+    wall = host.train_together(runs, setting.steps, setting.seed, tag)
+    result = {"tag": tag, "host": "sdfstudio", "setting": dataclasses.asdict(setting), "grid_lr_effective": setting.grid_lr, "train_wall_s": wall,
               "pairing": "same weights and rays (torch, numpy and random seeded per step)"}
     for name, run in runs.items():
         metrics = evaluate(run, scene, setting, out / "renders" / tag / name)
-        metrics["median_step_s"] = statistics.median(run.times[min(10, len(run.times) // 10):])
-        metrics["final_loss"] = statistics.mean(run.losses[-20:])
-        metrics["losses"] = run.losses
+        metrics.update(host.step_stats(run))
         metrics["failed"] = bool(metrics["psnr_object"] < FAILED_PSNR)
         result[name] = metrics
     result["machine"] = machine_info()
     first_test = json.loads((scene / "sdfstudio_test" / "meta_data.json").read_text())["frames"][0]["rgb_path"]
-    _figure(out / "renders" / tag, scene / "sdfstudio_test" / first_test, PAIR)
+    pair_figure(out / "renders" / tag, scene / "sdfstudio_test" / first_test, PAIR)
     return result
 
 
@@ -314,20 +273,8 @@ def main(argv=None) -> None:
     refused = [f"{name} ({why})" for name in args.settings for why in [unsupported(SETTINGS[name])] if why]
     if refused:
         parser.error(f"not available in sdfstudio's bench: {', '.join(refused)}; run them with bench.failure_regime")
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for noisy in ("nerfstudio", "PIL", "trimesh"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
-
-    from sp_plugins.patches.sdfstudio_import_hook import install_all
-
-    install_all()
-    import scripts.train  # noqa: F401  (sdfstudio's import order)
-
-    from sp_plugins.sdfstudio.registration import add_methods
-
-    add_methods()
+    start(args.threads, quiet=("nerfstudio", "PIL", "trimesh"))
+    host.prepare()
     args.out.mkdir(parents=True, exist_ok=True)
     for name in args.settings:
         setting = SETTINGS[name] if args.steps is None else dataclasses.replace(SETTINGS[name], steps=args.steps)
@@ -339,8 +286,8 @@ def main(argv=None) -> None:
         result = run_pair(setting, args.out, tag)
         path.write_text(json.dumps(result, indent=1))
         b, s = result[PAIR[0]], result[PAIR[1]]
-        print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {failure_regime._num(b['chamfer'], 4)}); "
-              f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {failure_regime._num(s['chamfer'], 4)})", flush=True)
+        print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {num(b['chamfer'], 4)}); "
+              f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {num(s['chamfer'], 4)})", flush=True)
     print(f"machine: {machine_info()}")
 
 

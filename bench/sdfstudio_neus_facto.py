@@ -23,19 +23,13 @@ Writes ``bench/out/sdfstudio/neus_facto_<scene>_seed<k>_steps<n>.json`` and ``.m
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import json
-import logging
-import os
-import statistics
-import time
 from pathlib import Path
-from typing import Dict, List
 
-import torch
-
-from bench.common import OUT_DIR, machine_info, seed_everything
+from bench.harness import sdfstudio as host
+from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.scenes import synthetic
 
 PAIR = ("neus-facto", "sp-neus-facto")
 
@@ -64,111 +58,29 @@ class Budget:
 
 
 def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
-    import nerfstudio.configs.method_configs as host
-    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
-
-    config = copy.deepcopy(host.method_configs[name])
-    config.machine.num_gpus = 0
-    config.machine.seed = seed
-    config.vis = "tensorboard"
-    config.output_dir = out
-    config.experiment_name = f"{name}-seed{seed}"
-    config.timestamp = "bench"
-    config.trainer.max_num_iterations = budget.steps
-    config.trainer.steps_per_save = 10**9
-    config.trainer.steps_per_eval_batch = config.trainer.steps_per_eval_image = 10**9
-    dm = config.pipeline.datamanager
-    dm.dataparser = SDFStudioDataParserConfig(data=data, skip_every_for_val_split=4)
-    dm.train_num_rays_per_batch = budget.rays
-    dm.eval_num_rays_per_batch = 1024
-    model = config.pipeline.model
-    model.num_proposal_samples_per_ray = budget.proposal_samples
-    model.num_neus_samples_per_ray = budget.neus_samples
-    model.background_color = "white"  # our renders are composited on white
-    model.eval_num_rays_per_chunk = 1024
-    f = model.sdf_field
-    f.hidden_dim, f.hidden_dim_color, f.geo_feat_dim = budget.hidden_dim, budget.hidden_dim, budget.geo_feat_dim
-    f.num_levels, f.max_res, f.log2_hashmap_size = budget.num_levels, budget.max_res, budget.log2_hashmap_size
-    f.inside_outside = budget.inside_outside
-    if hasattr(model, "sp"):
-        model.sp.seed = seed
-    for group in ("fields", "field_background"):
-        opt = config.optimizers[group]
-        opt["optimizer"].lr = budget.lr
-        opt["scheduler"].warm_up_end = budget.warm_up_end
-        opt["scheduler"].max_steps = budget.steps
-    config.optimizers["proposal_networks"]["scheduler"].max_steps = budget.steps
+    b = budget
+    config = host.configure(name, data, out, steps=b.steps, seed=seed, rays=b.rays, experiment=f"{name}-seed{seed}",
+                            skip_every_for_val_split=4)
+    host.shrink(config, field=dict(hidden_dim=b.hidden_dim, hidden_dim_color=b.hidden_dim, geo_feat_dim=b.geo_feat_dim,
+                                   num_levels=b.num_levels, max_res=b.max_res, log2_hashmap_size=b.log2_hashmap_size,
+                                   inside_outside=b.inside_outside),
+                num_proposal_samples_per_ray=b.proposal_samples, num_neus_samples_per_ray=b.neus_samples,
+                background_color="white",  # our renders are composited on white
+                lr={"fields": b.lr, "field_background": b.lr}, warm_up_end=b.warm_up_end, max_steps=b.steps)
+    config.optimizers["proposal_networks"]["scheduler"].max_steps = b.steps
     return config
 
 
-class Run:
-    """One sdfstudio trainer driven step by step (the loop of ``Trainer.train`` without its extras)."""
-
-    def __init__(self, config, seed: int) -> None:
-        from nerfstudio.engine.callbacks import TrainingCallbackLocation
-        from nerfstudio.engine.trainer import Trainer
-
-        self.where = TrainingCallbackLocation
-        seed_everything(seed)  # the cached image order comes from Python's random (host's CacheDataloader)
-        self.trainer = Trainer(config, local_rank=0, world_size=0)
-        self.trainer.setup(test_mode="val")
-        self.losses: List[float] = []
-        self.times: List[float] = []
-
-    def step(self, step: int, seed: int) -> None:
-        trainer = self.trainer
-        trainer.pipeline.train()
-        for cb in trainer.callbacks:
-            cb.run_callback_at_location(step, self.where.BEFORE_TRAIN_ITERATION)
-        seed_everything(seed * 1_000_003 + step)
-        t0 = time.perf_counter()
-        loss, _, _ = trainer.train_iteration(step)
-        self.times.append(time.perf_counter() - t0)
-        for cb in trainer.callbacks:
-            cb.run_callback_at_location(step, self.where.AFTER_TRAIN_ITERATION)
-        self.losses.append(float(loss))
-
-    def evaluate(self, gt_mesh: Path, resolution: int, mesh_out: Path) -> dict:
-        import trimesh
-
-        from sp_plugins.geometry import extract_mesh, mesh_metrics
-
-        pipeline = self.trainer.pipeline
-        pipeline.eval()
-        images, _ = pipeline.get_average_eval_image_metrics()  # sdfstudio returns (metrics, images)
-        field = pipeline.model.field
-        with torch.no_grad():
-            mesh = extract_mesh(lambda x: field.forward_geonetwork(x)[:, 0], bounds=(-1.0, 1.0), resolution=resolution)
-        mesh.export(mesh_out)
-        geometry = mesh_metrics(mesh, trimesh.load(gt_mesh, force="mesh"), n_points=100_000)
-        keys = ("chamfer", "accuracy", "completeness", "normal_consistency", "fscore", "area_ratio")
-        return {"psnr_train_views": float(images["psnr"]), **{k: geometry[k] for k in keys}}
-
-
 def run_pair(scene: str, seed: int, budget: Budget, out: Path) -> dict:
-    from sp_plugins.data import make_scene
-
-    scene_dir = out / "scenes" / scene
-    if not (scene_dir / "scene.json").is_file():
-        make_scene(scene, scene_dir, n_train=budget.views, n_val=1, n_test=1, resolution=budget.resolution,
-                   layouts=("sdfstudio",), seed=0, overwrite=True)
-    runs: Dict[str, Run] = {name: Run(make_config(name, scene_dir / "sdfstudio", out / "runs", budget, seed), seed) for name in PAIR}
-    t_start = time.time()
-    for step in range(budget.steps):
-        for name in PAIR if step % 2 == 0 else PAIR[::-1]:
-            runs[name].step(step, seed)
-        if step % 50 == 0:
-            logging.info("%s seed %d step %d: %s", scene, seed, step, ", ".join(f"{n} {r.losses[-1]:.4f}" for n, r in runs.items()))
-    result = {"scene": scene, "seed": seed, "budget": dataclasses.asdict(budget), "train_wall_s": time.time() - t_start}
+    scene_dir = synthetic(scene, out / "scenes" / scene, views=budget.views, test_views=1, resolution=budget.resolution,
+                          n_val=1, layout="sdfstudio")
+    runs = {name: host.Run(name, make_config(name, scene_dir / "sdfstudio", out / "runs", budget, seed), seed) for name in PAIR}
+    wall = host.train_together(runs, budget.steps, seed, f"{scene} seed {seed}", log_every=50)
+    result = {"scene": scene, "seed": seed, "budget": dataclasses.asdict(budget), "train_wall_s": wall}
     for name, run in runs.items():
-        metrics = run.evaluate(scene_dir / "gt_mesh.ply", budget.mesh_resolution, out / "runs" / f"{scene}-{name}-seed{seed}.ply")
-        skip = min(10, len(run.times) // 10)
-        metrics["median_step_s"] = statistics.median(run.times[skip:])
-        metrics["final_loss"] = statistics.mean(run.losses[-20:])
-        metrics["losses"] = run.losses
-        result[name] = metrics
-    base, sp = PAIR
-    result["sp_time_ratio"] = statistics.median(s / b for s, b in zip(runs[sp].times[10:], runs[base].times[10:]))
+        mesh_out = out / "runs" / f"{scene}-{name}-seed{seed}.ply"
+        result[name] = {**run.evaluate_sdf(scene_dir / "gt_mesh.ply", budget.mesh_resolution, mesh_out), **host.step_stats(run)}
+    result["sp_time_ratio"] = host.time_ratio(runs[PAIR[1]], runs[PAIR[0]])
     result["machine"] = machine_info()
     return result
 
@@ -194,18 +106,8 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 on a shared machine)")
     parser.add_argument("--out", type=Path, default=OUT_DIR / "sdfstudio")
     args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-
-    from sp_plugins.patches.sdfstudio_import_hook import install_all
-
-    install_all()
-    import scripts.train  # noqa: F401  (sdfstudio's import order)
-
-    from sp_plugins.sdfstudio.registration import add_methods
-
-    add_methods()
+    start(args.threads, quiet=())
+    host.prepare()
     budget = Budget(steps=args.steps)
     args.out.mkdir(parents=True, exist_ok=True)
     result = run_pair(args.scene, args.seed, budget, args.out)

@@ -3,7 +3,7 @@
 Every run of a *group* (one scene, number of views, seed and budget) starts from the same weights
 (the RNG seeded before each model is built; MipNeRF, FreeNeRF-lite and MipNeRF + SP build the same
 MLP, and each result records a digest of its initial field weights to prove it) and sees the same
-rays and jitter at every step (re-seeded per step, ``bench.radiance_methods.Run``). So a run trained
+rays and jitter at every step (re-seeded per step, ``bench.harness.lockstep``). So a run trained
 in a later process is still paired with the ones already done: each run's result is its own JSON
 (``bench/out/sparse_views/<tag>/<group>/<run>.json``), finished runs are skipped, and an SP screen
 adds settings to a group without training its baseline again. The runs trained in one process
@@ -14,7 +14,7 @@ to ``freq_reg_end`` of training and its occlusion term; ``M`` scaled from FreeNe
 this budget's coarse samples unless given) and one ``sp[ALPHA0@END]`` (``:grid``: a learned alpha
 grid) per SP setting: alpha0 in scene units (the object's radius is 0.85, the backdrop's 8), END a
 fraction of training. Scenes: the DTU-like scene (``sp-scene --dtu-like``) of any mesh (a key of
-``bench.radiance_methods.SCENES`` or a mesh file), N of its 49 views, scored on its 3 held-out views:
+``bench.harness.radiance.SCENES`` or a mesh file), N of its 49 views, scored on its 3 held-out views:
 PSNR of the whole image and inside the object mask, SSIM whole and masked (RegNeRF / FreeNeRF's
 DTU protocol: the background set to white in both images), background opacity. LPIPS needs AlexNet
 weights that are not downloaded here (no network): it is reported only where they are cached.
@@ -40,16 +40,16 @@ import hashlib
 import json
 import logging
 import math
-import os
 import statistics
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-import torch
-
-from bench.common import machine_info
-from bench import radiance_methods as rm
+from bench.harness import nerfstudio as ns
+from bench.harness import radiance as rd
+from bench.harness.common import machine_info, safe_name, start
+from bench.harness.metrics import fmt, render_grid
+from bench.harness.scenes import object_mask_paths
 
 BASELINE = "mipnerf"
 FREENERF = "freenerf-lite"
@@ -61,7 +61,7 @@ PRESET = "0.04@0.333"
 
 
 def out_dir() -> Path:
-    return rm.OUT.parent / "sparse_views"
+    return rd.OUT.parent / "sparse_views"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,23 +121,23 @@ def run_specs(sp: Sequence[SPSetting], freenerf: Optional[FreeNeRFSetting] = Fre
     return specs
 
 
-def group_name(scene: str, budget: "rm.MipBudget", seed: int) -> str:
+def group_name(scene: str, budget: "rd.MipBudget", seed: int) -> str:
     """What every run of a group shares; the SP fields of the budget are the old study's, not ours."""
     shared = dataclasses.replace(budget, alpha0=0.0, end=0)
-    return f"{Path(scene).stem}_{budget.views}v_s{seed}_{rm.budget_key(scene, shared, seed)}"
+    return f"{Path(scene).stem}_{budget.views}v_s{seed}_{rd.budget_key(scene, shared, seed)}"
 
 
-def run_config(spec: RunSpec, data: Path, budget: "rm.MipBudget", seed: int, work: Path):
-    safe = spec.name.replace("[", "_").replace("]", "").replace(",", "_").replace("@", "at")
+def run_config(spec: RunSpec, data: Path, budget: "rd.MipBudget", seed: int, work: Path):
+    safe = safe_name(spec.name).replace("@", "at")
     if spec.kind == "freenerf":
         assert spec.freenerf is not None
-        config = rm.mip_config(False, data, budget, seed, work, method="freenerf-lite", name=safe)
+        config = rd.mip_config(False, data, budget, seed, work, method="freenerf-lite", name=safe)
         m = config.pipeline.model
         m.freq_reg_end = spec.freenerf.freq_reg_end
         m.occ_reg_mult = spec.freenerf.occ_reg_mult
         m.occ_reg_range = spec.freenerf.range_for(budget.coarse)
     else:
-        config = rm.mip_config(spec.kind == "sp", data, budget, seed, work, name=safe)
+        config = rd.mip_config(spec.kind == "sp", data, budget, seed, work, name=safe)
     sp = spec.sp or SPSetting.parse(PRESET)  # runs with SP off still validate a schedule: the preset's fits any length
     m = config.pipeline.model
     m.sp = dataclasses.replace(m.sp, alpha0=sp.alpha0, end=sp.end, alpha_grid=sp.grid)
@@ -153,13 +153,13 @@ def weights_digest(model) -> str:
     return h.hexdigest()[:16]
 
 
-def scene_data(scene: str, budget: "rm.MipBudget", up_axis: Optional[str]) -> Path:
+def scene_data(scene: str, budget: "rd.MipBudget", up_axis: Optional[str]) -> Path:
     if budget.dtu_like:
-        return rm.dtu_scene_dir(scene, up_axis) if up_axis else rm.dtu_scene_dir(scene)
-    return rm.scene_dir(scene, 24, budget.image, budget.test_views)
+        return rd.dtu_scene_dir(scene, up_axis) if up_axis else rd.dtu_scene_dir(scene)
+    return rd.scene_dir(scene, 24, budget.image, budget.test_views)
 
 
-def save_renders(run: "rm.Run", path: Path) -> None:
+def save_renders(run: "ns.Run", path: Path) -> None:
     """The run's held-out renders (and ground truth), uint8, for figures made later."""
     import numpy as np
 
@@ -177,35 +177,13 @@ def group_figure(folder: Path, names: Sequence[str]) -> Optional[Path]:
     have = [n for n in names if (folder / f"{n}.npz").is_file()]
     if not have:
         return None
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        renders = {n: np.load(folder / f"{n}.npz") for n in have}
-        views = len([k for k in renders[have[0]].files if k.startswith("rgb")])
-        fig, axes = plt.subplots(views, 1 + len(have), figsize=(1.9 * (1 + len(have)), 1.5 * views), squeeze=False)
-        for v in range(views):
-            axes[v, 0].imshow(renders[have[0]][f"gt{v}"])
-            for k, name in enumerate(have):
-                axes[v, 1 + k].imshow(renders[name][f"rgb{v}"])
-                if v == 0:
-                    axes[0, 1 + k].set_title(name, fontsize=6)
-        axes[0, 0].set_title("ground truth", fontsize=6)
-        for ax in axes.flat:
-            ax.set_axis_off()
-        fig.tight_layout()
-        path = folder / "renders.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        return path
-    except Exception as err:  # a picture is a convenience, never a reason to lose results
-        logging.warning("render figure skipped: %s", err)
-        return None
+    renders = {n: np.load(folder / f"{n}.npz") for n in have}
+    views = len([k for k in renders[have[0]].files if k.startswith("rgb")])
+    columns = {n: [(renders[n][f"rgb{v}"], None) for v in range(views)] for n in have}
+    return render_grid(columns, [renders[have[0]][f"gt{v}"] for v in range(views)], folder / "renders.png")
 
 
-def study(scene: str, budget: "rm.MipBudget", seed: int, specs: Sequence[RunSpec], tag: str, overwrite: bool = False,
+def study(scene: str, budget: "rd.MipBudget", seed: int, specs: Sequence[RunSpec], tag: str, overwrite: bool = False,
           up_axis: Optional[str] = None) -> Dict[str, dict]:
     """Train the runs of ``specs`` not done yet in this group (together, alternating), write one JSON
     each; returns every requested run's result. Refuses a group whose runs did not start alike."""
@@ -214,30 +192,30 @@ def study(scene: str, budget: "rm.MipBudget", seed: int, specs: Sequence[RunSpec
     todo = [s for s in specs if overwrite or not paths[s.name].is_file()]
     if todo:
         data = scene_data(scene, budget, up_axis)
-        work = rm.OUT / "runs" / f"sparse-{folder.name}"
-        runs = {s.name: rm.Run(s.name, run_config(s, data, budget, seed, work), seed) for s in todo}
+        work = rd.OUT / "runs" / f"sparse-{folder.name}"
+        runs = {s.name: ns.Run(s.name, run_config(s, data, budget, seed, work), seed) for s in todo}
         digests = {name: weights_digest(run.model) for name, run in runs.items()}
-        wall = rm.train_together(runs, budget.steps, seed, f"sparse/{folder.name}", log_every=max(100, budget.steps // 10))
+        wall = ns.train_together(runs, budget.steps, seed, f"sparse/{folder.name}", log_every=max(100, budget.steps // 10))
         masks = None
         folder.mkdir(parents=True, exist_ok=True)
         for spec in todo:
             run = runs[spec.name]
             if budget.dtu_like:
-                masks = rm.object_mask_paths(data, run.trainer.pipeline.datamanager.eval_dataset.image_filenames)
+                masks = object_mask_paths(data, run.trainer.pipeline.datamanager.eval_dataset.image_filenames)
             t0 = time.perf_counter()
             metrics = run.evaluate("rgb_fine", "accumulation_fine", masks)
             result = {
                 "study": "sparse_views", "tag": tag, "scene": scene, "seed": seed, "run": spec.name, **spec.settings(),
                 "budget": dataclasses.asdict(budget), "group": folder.name, "init_weights": digests[spec.name],
                 "trained_with": list(runs), "train_wall_s": wall, "eval_s": time.perf_counter() - t0,
-                **rm.run_summary(run, metrics), "machine": machine_info(),
+                **ns.run_summary(run, metrics), "machine": machine_info(),
             }
             if spec.kind == "freenerf":
                 result["freenerf"]["occ_reg_range_used"] = run.model.config.occ_reg_range
             paths[spec.name].write_text(json.dumps(result, indent=1))
             save_renders(run, folder / f"{spec.name}.npz")
             logging.info("%s %s: PSNR %.2f (object %s), SSIM %.3f", folder.name, spec.name, result["psnr"],
-                         rm.fmt(result.get("psnr_object")), result["ssim"])
+                         fmt(result.get("psnr_object")), result["ssim"])
         group_figure(folder, [s.name for s in specs])
     results = {s.name: json.loads(paths[s.name].read_text()) for s in specs}
     starts = {r["init_weights"] for r in results.values()}
@@ -298,7 +276,7 @@ def quick_line(results: Dict[str, dict], sp_name: str) -> str:
             f"FreeNeRF PSNR {results[FREENERF][key]:.2f} ({where})")
 
 
-def quick(mesh: str, budget: "rm.MipBudget", seed: int = 0, tag: str = "quick", sp: Optional[SPSetting] = None,
+def quick(mesh: str, budget: "rd.MipBudget", seed: int = 0, tag: str = "quick", sp: Optional[SPSetting] = None,
           up_axis: Optional[str] = None, overwrite: bool = False) -> str:
     """One triple (baseline, SP, FreeNeRF-lite) on ``mesh``; returns :func:`quick_line`."""
     sp = sp or SPSetting.parse(PRESET)
@@ -308,7 +286,7 @@ def quick(mesh: str, budget: "rm.MipBudget", seed: int = 0, tag: str = "quick", 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=["spot"], help="keys of bench.radiance_methods.SCENES or mesh files")
+    parser.add_argument("--scenes", nargs="+", default=["spot"], help="keys of bench.harness.radiance.SCENES or mesh files")
     parser.add_argument("--up-axis", choices=["x", "y", "z"], help="of a mesh file (known meshes: their own)")
     parser.add_argument("--views", nargs="+", type=int, default=[QUICK["views"]])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
@@ -321,23 +299,19 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=QUICK["steps"])
     parser.add_argument("--lr", type=float, default=QUICK["lr"])
     for name in ("rays", "coarse", "fine", "mlp_num_layers", "mlp_layer_width", "head_width"):
-        parser.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(rm.MipBudget, name))
+        parser.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(rd.MipBudget, name))
     parser.add_argument("--tag", default="screen")
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--summary", action="store_true", help="only print the table of --tag")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for noisy in ("nerfstudio", "PIL", "sp_plugins"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    start(args.threads, quiet=("nerfstudio", "PIL", "sp_plugins"))
     t0 = time.time()
     if not args.summary:
         freenerf = None if args.no_freenerf else FreeNeRFSetting(args.freq_reg_end, args.occ_reg_mult, args.occ_reg_range)
         for scene in args.scenes:
             for views in args.views:
-                budget = rm.MipBudget(steps=args.steps, lr=args.lr, views=views, dtu_like=not args.white, rays=args.rays,
+                budget = rd.MipBudget(steps=args.steps, lr=args.lr, views=views, dtu_like=not args.white, rays=args.rays,
                                       coarse=args.coarse, fine=args.fine, mlp_num_layers=args.mlp_num_layers,
                                       mlp_layer_width=args.mlp_layer_width, head_width=args.head_width)
                 for seed in args.seeds:

@@ -1,4 +1,5 @@
-"""``sp-bench NAME [options]``: run one of the repository's benchmarks (``python -m bench.NAME``).
+"""``sp-bench NAME [options]``: run one of the repository's benchmarks (``python -m bench.NAME``, or
+``bench.speed.NAME`` for the speed benchmarks).
 
 Benchmarks live in the source checkout's ``bench/`` folder (they are not part of the wheel);
 ``sp-bench`` finds it next to an editable install or in the current directory.
@@ -21,14 +22,19 @@ def find_bench_dir() -> Optional[Path]:
 
 
 def available(bench_dir: Path) -> dict:
-    """Benchmark name -> first line of its docstring."""
+    """Benchmark name -> first line of its docstring (the studies in ``bench/``, the speed benchmarks in ``bench/speed/``)."""
+    return {name: doc for name, (_, doc) in _modules(bench_dir).items()}
+
+
+def _modules(bench_dir: Path) -> dict:
     out = {}
-    for path in sorted(bench_dir.glob("*.py")):
+    for path in sorted(bench_dir.glob("*.py")) + sorted(bench_dir.glob("speed/*.py")):
         if path.name.startswith("_") or path.stem == "common":
             continue
         doc = ast.get_docstring(ast.parse(path.read_text())) or ""
         if "__main__" in path.read_text():
-            out[path.stem] = doc.strip().splitlines()[0] if doc.strip() else ""
+            module = ".".join(("bench", *path.relative_to(bench_dir).with_suffix("").parts))
+            out[path.stem] = (module, doc.strip().splitlines()[0] if doc.strip() else "")
     return out
 
 
@@ -42,7 +48,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             file=sys.stderr,
         )
         return 2
-    names = available(bench_dir)
+    modules = _modules(bench_dir)
+    names = {name: doc for name, (_, doc) in modules.items()}
     if not argv or argv[0] in ("-h", "--help", "list"):
         print("usage: sp-bench NAME [options]   (options: sp-bench NAME --help)\n\nbenchmarks:")
         for name, doc in names.items():
@@ -54,7 +61,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     sys.path.insert(0, str(bench_dir.parent))
     sys.argv = [f"sp-bench {name}", *rest]
-    runpy.run_module(f"bench.{name}", run_name="__main__")
+    runpy.run_module(modules[name][0], run_name="__main__")
     return 0
 
 

@@ -11,12 +11,11 @@ from __future__ import annotations
 import copy
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any, Dict, Literal, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Dict, Literal, Mapping, Optional
 
-from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
-from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
-from nerfstudio.engine.trainer import Trainer, TrainerConfig
-from nerfstudio.plugins.types import MethodSpecification
+if TYPE_CHECKING:  # host modules are imported where they are used: shrink() serves sdfstudio's configs too
+    from nerfstudio.engine.trainer import Trainer, TrainerConfig
+    from nerfstudio.plugins.types import MethodSpecification
 
 ENTRY_POINT_GROUP = "nerfstudio.method_configs"
 OUR_PACKAGE = "sp_plugins.method_configs"
@@ -53,6 +52,9 @@ def configure_run(
 ) -> TrainerConfig:
     """Point ``config`` at ``data`` (layout guessed from its files), shorten it to ``steps`` on
     ``device``, without viewer, periodic evals or checkpoints before the last step."""
+    from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+    from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
+
     data = Path(data)
     if layout is None:
         layout = "sdfstudio" if (data / "meta_data.json").is_file() else "blender"

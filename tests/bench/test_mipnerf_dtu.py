@@ -14,8 +14,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))  # the checkout: bench/ is not an installed package
 import bench.radiance_methods as rm  # noqa: E402
+from bench.harness import radiance as rd  # noqa: E402
 
-TOY = rm.MipBudget(steps=4, rays=32, coarse=8, fine=8, mlp_num_layers=2, mlp_layer_width=16, head_width=8, views=3,
+TOY = rd.MipBudget(steps=4, rays=32, coarse=8, fine=8, mlp_num_layers=2, mlp_layer_width=16, head_width=8, views=3,
                    alpha0=0.05, end=3, dtu_like=True)
 
 
@@ -23,9 +24,9 @@ TOY = rm.MipBudget(steps=4, rays=32, coarse=8, fine=8, mlp_num_layers=2, mlp_lay
 def toy_result(tmp_path_factory):
     out = tmp_path_factory.mktemp("radiance_methods")
     patch = pytest.MonkeyPatch()
-    patch.setattr(rm, "OUT", out)
-    real = rm.dtu_scene_dir
-    patch.setattr(rm, "dtu_scene_dir", lambda scene: real(scene, views=8, test_views=2, resolution=(32, 24)))
+    patch.setattr(rd, "OUT", out)
+    real = rd.dtu_scene_dir
+    patch.setattr(rd, "dtu_scene_dir", lambda scene: real(scene, views=8, test_views=2, resolution=(32, 24)))
     try:
         result = rm.mip_study("spot", TOY, seed=0, tag="toy", overwrite=False)
     finally:
@@ -37,7 +38,7 @@ def test_near_far_hold_the_object_and_the_backdrop_for_every_camera(toy_result):
     """Each camera's nearest object point lies beyond near and the backdrop sphere's far side inside far."""
     _, out = toy_result
     data = next((out / "scenes").iterdir()) / "blender"
-    near, far = rm.dtu_near_far(data)
+    near, far = rd.dtu_near_far(data)
     info = json.loads((data.parent / "scene.json").read_text())
     for split in ("train", "test"):
         for frame in json.loads((data / f"transforms_{split}.json").read_text())["frames"]:
@@ -65,8 +66,8 @@ def test_config_reaches_the_backdrop_and_keeps_the_white_default(tmp_path):
     data.mkdir()
     (tmp_path / "scene.json").write_text(json.dumps({"cameras": {"distance": 4.0}, "normalization": {"radius": 0.85},
                                                      "dtu_like": {"backdrop_radius": 8.0}}))
-    dtu = rm.mip_config(True, data, TOY, 0, tmp_path / "runs").pipeline.model
-    white = rm.mip_config(True, data, dataclasses.replace(TOY, dtu_like=False), 0, tmp_path / "runs").pipeline.model
+    dtu = rd.mip_config(True, data, TOY, 0, tmp_path / "runs").pipeline.model
+    white = rd.mip_config(True, data, dataclasses.replace(TOY, dtu_like=False), 0, tmp_path / "runs").pipeline.model
     assert dtu.collider_params["far_plane"] >= 12.0 and dtu.collider_params["near_plane"] < 3.15
     from sp_plugins.nerfstudio.runs import method_config
 

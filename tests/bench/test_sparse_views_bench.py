@@ -13,10 +13,12 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))  # the checkout: bench/ is not an installed package
+import bench.harness.nerfstudio as ns  # noqa: E402
 import bench.radiance_methods as rm  # noqa: E402
 import bench.sparse_views as sv  # noqa: E402
+from bench.harness import radiance as rd  # noqa: E402
 
-TOY = rm.MipBudget(steps=4, rays=32, coarse=8, fine=8, mlp_num_layers=2, mlp_layer_width=16, head_width=8, views=3, dtu_like=True)
+TOY = rd.MipBudget(steps=4, rays=32, coarse=8, fine=8, mlp_num_layers=2, mlp_layer_width=16, head_width=8, views=3, dtu_like=True)
 SP = sv.SPSetting(0.05, 0.5)
 GRID = sv.SPSetting(0.05, 0.5, grid=True)
 TOY_FLAGS = ["--steps", "3", "--rays", "32", "--coarse", "8", "--fine", "8", "--mlp-num-layers", "2", "--mlp-layer-width", "16",
@@ -28,9 +30,9 @@ def bench_out(tmp_path_factory):
     """Outputs under a temporary folder; the DTU-like scene at 8 + 2 views of 32x24."""
     out = tmp_path_factory.mktemp("bench") / "radiance_methods"
     patch = pytest.MonkeyPatch()
-    patch.setattr(rm, "OUT", out)
-    real = rm.dtu_scene_dir
-    patch.setattr(rm, "dtu_scene_dir", lambda scene, up_axis=None: real(scene, up_axis, views=8, test_views=2, resolution=(32, 24)))
+    patch.setattr(rd, "OUT", out)
+    real = rd.dtu_scene_dir
+    patch.setattr(rd, "dtu_scene_dir", lambda scene, up_axis=None: real(scene, up_axis, views=8, test_views=2, resolution=(32, 24)))
     yield out
     patch.undo()
 
@@ -75,13 +77,13 @@ def test_a_later_process_adds_runs_without_retraining_and_stays_paired(group, be
     folder = sv.out_dir() / "toy" / group[sv.BASELINE]["group"]
     before = {p.name: p.stat().st_mtime_ns for p in folder.glob("*.json")}
     built = []
-    real_run = rm.Run
+    real_run = ns.Run
 
     def counting(name, config, seed):
         built.append(name)
         return real_run(name, config, seed)
 
-    monkeypatch.setattr(rm, "Run", counting)
+    monkeypatch.setattr(ns, "Run", counting)
     wider = sv.SPSetting(0.2, 0.5)
     more = sv.study(mesh, TOY, 0, sv.run_specs([SP, GRID, wider]), "toy", up_axis="y")
     assert built == [wider.name]  # the four finished runs are read back, not trained again

@@ -24,13 +24,13 @@ def _ids(optimizer):
 def test_grid_tables_train_in_their_own_group_at_the_grid_lr(patched, tmp_path):
     import nerfstudio.models.base_surface_model as surface
 
-    from bench.sdfstudio_neus_facto import Run
+    from bench.harness.sdfstudio import Run
 
     original = surface.SurfaceModel.get_param_groups
     scene = sfr.scene_dir(TOY, tmp_path)
     for name in sfr.PAIR:
         with sfr.background_mlp(*TOY.background_mlp), sfr.grid_group():
-            run = Run(sfr.make_config(name, scene / "sdfstudio", TOY, tmp_path / "runs", "groups"), TOY.seed)
+            run = Run(name, sfr.make_config(name, scene / "sdfstudio", TOY, tmp_path / "runs", "groups"), TOY.seed)
         optimizers = run.trainer.optimizers
         grid = {id(p) for p in run.trainer.pipeline.model.field.encoding.parameters()}
         assert grid and _ids(optimizers.optimizers[sfr.GRID_GROUP]) == grid

@@ -1,8 +1,9 @@
-"""Shared plumbing for benchmarks: machine info, paired timing, output files."""
+"""Shared plumbing for benchmarks: output folder, process set-up, machine info, seeding, paired timing."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import platform
 import statistics
@@ -12,7 +13,17 @@ from typing import Callable, Dict, List
 
 import torch
 
-OUT_DIR = Path(os.environ.get("SP_BENCH_OUT", Path(__file__).resolve().parent / "out"))
+OUT_DIR = Path(os.environ.get("SP_BENCH_OUT", Path(__file__).resolve().parents[1] / "out"))
+
+
+def start(threads: int = 1, quiet: tuple = ("nerfstudio", "PIL")) -> None:
+    """A bench process: ``threads`` torch / OpenMP threads (1 on a shared machine), INFO logging with
+    times, and the ``quiet`` libraries' loggers at WARNING."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    torch.set_num_threads(threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    for name in quiet:
+        logging.getLogger(name).setLevel(logging.WARNING)
 
 
 def machine_info() -> dict:
@@ -71,6 +82,11 @@ def ratio_summary(times: Dict[str, List[float]], baseline: str) -> dict:
             "ratio_of_medians": statistics.median(ts) / statistics.median(base),
         }
     return out
+
+
+def safe_name(run: str) -> str:
+    """A run's name as a file or folder name (``sp-relu-field[8vox,end0.3]`` -> ``sp-relu-field_8vox_end0.3``)."""
+    return run.replace("[", "_").replace("]", "").replace(",", "_")
 
 
 def write_json(name: str, payload: dict) -> Path:

@@ -5,7 +5,7 @@
 - ``scenes``: wall time of `make_scene` (render + write both layouts) for the sizes the demo,
   benchmarks and tests use, with the default (Embree) caster.
 
-Usage: ``python -m bench.scene_render [--repeats 3]``
+Usage: ``python -m bench.speed.scene_render [--repeats 3]``
 Writes ``bench/out/scene_render.json`` and prints a markdown table.
 """
 
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from bench.common import machine_info, paired_timing, ratio_summary, write_json
+from bench.harness.common import machine_info, paired_timing, ratio_summary, write_json
 from sp_plugins.data import make_scene
 from sp_plugins.data.cameras import balanced_directions, default_fov, intrinsics, look_at_origin
 from sp_plugins.data.mesh import load_mesh, normalize_mesh

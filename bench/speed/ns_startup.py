@@ -6,7 +6,7 @@ This times ``get_external_methods()`` with the host's ``__post_init__`` and with
 one process (A B B A ...) after everything is imported, so the module count is what a real
 ``ns-train`` sees, with ``inspect``'s module caches emptied before each run as in a fresh process; the result is the median of per-pair ratios.
 
-Usage: ``python -m bench.ns_startup [--repeats 4]``
+Usage: ``python -m bench.speed.ns_startup [--repeats 4]``
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ Three workloads, all at CPU scale:
 - ``dense``: a ReLU-field render step (RGB + density grid, trilinear, ReLU, 1024 rays x 96
   samples, white background, MSE, Adam), SP perturbing every sample with reflection.
 
-Usage: ``python -m bench.sp_overhead [--repeats 40] [--threads 2] [--only sdf|dense|methods]``
+Usage: ``python -m bench.speed.sp_overhead [--repeats 40] [--threads 2] [--only sdf|dense|methods]``
 Writes ``bench/out/sp_overhead.json`` and prints a markdown table.
 """
 
@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bench.common import machine_info, paired_timing, ratio_summary, write_json
+from bench.harness.common import machine_info, paired_timing, ratio_summary, write_json
 from sp_plugins import SPConfig
 
 

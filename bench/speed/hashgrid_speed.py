@@ -14,7 +14,7 @@ machine hits both alike; the ratio of the medians is the result. Peak memory is 
 variant in a fresh subprocess: peak RSS during the steps minus RSS just before building the
 model (the model's table, optimizer state and per-step temporaries).
 
-Usage: ``python -m bench.hashgrid_speed [--points 65536] [--repeats 12] [--threads 2]``
+Usage: ``python -m bench.speed.hashgrid_speed [--points 65536] [--repeats 12] [--threads 2]``
 Writes ``bench/out/hashgrid_speed.json`` and ``bench/out/hashgrid_speed.md``.
 """
 
@@ -30,7 +30,7 @@ from typing import Callable, Dict, Tuple
 import torch
 from torch import nn
 
-from bench.common import OUT_DIR, machine_info, paired_timing, ratio_summary, write_json
+from bench.harness.common import OUT_DIR, machine_info, paired_timing, ratio_summary, write_json
 
 SETTING = dict(num_levels=16, log2_hashmap_size=19, base_resolution=16, max_resolution=2048, features_per_level=2)
 VARIANTS = ("nerfstudio", "ours")
@@ -96,7 +96,7 @@ def measure_memory(variant: str, workload: str, optimizer: str, points: int, ste
 
 
 def memory_in_subprocess(variant: str, workload: str, optimizer: str, points: int, steps: int, threads: int) -> dict:
-    cmd = [sys.executable, "-m", "bench.hashgrid_speed", "--memory-probe", variant, "--workload", workload,
+    cmd = [sys.executable, "-m", "bench.speed.hashgrid_speed", "--memory-probe", variant, "--workload", workload,
            "--optimizer", optimizer, "--points", str(points), "--memory-steps", str(steps), "--threads", str(threads)]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=root, check=True)
@@ -154,7 +154,7 @@ def main(argv=None) -> None:
     workloads = WORKLOADS if args.workload == "both" else (args.workload,)
     optimizers = tuple(OPTIMIZERS) if args.optimizer == "both" else (args.optimizer,)
     result: Dict[str, object] = {"setting": dict(SETTING, points=args.points, optimizer="torch.optim.Adam(lr=1e-2)", mlp="32-64-64-1"),
-                                 "command": " ".join(["python -m bench.hashgrid_speed"] + (argv if argv is not None else sys.argv[1:])),
+                                 "command": " ".join(["python -m bench.speed.hashgrid_speed"] + (argv if argv is not None else sys.argv[1:])),
                                  "machine_before": machine_info(), "runs": {}}
     for workload in workloads:
         for optimizer in optimizers:

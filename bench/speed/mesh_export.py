@@ -1,7 +1,7 @@
 """Mesh export wall time of an SDF method's field: a dense grid (what nerfstudio's mesher evaluates)
 vs our coarse-to-fine sparse mesher (``ns-export marching-cubes`` on a CPU, ``sp-export-mesh``).
 
-    python -m bench.mesh_export --resolutions 256 512    # writes bench/out/mesh_export.json
+    python -m bench.speed.mesh_export --resolutions 256 512    # writes bench/out/mesh_export.json
 
 The field is sp-neus-hashgrid's (the paper's hash grid, 16 levels, 2^19 entries, 2x256 MLP) at its
 geometric initialisation: a sphere of radius 0.8 in the [-1, 1] box, queried through
@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from bench.common import machine_info, write_json
+from bench.harness.common import machine_info, write_json
 
 
 def sdf_field():

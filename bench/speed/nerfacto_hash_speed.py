@@ -10,7 +10,7 @@ random rays through the unit box: forward, nerfacto's losses (RGB, interlevel, d
 backward, Adam. Steps alternate between the two models in one process (A B B A ...), so load on
 the shared machine hits both alike; the result is the median of per-pair ratios.
 
-Usage: ``python -m bench.nerfacto_hash_speed [--rays 256] [--repeats 8] [--threads 1]``
+Usage: ``python -m bench.speed.nerfacto_hash_speed [--rays 256] [--repeats 8] [--threads 1]``
 Writes ``bench/out/nerfacto_hash_speed.json``.
 """
 
@@ -77,14 +77,14 @@ def make_step(model, rays: int, seed: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="bench.nerfacto_hash_speed", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="bench.speed.nerfacto_hash_speed", description=__doc__.split("\n\n")[0])
     ap.add_argument("--rays", type=int, default=256, help="rays per step (nerfacto's default is 4096)")
     ap.add_argument("--repeats", type=int, default=8, help="timed steps per model")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    from bench.common import machine_info, paired_timing, ratio_summary, write_json
+    from bench.harness.common import machine_info, paired_timing, ratio_summary, write_json
 
     models = {v: build_model(v) for v in ("nerfstudio", "ours")}
     steps = {v: make_step(m, args.rays, seed=1) for v, m in models.items()}
