@@ -12,8 +12,9 @@ The patch asks the same question of the frame's code object (``sys._getframe``),
 microseconds, and hands every other case (the CLI building the dummy, which offers to install the
 method) to the original method unchanged.
 
-Where it goes in: only in our own command, ``sp-train``, before it imports nerfstudio's method
-list. Installing sp-plugins must change nothing for ``ns-*`` commands that train methods not ours,
+Where it goes in (registry entry ``nerfstudio_external_methods``): only in our own command,
+``sp-train``, for its whole process (``registry.install_for_process``), before it imports
+nerfstudio's method list. Installing sp-plugins must change nothing for ``ns-*`` commands that train methods not ours,
 and nerfstudio imports every plugin's method configs in all of them, so discovery does not install
 it (it did until issue 20): plain ``ns-train`` / ``ns-eval`` keep nerfstudio's start-up time.
 """
@@ -21,9 +22,13 @@ it (it did until issue 20): plain ``ns-train`` / ``ns-eval`` keep nerfstudio's s
 from __future__ import annotations
 
 import importlib.metadata
+import contextlib
 import inspect
 import logging
 import sys
+from typing import Iterator
+
+from sp_plugins.patches.registry import Patch
 
 logger = logging.getLogger(__name__)
 
@@ -50,9 +55,10 @@ def host_post_init_is_as_expected(cls=None) -> bool:
 
 
 def install_fast_external_methods() -> bool:
-    """Replace ``ExternalMethodDummyTrainerConfig.__post_init__`` with the frame-based check.
-    Idempotent. Returns False (and changes nothing) when the host's method no longer makes the
-    check this patch is written for."""
+    """Replace ``ExternalMethodDummyTrainerConfig.__post_init__`` with the frame-based check (what
+    the registry's scope does; ``bench.speed.ns_startup`` measures it). Idempotent. Returns False
+    (and changes nothing) when the host's method no longer makes the check this patch is written
+    for."""
     try:
         cls = _host_class()
     except ImportError:
@@ -75,3 +81,42 @@ def install_fast_external_methods() -> bool:
     __post_init__.__doc__ = original.__doc__
     cls.__post_init__ = __post_init__
     return True
+
+
+@contextlib.contextmanager
+def fast_external_methods() -> Iterator[bool]:
+    """The frame-based check for the block; nerfstudio's ``__post_init__`` again after it."""
+    cls = _host_class()
+    before = cls.__dict__.get("__post_init__")
+    active = install_fast_external_methods()
+    try:
+        yield active
+    finally:
+        if before is None:
+            if "__post_init__" in cls.__dict__:
+                delattr(cls, "__post_init__")
+        else:
+            cls.__post_init__ = before
+
+
+def _check(patch: Patch) -> None:
+    try:
+        cls = _host_class()
+    except ImportError as exc:
+        patch.fail("nerfstudio.configs.external_methods.ExternalMethodDummyTrainerConfig", f"ImportError: {exc}")
+    patch.expect(callable(getattr(cls, "__post_init__", None)), "ExternalMethodDummyTrainerConfig.__post_init__", "none")
+    patch.expect(host_post_init_is_as_expected(cls), f"ExternalMethodDummyTrainerConfig.__post_init__ checking {HOST_CHECK}",
+                 "a __post_init__ without that check")
+
+
+PATCH = Patch(
+    name="nerfstudio_external_methods",
+    host="nerfstudio",
+    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+    changes="ExternalMethodDummyTrainerConfig.__post_init__: asks sys._getframe instead of inspect.stack() (2 s off start-up)",
+    scope_text="process-wide in sp-train only (before it imports nerfstudio's method list)",
+    check=_check,
+    enter=fast_external_methods,
+    guarded=(("nerfstudio.configs.external_methods", "ExternalMethodDummyTrainerConfig"),),
+    owned_commands=("sp-train",),
+)

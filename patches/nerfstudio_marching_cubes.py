@@ -11,25 +11,31 @@ takes minutes instead of an unknown time. ``ns-export marching-cubes`` itself st
 resolution divisible by 512 and textures the mesh afterwards; ``sp-export-mesh`` meshes at any
 resolution without texturing.
 
-It is explicit, only for machines without CUDA, and scoped to our models: our SDF models call
-:func:`claim_for_cpu_marching_cubes` when they are built (``ns-export`` builds the model from the
-saved config before it meshes). The name then points at :func:`scoped_marching_cubes`, which
-meshes on the CPU only when the SDF it is given belongs to a claimed model (the exporter passes a
-closure over its pipeline) and calls nerfstudio's own mesher for everything else, so a method that
-is not ours behaves exactly as without sp-plugins. With CUDA available nothing is installed.
+Registry entry ``nerfstudio_marching_cubes``, only on machines without CUDA, held by our SDF
+models (``registry.hold``): from the build of one of them (``ns-export`` builds the model from the
+saved config before it meshes) until the last one is garbage-collected, the name points at
+:func:`scoped_marching_cubes`. That asks the callable it is given whether it evaluates one of our
+SDF fields, through our field's own ``forward_geonetwork`` (which reports to
+:func:`serving_mesher` while a one-point probe runs): only then does it mesh on the CPU; every
+other SDF goes to nerfstudio's own mesher, so a method that is not ours behaves exactly as without
+sp-plugins. With CUDA available nothing is installed. After the scope both names are nerfstudio's
+function again.
 """
 
 from __future__ import annotations
 
 import importlib.metadata
+import contextlib
 import inspect
 import logging
 import sys
-import weakref
-from typing import Any, Callable, Optional, Tuple
+import threading
+from typing import Any, Callable, Iterator, Optional, Tuple
 
 import numpy as np
 import torch
+
+from sp_plugins.patches.registry import Patch
 
 logger = logging.getLogger(__name__)
 
@@ -38,7 +44,6 @@ FUNCTION = "generate_mesh_with_multires_marching_cubes"
 MODULES = ("nerfstudio.exporter.marching_cubes", "nerfstudio.scripts.exporter")
 
 _originals: dict = {}
-_claimed: "weakref.WeakSet[Any]" = weakref.WeakSet()
 
 
 def cpu_marching_cubes(
@@ -71,40 +76,40 @@ def check_nerfstudio_marching_cubes() -> str:
     from nerfstudio.exporter import marching_cubes
 
     version = importlib.metadata.version("nerfstudio")
-    problems = []
     original = _originals.get(MODULES[0], getattr(marching_cubes, FUNCTION, None))
-    if original is None:
-        problems.append(f"{MODULES[0]} has no {FUNCTION}")
-    else:
-        params = list(inspect.signature(original).parameters)
-        expected = list(inspect.signature(cpu_marching_cubes).parameters)
-        if params != expected:
-            problems.append(f"{FUNCTION} takes {params}, the patch expects {expected}")
-    if problems:
-        raise RuntimeError(
-            f"sp_plugins' CPU marching-cubes patch targets nerfstudio {', '.join(TESTED_NERFSTUDIO_VERSIONS)}; "
-            f"installed nerfstudio {version} differs: " + "; ".join(problems) + ". Update patches/nerfstudio_marching_cubes.py."
-        )
+    if original is scoped_marching_cubes:
+        original = None
+    expected = list(inspect.signature(cpu_marching_cubes).parameters)
+    if not callable(original):
+        PATCH.fail(f"{MODULES[0]}.{FUNCTION}{tuple(expected)}", f"{MODULES[0]}.{FUNCTION} = {original!r}")
+    params = list(inspect.signature(original).parameters)
+    PATCH.expect(params == expected, f"{FUNCTION}{tuple(expected)}", f"{FUNCTION}{tuple(params)}")
     return version
 
 
-def _claimed_owner(fn: Callable) -> bool:
-    """True when ``fn`` (the exporter's closure over its pipeline, or a bound method) reaches a
-    claimed model."""
-    candidates = [getattr(fn, "__self__", None)]
-    for cell in getattr(fn, "__closure__", None) or ():
-        try:
-            candidates.append(cell.cell_contents)
-        except ValueError:  # an empty cell
-            continue
-    for obj in candidates:
-        for candidate in (obj, getattr(obj, "model", None)):
-            try:
-                if candidate is not None and candidate in _claimed:
-                    return True
-            except TypeError:  # unhashable
-                continue
-    return False
+_probe = threading.local()
+
+
+def serving_mesher(field: Any) -> None:
+    """Called by our SDF fields' ``forward_geonetwork``: while :func:`evaluates_our_field` probes a
+    callable, note that it reached one of ours (a ``getattr`` otherwise)."""
+    fields = getattr(_probe, "fields", None)
+    if fields is not None:
+        fields.append(field)
+
+
+def evaluates_our_field(fn: Callable[[torch.Tensor], torch.Tensor]) -> bool:
+    """Whether ``fn`` (what ns-export hands the mesher: an SDF of points) evaluates one of our SDF
+    fields: ``fn`` runs on one point, and our field's ``forward_geonetwork`` says so."""
+    _probe.fields = []
+    try:
+        with torch.no_grad():
+            fn(torch.zeros(1, 3))
+    except Exception:  # noqa: BLE001  (a callable that cannot run on one CPU point is not ours)
+        pass
+    finally:
+        found = _probe.__dict__.pop("fields", [])
+    return bool(found)
 
 
 def scoped_marching_cubes(
@@ -115,42 +120,55 @@ def scoped_marching_cubes(
     isosurface_threshold: float = 0.0,
     coarse_mask: Optional[torch.Tensor] = None,
 ):
-    """nerfstudio's mesher, except for the SDF of a claimed model: :func:`cpu_marching_cubes`."""
+    """nerfstudio's mesher, except for an SDF of one of our fields: :func:`cpu_marching_cubes`."""
     args = (geometry_callable_field, resolution, bounding_box_min, bounding_box_max, isosurface_threshold, coarse_mask)
-    if _claimed_owner(geometry_callable_field):
+    if evaluates_our_field(geometry_callable_field):
         return cpu_marching_cubes(*args)
     return _originals[MODULES[0]](*args)
 
 
-def claim_for_cpu_marching_cubes(model: Any, force: bool = False) -> bool:
-    """Mesh ``model``'s SDF on the CPU under ``ns-export marching-cubes`` (no CUDA, or ``force``);
-    every other model keeps nerfstudio's mesher. True when the claim is in place."""
-    if not install_cpu_marching_cubes(force):
-        return False
-    _claimed.add(model)
-    return True
-
-
-def install_cpu_marching_cubes(force: bool = False) -> bool:
-    """Rebind nerfstudio's mesher to :func:`scoped_marching_cubes` when CUDA is unavailable (or
-    ``force``). Returns True when the patch is in place. Idempotent."""
+@contextlib.contextmanager
+def cpu_mesher_for_our_fields(force: bool = False) -> Iterator[bool]:
+    """Both names point at :func:`scoped_marching_cubes` for the block when CUDA is unavailable (or
+    ``force``); yields whether they do. After it they are nerfstudio's function again."""
     if torch.cuda.is_available() and not force:
-        return False
-    check_nerfstudio_marching_cubes()
-    import nerfstudio.exporter.marching_cubes  # noqa: F401  (load it so both names are patched)
+        yield False
+        return
+    import nerfstudio.exporter.marching_cubes as host
 
+    original = getattr(host, FUNCTION)
+    _originals[MODULES[0]] = original
     for name in MODULES:
         module = sys.modules.get(name)
-        if module is None or getattr(module, FUNCTION, None) is scoped_marching_cubes:
-            continue
-        _originals.setdefault(name, getattr(module, FUNCTION))
-        setattr(module, FUNCTION, scoped_marching_cubes)
+        if module is not None:
+            setattr(module, FUNCTION, scoped_marching_cubes)
+    try:
+        yield True
+    finally:
+        for name in MODULES:  # (also a module that imported the name inside the block)
+            module = sys.modules.get(name)
+            if module is not None and getattr(module, FUNCTION, None) is scoped_marching_cubes:
+                setattr(module, FUNCTION, original)
+        _originals.pop(MODULES[0], None)
+
+
+def hold_for(model: Any, force: bool = False) -> bool:
+    """Our SDF model ``model`` holds the CPU mesher while it exists (no CUDA, or ``force``)."""
+    if torch.cuda.is_available() and not force:
+        return False
+    from sp_plugins.patches import registry
+
+    registry.hold(PATCH.name, model, force=force)
     return True
 
 
-def uninstall_cpu_marching_cubes() -> None:
-    for name, original in list(_originals.items()):
-        module = sys.modules.get(name)
-        if module is not None:
-            setattr(module, FUNCTION, original)
-        del _originals[name]
+PATCH = Patch(
+    name="nerfstudio_marching_cubes",
+    host="nerfstudio",
+    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+    changes=f"{MODULES[0]}.{FUNCTION} and its import in {MODULES[1]}: our CPU mesher for an SDF that evaluates our field",
+    scope_text="without CUDA only: while one of our SDF models exists (ns-export builds it, then meshes)",
+    check=lambda patch: check_nerfstudio_marching_cubes() and None,
+    enter=cpu_mesher_for_our_fields,
+    guarded=((MODULES[0], FUNCTION),),
+)

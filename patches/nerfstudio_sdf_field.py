@@ -7,11 +7,11 @@ name is a lazy error object, so NeuS cannot even be constructed. The patch rebin
 global ``nerfstudio.fields.sdf_field.tcnn`` to a tiny namespace whose ``Encoding`` builds a
 :class:`HashGrid` (torch backend) from the same config. Nothing else in nerfstudio changes.
 
-It is explicit and scoped: our SDF field builds its host part inside :func:`torch_tcnn_fallback`,
-which installs the fallback for that construction only and restores nerfstudio's ``tcnn`` after,
-so an ``SDFField`` of any other method is built exactly as without sp-plugins.
-:func:`install_torch_tcnn_fallback` (process-wide) remains for scripts that want it. When tcnn
-imports and CUDA is available neither does anything.
+Registry entry ``nerfstudio_sdf_field``, scoped: our SDF field builds its host part inside
+``registry.scope("nerfstudio_sdf_field")`` (:func:`torch_tcnn_fallback`), which installs the
+fallback for that construction only and restores nerfstudio's ``tcnn`` after, so an ``SDFField``
+of any other method is built exactly as without sp-plugins. When tcnn imports and CUDA is
+available it does nothing.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from typing import Any, Iterator, Mapping, Optional
 import torch
 
 from sp_plugins.encodings.hashgrid import HashGrid
+from sp_plugins.patches.registry import Patch
 
 logger = logging.getLogger(__name__)
 
@@ -66,21 +67,25 @@ def check_nerfstudio_sdf_field() -> str:
     problems = []
     if not hasattr(sdf_field, PATCHED_ATTRIBUTE):
         problems.append(f"{PATCHED_MODULE} has no module attribute '{PATCHED_ATTRIBUTE}'")
-    init_src = inspect.getsource(sdf_field.SDFField.__init__)
-    if "tcnn.Encoding(" not in init_src:
+    host = getattr(sdf_field, "SDFField", None)
+    try:
+        init_src = inspect.getsource(host.__init__)
+        layers_src = inspect.getsource(host.initialize_geo_layers)
+    except (AttributeError, OSError, TypeError):
+        init_src = layers_src = ""
+        problems.append(f"{PATCHED_MODULE}.SDFField = {host!r} (its __init__ / initialize_geo_layers unreadable)")
+    if init_src and "tcnn.Encoding(" not in init_src:
         problems.append("SDFField.__init__ no longer calls tcnn.Encoding(...)")
-    if "self.encoding.n_output_dims" not in inspect.getsource(sdf_field.SDFField.initialize_geo_layers):
+    if layers_src and "self.encoding.n_output_dims" not in layers_src:
         problems.append("SDFField.initialize_geo_layers no longer reads self.encoding.n_output_dims")
     if problems:
-        raise RuntimeError(
-            f"sp_plugins' SDFField tcnn fallback targets nerfstudio {', '.join(TESTED_NERFSTUDIO_VERSIONS)}; "
-            f"installed nerfstudio {version} differs: " + "; ".join(problems) + ". Update patches/nerfstudio_sdf_field.py."
-        )
+        PATCH.fail(f"{PATCHED_MODULE}.{PATCHED_ATTRIBUTE}.Encoding(...) in SDFField.__init__", "; ".join(problems))
     return version
 
 
 def install_torch_tcnn_fallback(force: bool = False) -> bool:
-    """Make ``SDFField`` build a torch :class:`HashGrid` when tcnn is unusable.
+    """Make ``SDFField`` build a torch :class:`HashGrid` when tcnn is unusable (the registry's scope
+    calls it; :func:`torch_tcnn_fallback` undoes it).
 
     Returns True when the fallback is (now) installed, False when a real tcnn with CUDA is left in
     place. ``force`` installs it even then (for tests and CPU runs on GPU machines). Idempotent.
@@ -134,3 +139,15 @@ def torch_tcnn_fallback(force: bool = False) -> Iterator[bool]:
     finally:
         if active and not was_installed:
             uninstall_torch_tcnn_fallback()
+
+
+PATCH = Patch(
+    name="nerfstudio_sdf_field",
+    host="nerfstudio",
+    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+    changes=f"{PATCHED_MODULE}.{PATCHED_ATTRIBUTE}: a namespace whose Encoding is our torch HashGrid (no tiny-cuda-nn, or no CUDA)",
+    scope_text="the construction of our SDF field's host part (SPSDFField.__init__)",
+    check=lambda patch: check_nerfstudio_sdf_field(),
+    enter=torch_tcnn_fallback,
+    guarded=((PATCHED_MODULE, PATCHED_ATTRIBUTE), (PATCHED_MODULE, "SDFField")),
+)

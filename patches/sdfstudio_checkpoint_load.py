@@ -25,15 +25,19 @@ without ``safe_globals`` (< 2.5) loads without weights-only by default: nothing 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
-from typing import Callable, List
+from typing import Callable, Iterator, List
 
 import torch
 
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, after_exec
+from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.sdfstudio_import_hook import (
+    HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_attribute, expect_source, patching,
+)
 
-__all__ = ["HOST_COMMIT", "install", "numpy_scalar_globals"]
+__all__ = ["HOST_COMMIT", "PATCH", "numpy_scalar_globals"]
 
 _MARK = "_sp_numpy_scalars_allowed"
 
@@ -83,14 +87,35 @@ def allow_numpy_scalars(fn: Callable) -> Callable:
     return wrapper
 
 
-def _patch_trainer(module) -> None:
-    module.Trainer._load_checkpoint = allow_numpy_scalars(module.Trainer._load_checkpoint)
+def _patch_trainer(module, rebind) -> None:
+    cls = expect_attribute(PATCH, module, "Trainer")
+    rebind(cls, "_load_checkpoint", allow_numpy_scalars(expect_attribute(PATCH, cls, "_load_checkpoint", "torch.load(")))
 
 
-def _patch_eval_utils(module) -> None:  # eval_setup calls it through the module's globals
-    module.eval_load_checkpoint = allow_numpy_scalars(module.eval_load_checkpoint)
+def _patch_eval_utils(module, rebind) -> None:  # eval_setup calls it through the module's globals
+    rebind(module, "eval_load_checkpoint", allow_numpy_scalars(expect_attribute(PATCH, module, "eval_load_checkpoint", "torch.load(")))
 
 
-def install() -> None:
-    after_exec("nerfstudio.engine.trainer", _patch_trainer)
-    after_exec("nerfstudio.utils.eval_utils", _patch_eval_utils)
+@contextlib.contextmanager
+def numpy_scalars_in_sdfstudio_loads() -> Iterator[None]:
+    with patching(after={"nerfstudio.engine.trainer": _patch_trainer, "nerfstudio.utils.eval_utils": _patch_eval_utils}):
+        yield
+
+
+def _check(patch: Patch) -> None:
+    expect_source(patch, "nerfstudio/engine/trainer.py", "torch.load(")
+    expect_source(patch, "nerfstudio/utils/eval_utils.py", "torch.load(")
+    patch.expect(callable(getattr(torch, "load", None)), "torch.load", f"torch.load = {getattr(torch, 'load', None)!r}")
+
+
+PATCH = Patch(
+    name="sdfstudio_checkpoint_load",
+    host="sdfstudio",
+    version=HOST_COMMIT,
+    changes="Trainer._load_checkpoint and eval_utils.eval_load_checkpoint: weights-only torch.load also accepts numpy's plain scalars",
+    scope_text="those two sdfstudio functions' calls (safe_globals per call); process-wide (those modules) in sp-sdfstudio-* / the hook",
+    check=_check,
+    enter=numpy_scalars_in_sdfstudio_loads,
+    guarded=((SOURCE, "nerfstudio/engine/trainer.py"), (SOURCE, "nerfstudio/utils/eval_utils.py"), ("torch", "load")),
+    owned_commands=SDFSTUDIO_OWNERS,
+)

@@ -1,4 +1,5 @@
-"""Run sdfstudio's modules with our compatibility patches, without editing its files.
+"""Run sdfstudio's modules with our compatibility patches, without editing its files (registry
+entry ``sdfstudio_import_hook``; the other ``sdfstudio_*`` entries go through it).
 
 Targets sdfstudio commit 370902a (its ``nerfstudio`` 0.1.12 and ``scripts`` packages).
 
@@ -6,48 +7,108 @@ A meta-path finder in front of the others: for a module that lives in sdfstudio'
 ``nerfstudio`` and ``scripts`` packages beside its marker file) it returns the ordinary spec with
 a loader that
 
-1. executes the module with every *around* patch active (a context manager; e.g. the tolerant
-   ``dataclasses.dataclass`` of :mod:`sp_plugins.patches.sdfstudio_dataclasses`), and
-2. calls the *after* patches registered for that module name on the finished module.
+1. executes the module with its own ``__builtins__``, whose ``__import__`` hands *that module*
+   the stand-ins registered with :func:`patching` (``imports``: e.g. a ``dataclasses`` whose
+   ``dataclass`` accepts sdfstudio's mutable defaults, a ``torch._six``). Every other module,
+   including a third-party one that sdfstudio imports first, imports the real thing: nothing in
+   ``sys.modules``, ``dataclasses`` or ``builtins`` changes;
+2. calls the *after* patches registered for that module name on the finished module; they
+   rebind attributes of sdfstudio's own modules only, through a ``rebind`` that remembers what
+   was there.
 
-Modules imported before :func:`install_finder` get their *after* patches at once. No other
-module's import is touched, and without sdfstudio the finder never activates.
+Each patch is a context manager (:func:`patching`): leaving it unregisters it and puts back every
+attribute it rebound (modules already executed keep their own builtins: they are sdfstudio's).
+No other module's import is touched, and without sdfstudio the finder never activates.
 """
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import importlib.abc
+import inspect
 import sys
 from pathlib import Path
 from types import ModuleType
-from typing import Callable, ContextManager, Dict, List, Optional
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
+from sp_plugins.patches.registry import Patch
 from sp_plugins.sdfstudio.detect import SDFSTUDIO_COMMIT, nerfstudio_dir, require_sdfstudio
 
 HOST_COMMIT = SDFSTUDIO_COMMIT
 HOST_PACKAGES = ("nerfstudio", "scripts")
 """sdfstudio's two top-level packages (``scripts`` holds ns-train, ns-eval, ns-extract-mesh)."""
+SOURCE = "<sdfstudio file>"
+"""In a patch's ``guarded`` pairs: (SOURCE, path) is one of sdfstudio's files the guard reads."""
+SDFSTUDIO_OWNERS = ("sp-sdfstudio-train", "sp-sdfstudio-extract-mesh", "sdfstudio")
+"""Who keeps the sdfstudio patches for the process: our two commands, and ``sdfstudio`` (a process
+that imports sdfstudio through :func:`install_all`: the opt-in hook, a test session, a bench)."""
 
-_around: List[Callable[[], ContextManager]] = []
-_after: Dict[str, List[Callable[[ModuleType], None]]] = {}
+_MISSING = object()
+_imports: Dict[str, Callable[[], ModuleType]] = {}
+_after: Dict[str, List[Tuple[Callable[[ModuleType, Callable], None], Callable]]] = {}
+_finder_users = 0
 
 
-def around_exec(patch: Callable[[], ContextManager]) -> None:
-    """Run every later sdfstudio module's code inside ``patch()``."""
-    if patch not in _around:
-        _around.append(patch)
+def _host_import(name, globals=None, locals=None, fromlist=(), level=0):
+    """``__import__`` of sdfstudio's modules: a registered stand-in for ``name``, else the real import."""
+    if level == 0 and name in _imports and (fromlist or "." not in name):
+        return _imports[name]()
+    return builtins.__import__(name, globals, locals, fromlist, level)
 
 
-def after_exec(module_name: str, patch: Callable[[ModuleType], None]) -> None:
-    """Call ``patch(module)`` once ``module_name`` has executed (now, if it already has)."""
-    patches = _after.setdefault(module_name, [])
-    if patch in patches:
-        return
-    patches.append(patch)
-    module = sys.modules.get(module_name)
-    if module is not None and _finished(module):
-        patch(module)
+_host_builtins: Dict[str, Any] = {}
+
+
+def host_builtins() -> Dict[str, Any]:
+    """The ``__builtins__`` of sdfstudio's modules: Python's, with :func:`_host_import`."""
+    if not _host_builtins:
+        _host_builtins.update(vars(builtins))
+        _host_builtins["__import__"] = _host_import
+    return _host_builtins
+
+
+@contextlib.contextmanager
+def patching(
+    after: Optional[Dict[str, Callable[[ModuleType, Callable], None]]] = None,
+    imports: Optional[Dict[str, Callable[[], ModuleType]]] = None,
+) -> Iterator[None]:
+    """For the block: sdfstudio's modules import ``imports`` (name -> stand-in) from their own
+    namespace, and ``after[name](module, rebind)`` runs once module ``name`` has executed (at once
+    if it already has). On leaving, every attribute set through ``rebind(obj, attr, value)`` is
+    put back and the patches are unregistered."""
+    undo: List[Tuple[Any, str, Any]] = []
+
+    def rebind(obj: Any, attr: str, value: Any) -> None:
+        old = obj.__dict__.get(attr, _MISSING) if isinstance(obj, type) else getattr(obj, attr, _MISSING)
+        undo.append((obj, attr, old))
+        setattr(obj, attr, value)
+
+    registered: List[Tuple[str, Tuple]] = []
+    with finder():
+        try:
+            for name, stand_in in (imports or {}).items():
+                _imports[name] = stand_in
+            for module_name, patch in (after or {}).items():
+                entry = (patch, rebind)
+                _after.setdefault(module_name, []).append(entry)
+                registered.append((module_name, entry))
+                module = sys.modules.get(module_name)
+                if module is not None and _finished(module):
+                    patch(module, rebind)
+            yield
+        finally:
+            for module_name, entry in registered:
+                _after[module_name].remove(entry)
+            for name, stand_in in (imports or {}).items():
+                if _imports.get(name) is stand_in:
+                    del _imports[name]
+            for obj, attr, old in reversed(undo):
+                if old is _MISSING:
+                    if attr in vars(obj):
+                        delattr(obj, attr)
+                else:
+                    setattr(obj, attr, old)
 
 
 def _finished(module: ModuleType) -> bool:
@@ -73,12 +134,10 @@ class _PatchingLoader(importlib.abc.Loader):
         return self._inner.create_module(spec)
 
     def exec_module(self, module: ModuleType) -> None:
-        with contextlib.ExitStack() as stack:
-            for patch in list(_around):
-                stack.enter_context(patch())
-            self._inner.exec_module(module)
-        for patch in _after.get(module.__name__, ()):
-            patch(module)
+        module.__dict__.setdefault("__builtins__", host_builtins())
+        self._inner.exec_module(module)
+        for patch, rebind in list(_after.get(module.__name__, ())):
+            patch(module, rebind)
 
     def __getattr__(self, name: str):  # get_source, get_filename, is_package, resource readers...
         return getattr(self._inner, name)
@@ -114,7 +173,7 @@ _finder: Optional[SdfstudioFinder] = None
 
 
 def install_finder() -> SdfstudioFinder:
-    """Put the finder first on ``sys.meta_path`` (idempotent)."""
+    """Put the finder first on ``sys.meta_path`` (idempotent); :func:`finder` scopes it."""
     global _finder
     if _finder is None:
         _finder = SdfstudioFinder(sdfstudio_root())
@@ -123,26 +182,81 @@ def install_finder() -> SdfstudioFinder:
     return _finder
 
 
-def install_all(register_methods: bool = False) -> None:
-    """Every sdfstudio compatibility patch, plus (``register_methods``) our methods in ns-train's
-    method list. Call before sdfstudio is imported; safe to call again."""
-    from sp_plugins.patches import (
-        sdfstudio_checkpoint_load,
-        sdfstudio_cuda,
-        sdfstudio_dataclasses,
-        sdfstudio_lpips,
-        sdfstudio_tcnn,
-        sdfstudio_torch_six,
-    )
+@contextlib.contextmanager
+def finder() -> Iterator[SdfstudioFinder]:
+    """The finder on ``sys.meta_path`` for the block (nested blocks share it); off after the last."""
+    global _finder_users
+    was_there = _finder is not None and _finder in sys.meta_path
+    found = install_finder()
+    _finder_users += 1
+    try:
+        yield found
+    finally:
+        _finder_users -= 1
+        if _finder_users == 0 and not was_there and found in sys.meta_path:
+            sys.meta_path.remove(found)
 
-    install_finder()
-    sdfstudio_dataclasses.install()
-    sdfstudio_torch_six.install()
-    sdfstudio_lpips.install()
-    sdfstudio_cuda.install()
-    sdfstudio_tcnn.install()
-    sdfstudio_checkpoint_load.install()
+
+def _check(patch: Patch) -> None:
+    root = nerfstudio_dir()
+    patch.expect(root is not None, "sdfstudio's nerfstudio package", "no nerfstudio")
+    for relative in ("nerfstudio/models/bakedangelo.py", "scripts/train.py"):
+        patch.expect(bool(host_source(relative)), f"{relative} (sdfstudio's)", f"nerfstudio at {root} without it")
+
+
+def host_source(relative: str) -> str:
+    """The text of one of sdfstudio's files (e.g. ``scripts/train.py``), read without importing it."""
+    root = nerfstudio_dir()
+    if root is None:
+        return ""
+    path = root.parent / relative
+    return path.read_text() if path.is_file() else ""
+
+
+def expect_source(patch: Patch, relative: str, *snippets: str) -> None:
+    """``patch``'s guard: sdfstudio's file ``relative`` still holds each snippet (what the patch fixes)."""
+    text = host_source(relative)
+    for snippet in snippets:
+        patch.expect(snippet in text, f"{relative} containing {snippet!r}", f"{relative} without it" if text else f"no {relative}")
+
+
+def expect_attribute(patch: Patch, module: ModuleType, attr: str, snippet: str = "") -> Any:
+    """``patch``'s guard when it meets an executed module: the attribute it rebinds is there (and its
+    source holds ``snippet``). Returns the attribute."""
+    value = getattr(module, attr, None)
+    patch.expect(value is not None, f"{module.__name__}.{attr}", f"no {module.__name__}.{attr}")
+    if snippet:
+        try:
+            src = inspect.getsource(inspect.unwrap(value))
+        except (OSError, TypeError):
+            src = ""
+        patch.expect(snippet in src, f"{module.__name__}.{attr} containing {snippet!r}", f"{module.__name__}.{attr} without it")
+    return value
+
+
+PATCH = Patch(
+    name="sdfstudio_import_hook",
+    host="sdfstudio",
+    version=HOST_COMMIT,
+    changes="sys.meta_path: a finder whose loader runs sdfstudio's modules (only) with the sdfstudio_* patches",
+    scope_text="the block; process-wide (sdfstudio's modules only) in sp-sdfstudio-* and, opt-in, the .pth hook",
+    check=_check,
+    enter=finder,
+    guarded=((SOURCE, "nerfstudio/models/bakedangelo.py"), (SOURCE, "scripts/train.py")),
+    owned_commands=SDFSTUDIO_OWNERS,
+    found=lambda: "at " + str(nerfstudio_dir() or "none"),
+)
+
+
+def install_all(register_methods: bool = False, command: str = "sdfstudio") -> None:
+    """Every sdfstudio compatibility patch for the rest of the process (our ``sp-sdfstudio-*``
+    commands, the opt-in hook, and a test session or script that imports sdfstudio: at 370902a
+    sdfstudio cannot be imported here without them; they change sdfstudio's modules only), plus
+    (``register_methods``) our methods in ns-train's method list. Call before sdfstudio is
+    imported; safe to call again."""
+    from sp_plugins.patches import registry
+
+    for name in registry.SDFSTUDIO:
+        registry.install_for_process(name, command=command)
     if register_methods:
-        from sp_plugins.sdfstudio.registration import add_methods
-
-        after_exec("scripts.train", add_methods)
+        registry.install_for_process("sdfstudio_methods", command=command)

@@ -6,15 +6,20 @@ execute, the name is replaced by the factory of :mod:`sp_plugins.adapter.lpips`,
 real metric when the backbone weights are in torch hub's cache and otherwise returns
 :class:`MissingLPIPS` (NaN, one log line), never downloading. Either way the metric is held outside the module tree, so it is never in a
 checkpoint: a checkpoint trained offline loads where the weights are cached and vice versa
-(sdfstudio loads checkpoints strictly).
+(sdfstudio loads checkpoints strictly). Registry entry ``sdfstudio_lpips``: leaving its scope puts
+torchmetrics' class back in those modules.
 """
 
 from __future__ import annotations
 
-from sp_plugins.adapter.lpips import MissingLPIPS, lpips_weights_path, offline_factory
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, after_exec
+import contextlib
+from typing import Iterator
 
-__all__ = ["HOST_COMMIT", "MissingLPIPS", "install", "lpips_weights_path"]
+from sp_plugins.adapter.lpips import MissingLPIPS, lpips_weights_path, offline_factory
+from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching
+
+__all__ = ["HOST_COMMIT", "MissingLPIPS", "PATCH", "lpips_weights_path"]
 
 MODULES = (
     "nerfstudio.models.base_surface_model",
@@ -28,12 +33,30 @@ MODULES = (
 NAME = "LearnedPerceptualImagePatchSimilarity"
 
 
-def _patch(module) -> None:
+def _patch(module, rebind) -> None:
     real = getattr(module, NAME, None)
     if real is not None and not hasattr(real, "real"):
-        setattr(module, NAME, offline_factory(real, detach=True))
+        rebind(module, NAME, offline_factory(real, detach=True))
 
 
-def install() -> None:
-    for name in MODULES:
-        after_exec(name, _patch)
+@contextlib.contextmanager
+def offline_lpips_for_sdfstudio() -> Iterator[None]:
+    with patching(after={name: _patch for name in MODULES}):
+        yield
+
+
+def _check(patch: Patch) -> None:
+    expect_source(patch, "nerfstudio/models/base_surface_model.py", f"from torchmetrics.image.lpip import {NAME}")
+
+
+PATCH = Patch(
+    name="sdfstudio_lpips",
+    host="sdfstudio",
+    version=HOST_COMMIT,
+    changes=f"{NAME} as bound in sdfstudio's model modules: cached weights or a NaN stand-in, never a download, not in the state dict",
+    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook",
+    check=_check,
+    enter=offline_lpips_for_sdfstudio,
+    guarded=((SOURCE, "nerfstudio/models/base_surface_model.py"),),
+    owned_commands=SDFSTUDIO_OWNERS,
+)

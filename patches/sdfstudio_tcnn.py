@@ -31,9 +31,13 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor, nn
 
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, after_exec
+import contextlib
+from typing import Iterator
 
-__all__ = ["Encoding", "HOST_COMMIT", "Network", "NetworkWithInputEncoding", "install"]
+from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching
+
+__all__ = ["Encoding", "HOST_COMMIT", "Network", "NetworkWithInputEncoding", "PATCH"]
 
 STAND_IN = True
 """Marks this module as the stand-in (a real tinycudann has no such attribute)."""
@@ -146,13 +150,31 @@ def real_tcnn_available() -> bool:
     return importlib.util.find_spec("tinycudann") is not None
 
 
-def _give_stand_in(module) -> None:
+def _give_stand_in(module, rebind=None) -> None:
     if "tcnn" not in vars(module):
         import sys
 
-        module.tcnn = sys.modules[__name__]
+        (rebind or setattr)(module, "tcnn", sys.modules[__name__])
 
 
-def install() -> None:
-    for name in MODULES:
-        after_exec(name, _give_stand_in)
+@contextlib.contextmanager
+def tcnn_stand_in_for_sdfstudio() -> Iterator[None]:
+    with patching(after={name: _give_stand_in for name in MODULES}):
+        yield
+
+
+def _check(patch: Patch) -> None:
+    expect_source(patch, "nerfstudio/fields/sdf_field.py", "import tinycudann as tcnn", "tcnn.Encoding(")
+
+
+PATCH = Patch(
+    name="sdfstudio_tcnn",
+    host="sdfstudio",
+    version=HOST_COMMIT,
+    changes="`tcnn` global of sdfstudio's field modules whose tinycudann import failed: this pure-torch stand-in",
+    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook",
+    check=_check,
+    enter=tcnn_stand_in_for_sdfstudio,
+    guarded=((SOURCE, "nerfstudio/fields/sdf_field.py"),),
+    owned_commands=SDFSTUDIO_OWNERS,
+)

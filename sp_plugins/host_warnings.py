@@ -1,24 +1,32 @@
-"""Silence the host stack's known deprecation and CPU warnings, and only those.
+"""Silence the host stack's known deprecation and CPU warnings, and only those (registry entry
+``host_warnings``).
 
-nerfstudio 1.1.5 on torch 2.14 prints a dozen warnings that the user can do nothing about (the
+nerfstudio 1.1.5 on torch 2.x prints a dozen warnings that the user can do nothing about (the
 host calls APIs torch has deprecated since, or CUDA-only helpers on a CPU). Each filter below
 names the exact message and the host module the warning is attributed to, so a warning raised
 by sp_plugins itself (module ``sp_plugins.*``) or any other message is never hidden.
 
-- Our console scripts (``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``, ``sp-export-mesh``)
-  call :func:`filter_host_warnings` first: we own the process.
-- ``sp-train`` installs them first thing. Under ``ns-train`` / ``ns-eval`` / ``ns-export`` /
-  ``ns-render`` they go in when one of *our* methods is built (its data manager or model), never
-  when nerfstudio merely discovers our method configs: a nerfacto user sees every warning
-  nerfstudio and torch print, as without sp-plugins. Warnings raised before our method is built
-  (nerfstudio's imports, ``torch.jit.script``) still print once.
+Scope (:mod:`sp_plugins.patches.registry`):
+
+- our console commands (``sp-train``, ``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``,
+  ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``) own their process: there the filters stay
+  until it ends (``registry.install_for_process``);
+- under nerfstudio's own ``ns-*`` commands they are in force only while our code runs (building
+  our data manager or model, ``ns-train``'s checks of our run): ``warnings.filters`` is the same
+  list object with the same entries after each block. A nerfacto user sees every warning
+  nerfstudio and torch print, as without sp-plugins.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import warnings
+from typing import Iterator
+
+from sp_plugins.patches.registry import Patch
 
 HOST_WARNINGS: tuple[tuple[type[Warning], str, str], ...] = (
     # (category, message regex, module regex): why it is not actionable
@@ -39,10 +47,51 @@ HOST_WARNINGS: tuple[tuple[type[Warning], str, str], ...] = (
 )
 
 
-def filter_host_warnings() -> bool:
-    """Install the filters (idempotent); False when ``SP_HOST_WARNINGS=1`` keeps them all."""
-    if os.environ.get("SP_HOST_WARNINGS", "") == "1":
-        return False
+def _keep_all() -> bool:
+    return os.environ.get("SP_HOST_WARNINGS", "") == "1"
+
+
+@contextlib.contextmanager
+def host_warnings_filtered() -> Iterator[bool]:
+    """The filters for the block (yields False when ``SP_HOST_WARNINGS=1`` keeps them all). They are
+    added to ``warnings.filters`` in place and exactly those entries are removed after, so the list
+    is the same object with the entries it had (a filter someone else added meanwhile stays)."""
+    if _keep_all():
+        yield False
+        return
+    ours, before = [], list(warnings.filters)
     for category, message, module in HOST_WARNINGS:
         warnings.filterwarnings("ignore", message=message, category=category, module=module)
-    return True
+        if warnings.filters[0] not in before:  # (one already in force, e.g. process-wide, stays as it was)
+            ours.append(warnings.filters[0])
+    try:
+        yield True
+    finally:
+        for entry in ours:
+            for i, present in enumerate(warnings.filters):
+                if present is entry:
+                    del warnings.filters[i]
+                    break
+        warnings._filters_mutated()  # type: ignore[attr-defined]  (drop the per-module "once" caches)
+
+
+def _check(patch: Patch) -> None:
+    patch.expect(isinstance(getattr(warnings, "filters", None), list), "warnings.filters a list",
+                 f"warnings.filters = {type(getattr(warnings, 'filters', None)).__name__}")
+    patch.expect(callable(getattr(warnings, "_filters_mutated", None)), "warnings._filters_mutated()",
+                 "no warnings._filters_mutated")
+    patch.expect(callable(getattr(warnings, "filterwarnings", None)), "warnings.filterwarnings()", "no warnings.filterwarnings")
+
+
+PATCH = Patch(
+    name="host_warnings",
+    host="python",
+    version="3.10-3.12",
+    changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
+    scope_text="our code's calls under ns-* (our data manager's and model's build, ns-train's checks of our run); process-wide in our sp-* commands",
+    check=_check,
+    enter=host_warnings_filtered,
+    guarded=(("warnings", "filters"), ("warnings", "_filters_mutated")),
+    owned_commands=("sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check"),
+    found=lambda: sys.version.split()[0],
+)

@@ -1,6 +1,9 @@
-"""Console entry points. Importing this package installs the host-warning filters: we own the
-process of every ``sp-*`` command (see :mod:`sp_plugins.host_warnings`)."""
+"""Console entry points. When this process is one of our ``sp-*`` commands (we own it), importing
+this package keeps the host-warning filters and the one-line error hook for the process (registry
+entries ``host_warnings`` and ``input_error_hook``); imported anywhere else it changes nothing."""
 
-from sp_plugins.host_warnings import filter_host_warnings
+from sp_plugins.patches import registry as _registry
 
-filter_host_warnings()
+if _registry.our_console_command() in _registry.get("host_warnings").owned_commands:
+    _registry.install_for_process("host_warnings")
+    _registry.install_for_process("input_error_hook")

@@ -47,13 +47,19 @@ def refuse_inert_options(config: SPConfig) -> None:
         )
 
 
-def install_process_settings() -> None:
+def install_process_settings(owner: object = None) -> None:
     """What a process that trains or loads one of our methods gets: ``InputError`` as one line
-    (exit status 2) and the host's known, non-actionable warnings filtered."""
-    from sp_plugins.host_warnings import filter_host_warnings
+    (exit status 2) and the host's known, non-actionable warnings filtered (registry entries
+    ``input_error_hook`` and ``host_warnings``). With ``owner`` (our model, data manager or checked
+    run config under an ``ns-*`` command) they are in force while it exists; without, for the
+    process of our own console command (``sp-train``)."""
+    from sp_plugins.patches import registry
 
-    install_input_error_hook()
-    filter_host_warnings()
+    for name in ("input_error_hook", "host_warnings"):
+        if owner is None:
+            registry.install_for_process(name, command="sp-train")
+        else:
+            registry.hold(name, owner)
 
 
 class NonFiniteWatch:
@@ -139,15 +145,15 @@ class SPModel(adapter_model.SPModelBase):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
     def populate_modules(self) -> None:
-        install_process_settings()
+        install_process_settings(self)
         check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
         self._sp_watch = NonFiniteWatch()
         super().populate_modules()
 
     def populate_host_modules(self) -> None:
-        from sp_plugins.patches.nerfstudio_sdf_field import torch_tcnn_fallback
+        from sp_plugins.patches import registry
 
-        with offline_lpips(), torch_tcnn_fallback():  # for this build only
+        with offline_lpips(), registry.scope("nerfstudio_sdf_field"):  # for this build only
             super().populate_host_modules()
         detach_lpips(self)  # type: ignore[arg-type]
 

@@ -36,11 +36,11 @@ from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional, Type
 
 import torch
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
 from sp_plugins.nerfstudio.components import hash_encoding
-from sp_plugins.adapter.callbacks import trainer_total_steps
+from sp_plugins.adapter.callbacks import model_schedule_callback, trainer_total_steps
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
@@ -77,10 +77,10 @@ class SPNeuSModel(SPModel, NeuSModel):
     field: SPSDFField
 
     def populate_modules(self) -> None:
-        from sp_plugins.patches.nerfstudio_marching_cubes import claim_for_cpu_marching_cubes
+        from sp_plugins.patches.nerfstudio_marching_cubes import hold_for
 
         super().populate_modules()
-        claim_for_cpu_marching_cubes(self)  # ns-export marching-cubes builds this model, then meshes it
+        hold_for(self)  # without CUDA: ns-export marching-cubes builds this model, then meshes our field on the CPU
 
     def populate_host_modules(self) -> None:
         super().populate_host_modules()
@@ -222,16 +222,7 @@ class NeuralangeloLiteModel(SPNeuSModel):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        total = trainer_total_steps(training_callback_attributes)
-        start = int(getattr(training_callback_attributes.trainer, "_start_step", 0))
-        self.coarse_to_fine_at(start, total)
-
-        def update(step: int) -> None:
-            self.coarse_to_fine_at(step, total)
-
-        return callbacks + [
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], update, update_every_num_iters=1)
-        ]
+        return callbacks + [model_schedule_callback(self.coarse_to_fine_at, training_callback_attributes)]
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         losses = super().get_loss_dict(outputs, batch, metrics_dict)

@@ -101,19 +101,15 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
 
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
     from sp_plugins.nerfstudio.components.schedulers import with_float_schedulers
+    from sp_plugins.adapter.variants import refuse_or_switch_on
     from sp_plugins.nerfstudio.variants import variant
 
     from sp_plugins.nerfstudio.components.trainer import checked
 
     config = checked(copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec))  # ns-train checks before writing
     base_description = getattr(spec, "description", "") or config.method_name
-    reason = refusal(config)
-    if reason:
-        raise ValueError(f"SP cannot be put on {config.method_name}: {reason}")
     model = config.pipeline.model
-    if hasattr(model, "sp"):  # ours already: switch SP on (an explicit sp wins)
-        model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
-    else:
+    if not refuse_or_switch_on(config, refusal(config), sp):
         sp_config = copy.deepcopy(sp) if sp is not None else preset_for(target_class(model))
         config_cls = variant("ModelConfig", type(model))
         config.pipeline.model = convert(model, config_cls, _target=variant("Model", target_class(model)), sp=sp_config)
@@ -160,10 +156,10 @@ def train(argv: Optional[list] = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     # our own command: the process is ours, so the process-wide conveniences go in here
     from sp_plugins.nerfstudio.model import install_process_settings
-    from sp_plugins.patches.nerfstudio_external_methods import install_fast_external_methods
+    from sp_plugins.patches import registry
 
     install_process_settings()
-    install_fast_external_methods()
+    registry.install_for_process("nerfstudio_external_methods", command="sp-train")
     import tyro
     from nerfstudio.configs.config_utils import convert_markup_to_ansi
     from nerfstudio.configs.method_configs import all_descriptions, all_methods

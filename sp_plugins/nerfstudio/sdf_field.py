@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import finite_differences
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.patches.nerfstudio_marching_cubes import serving_mesher
 
 LAPLACIAN = "sdf_laplacian"
 """Key of the stencil Laplacian in the field outputs (numerical gradients, training only)."""
@@ -73,7 +74,7 @@ class SPSDFField(SPFieldMixin, SDFField):
     config: SPSDFFieldConfig
 
     def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
-        from sp_plugins.patches.nerfstudio_sdf_field import torch_tcnn_fallback
+        from sp_plugins.patches import registry
 
         if config.encoding_type != "hash":
             raise InputError(
@@ -92,7 +93,7 @@ class SPSDFField(SPFieldMixin, SDFField):
                 f"{config.hidden_dim}: the SDF MLP re-injects its {in_dim}-wide input after layer 4, so use num-layers <= 2, "
                 f"or num-layers >= 4 with hidden-dim > {in_dim}"
             )
-        with torch_tcnn_fallback():  # for this construction only
+        with registry.scope("nerfstudio_sdf_field"):  # tcnn's stand-in for this construction only
             super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
         n_levels = config.num_levels if config.use_grid_feature else 0
         # Coarse-to-fine state lives in buffers so a checkpoint restores it (eval, export, resume).
@@ -143,6 +144,10 @@ class SPSDFField(SPFieldMixin, SDFField):
             self.encoding.set_active_levels(int(self.active_levels))
 
     # -- queries ---------------------------------------------------------------------------------
+    def forward_geonetwork(self, inputs: Tensor) -> Tensor:
+        serving_mesher(self)  # ns-export's mesher asks whether a callable evaluates our field
+        return super().forward_geonetwork(inputs)
+
     def sdf_of(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n"]:
         return self.forward_geonetwork(x)[:, 0]
 

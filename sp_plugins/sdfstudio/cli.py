@@ -2,7 +2,7 @@
 
 - ``sp-sdfstudio-train``: sdfstudio's ``ns-train`` with our methods: applies the compatibility
   patches, adds the methods of our entry-point group and ``sp-<method>`` for every SDF method
-  sdfstudio registers, rebuilds sdfstudio's tyro union, then runs sdfstudio's own train ``main``.
+  sdfstudio registers, rebuilds sdfstudio's tyro union (registry entry ``sdfstudio_methods``), then runs sdfstudio's own train ``main``.
   Same arguments as ``ns-train``; ``sp-<method>`` of a method SP does not apply to (nerfacto,
   mipnerf, ...) is refused in one line that says why.
 - ``sp-sdfstudio-extract-mesh``: mesh of a trained checkpoint at any resolution (sdfstudio's
@@ -38,7 +38,7 @@ def _prepare(prog: str) -> None:
         _error(prog, str(err))
     from sp_plugins.patches.sdfstudio_import_hook import install_all
 
-    install_all()
+    install_all(command=prog)  # our command owns its process: the sdfstudio_* registry entries stay
 
 
 def _check_saved_config(prog: str, path: Path, flag: str) -> str:
@@ -65,11 +65,10 @@ def train(argv: Optional[list] = None) -> None:
     import scripts.train as host_train
     from nerfstudio.configs.config_utils import convert_markup_to_ansi
 
-    from sp_plugins.sdfstudio.registration import add_methods
-
+    from sp_plugins.patches import registry
     from sp_plugins.sdfstudio.registration import REFUSED
 
-    add_methods(host_train)
+    registry.install_for_process("sdfstudio_methods", command=prog)  # our methods in the list and the tyro union
     args = list(sys.argv[1:] if argv is None else argv)
     method = next((a for a in args if not a.startswith("-")), None)
     if method in REFUSED:

@@ -49,7 +49,7 @@ class _FirstImport(importlib.abc.MetaPathFinder):
             return None
         from sp_plugins.patches.sdfstudio_import_hook import install_all, install_finder
 
-        install_all(register_methods=True)
+        install_all(register_methods=True, command="sdfstudio")  # opt-in: the user installed the hook
         return install_finder().find_spec(fullname, path, target)
 
 

@@ -1,7 +1,7 @@
 """LPIPS that never downloads, under nerfstudio 1.x (see :mod:`sp_plugins.adapter.lpips`).
 
 Every nerfstudio model builds torchmetrics' LPIPS inside ``populate_modules``; :func:`offline_lpips`
-wraps that call, so the metric is built only from cached weights (else :class:`MissingLPIPS`,
+(the registry's ``nerfstudio_lpips`` patch) wraps that call, so the metric is built only from cached weights (else :class:`MissingLPIPS`,
 after one log line). Models then drop the ``lpips`` key from their image metrics
 (:func:`drop_missing_lpips`). Either way the metric is kept out of the model's ``state_dict``
 (:func:`detach_lpips`), so a checkpoint trained offline loads where the weights are cached and
@@ -10,8 +10,7 @@ vice versa.
 
 from __future__ import annotations
 
-import contextlib
-from typing import Any, Dict, Iterator
+from typing import Any, ContextManager, Dict
 
 import torch
 
@@ -20,17 +19,12 @@ from sp_plugins.adapter.lpips import DetachedMetric, MissingLPIPS, lpips_availab
 __all__ = ["MissingLPIPS", "detach_lpips", "drop_missing_lpips", "lpips_available", "lpips_weights_path", "offline_lpips"]
 
 
-@contextlib.contextmanager
-def offline_lpips() -> Iterator[None]:
-    """Within this block, building torchmetrics' LPIPS never touches the network."""
-    import torchmetrics.image.lpip as lpip_module
+def offline_lpips() -> ContextManager[None]:
+    """Within this block, building torchmetrics' LPIPS never touches the network (the registry's
+    ``nerfstudio_lpips`` scope)."""
+    from sp_plugins.patches import registry
 
-    real = lpip_module.LearnedPerceptualImagePatchSimilarity
-    lpip_module.LearnedPerceptualImagePatchSimilarity = offline_factory(real)  # type: ignore[assignment]
-    try:
-        yield
-    finally:
-        lpip_module.LearnedPerceptualImagePatchSimilarity = real  # type: ignore[assignment]
+    return registry.scope("nerfstudio_lpips")
 
 
 def detach_lpips(model: torch.nn.Module, name: str = "lpips") -> None:

@@ -59,7 +59,7 @@ def preflight(config: TrainerConfig) -> None:
     from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig, check_data_layout
     from sp_plugins.nerfstudio.model import install_process_settings
 
-    install_process_settings()  # one of our methods is about to train: its input errors print as one line
+    install_process_settings(config)  # while our run config exists: its input errors print as one line
     pipeline = config.pipeline
     model = getattr(pipeline, "model", None)
     if model is not None and hasattr(model, "sp"):

@@ -1,0 +1,80 @@
+"""One line (``<command>: error: ...``, exit status 2) instead of a traceback for the failures our
+checks describe (:func:`sp_plugins.adapter.errors.describe_failure`: bad input, a damaged
+checkpoint, a full disk).
+
+Python calls ``sys.excepthook`` for an exception that reaches the top of the process. The patch
+wraps whatever hook is installed (Python's, rich's ...): a described failure prints its line and
+exits 2, anything else goes to the previous hook.
+
+Scope: our console commands own their process and keep it until the process ends. Under
+nerfstudio's ``ns-*`` commands it is held by our code's objects (our model, our data manager, the
+checked run config of our method; :func:`sp_plugins.patches.registry.hold`): in force while one
+of them exists, so a failure while ns-train trains our method, or while ns-eval loads its
+checkpoint, still reaches the top as one line (the traceback keeps them alive), and once they are
+gone ``sys.excepthook`` is again the hook it was. A hook someone installed over ours meanwhile is
+left in place; ours then only passes through.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+from typing import Iterator
+
+from sp_plugins.patches.registry import Patch
+
+__all__ = ["PATCH", "input_errors_as_one_line"]
+
+
+def _one_line_hook(previous):
+    from sp_plugins.adapter.errors import describe_failure
+
+    def hook(kind, value, traceback):
+        if hook.sp_plugins_input_errors and isinstance(value, Exception):
+            message = describe_failure(value, traceback)
+            if message is not None:
+                print(f"{Path(sys.argv[0]).name}: error: {message}", file=sys.stderr)
+                sys.stderr.flush()
+                raise SystemExit(2)
+        previous(kind, value, traceback)
+
+    hook.sp_plugins_input_errors = True  # type: ignore[attr-defined]
+    return hook
+
+
+@contextlib.contextmanager
+def input_errors_as_one_line() -> Iterator[None]:
+    previous = sys.excepthook
+    if getattr(previous, "sp_plugins_input_errors", False):  # already in force (an outer scope)
+        yield
+        return
+    hook = _one_line_hook(previous)
+    sys.excepthook = hook
+    try:
+        yield
+    finally:
+        if sys.excepthook is hook:
+            sys.excepthook = previous
+        else:  # someone wrapped it: ours stays in their chain, passing everything through
+            hook.sp_plugins_input_errors = False  # type: ignore[attr-defined]
+
+
+def _check(patch: Patch) -> None:
+    hook = getattr(sys, "excepthook", None)
+    patch.expect(callable(hook), "a callable sys.excepthook", f"sys.excepthook = {type(hook).__name__}")
+    patch.expect(callable(getattr(sys, "__excepthook__", None)), "sys.__excepthook__", "none")
+
+
+PATCH = Patch(
+    name="input_error_hook",
+    host="python",
+    version="3.10-3.12",
+    changes="sys.excepthook: wraps the hook in force; a failure our checks describe prints one line and exits 2",
+    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands",
+    check=_check,
+    enter=input_errors_as_one_line,
+    guarded=(("sys", "excepthook"), ("sys", "__excepthook__")),
+    owned_commands=("sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check"),
+    found=lambda: sys.version.split()[0],
+)

@@ -1,0 +1,220 @@
+"""The one place a runtime patch of a host (nerfstudio, sdfstudio, torchmetrics, Python itself) is
+installed.
+
+Each patch module defines ``PATCH``, a :class:`Patch`: the host and the version it targets, what
+it changes, a ``guard`` that raises :class:`PatchGuardError` (one line naming the patch, what it
+expected and what it found) when the host no longer looks as the patch was written for, and its
+scope, a context manager. Nothing else installs a patch: code that needs one enters
+``registry.scope(name)``, which runs the guard and then the patch's own context manager; when the
+block ends the host is as it was (the tests check the identity of every patched attribute, the
+warning filters, ``sys.excepthook``, ``sys.modules`` and ``dataclasses.dataclass``).
+
+The one exception is :func:`install_for_process`: our own console commands (``sp-train``,
+``sp-fit``, ``sp-sdfstudio-train`` ...) own their process, and a patch that lists the command in
+``owned_commands`` may stay installed there until the process ends. The README's patch table
+says which.
+
+A new patch goes into ``patches/<host>_<what>.py`` with a ``PATCH`` and a line in :data:`ENTRIES`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import importlib.metadata
+import os
+import sys
+import weakref
+from dataclasses import dataclass, field
+from typing import Any, Callable, ContextManager, Dict, Iterator, List, Optional, Tuple
+
+__all__ = [
+    "ENTRIES", "OUR_COMMANDS", "Patch", "PatchGuardError", "entries", "get", "install_for_process",
+    "our_console_command", "scope", "host_version", "hold", "release",
+]
+
+
+class PatchGuardError(RuntimeError):
+    """The host changed under a patch: one line naming the patch, what it expected and found."""
+
+
+def host_version(distribution: str) -> str:
+    """The installed version of a distribution ("not installed" when it is not)."""
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
+
+
+@dataclass(frozen=True)
+class Patch:
+    """One runtime patch (see the module doc)."""
+
+    name: str
+    host: str
+    """The distribution (or ``python``) whose code the patch changes."""
+    version: str
+    """The version (or commit) it was written for."""
+    changes: str
+    """One line: what it replaces, with what."""
+    scope_text: str
+    """One line: where it is in force."""
+    check: Callable[["Patch"], None]
+    """Raises :class:`PatchGuardError` (through :meth:`fail`) when the host differs."""
+    enter: Callable[..., ContextManager]
+    """The patch itself, as a context manager (arguments are the patch's own)."""
+    guarded: Tuple[Tuple[str, str], ...] = ()
+    """(module, attribute) pairs the guard reads: changing any of them must make it fail."""
+    owned_commands: Tuple[str, ...] = ()
+    """Our console commands that keep it installed for their whole process."""
+    found: Callable[[], str] = field(default=lambda: "")
+    """The host version found (for the guard's message)."""
+
+    def fail(self, expected: str, found: str) -> None:
+        version = self.found() or host_version(self.host)
+        raise PatchGuardError(
+            f"sp_plugins patch {self.name}: written for {self.host} {self.version} ({expected}), "
+            f"found {self.host} {version} with {found}; update patches/{self.name}.py"
+        )
+
+    def expect(self, condition: bool, expected: str, found: str) -> None:
+        if not condition:
+            self.fail(expected, found)
+
+    def guard(self) -> None:
+        self.check(self)
+
+
+ENTRIES: Dict[str, str] = {
+    # name -> module holding its PATCH
+    "nerfstudio_external_methods": "sp_plugins.patches.nerfstudio_external_methods",
+    "nerfstudio_sdf_field": "sp_plugins.patches.nerfstudio_sdf_field",
+    "nerfstudio_marching_cubes": "sp_plugins.patches.nerfstudio_marching_cubes",
+    "nerfstudio_lpips": "sp_plugins.patches.nerfstudio_lpips",
+    "host_warnings": "sp_plugins.host_warnings",
+    "input_error_hook": "sp_plugins.patches.input_error_hook",
+    "sdfstudio_import_hook": "sp_plugins.patches.sdfstudio_import_hook",
+    "sdfstudio_dataclasses": "sp_plugins.patches.sdfstudio_dataclasses",
+    "sdfstudio_torch_six": "sp_plugins.patches.sdfstudio_torch_six",
+    "sdfstudio_cuda": "sp_plugins.patches.sdfstudio_cuda",
+    "sdfstudio_lpips": "sp_plugins.patches.sdfstudio_lpips",
+    "sdfstudio_tcnn": "sp_plugins.patches.sdfstudio_tcnn",
+    "sdfstudio_checkpoint_load": "sp_plugins.patches.sdfstudio_checkpoint_load",
+    "sdfstudio_methods": "sp_plugins.patches.sdfstudio_methods",
+}
+
+SDFSTUDIO = tuple(name for name in ENTRIES if name.startswith("sdfstudio_") and name != "sdfstudio_methods")
+"""What sdfstudio at its pinned commit needs to import and run here (the import hook first);
+``sdfstudio_methods`` (our methods in its ns-train) is separate."""
+
+OUR_COMMANDS: Tuple[str, ...] = (
+    "sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check",
+    "sp-sdfstudio-train", "sp-sdfstudio-extract-mesh",
+)
+_MODULE_COMMANDS = {  # ``python -m <module>`` runs the same command
+    "sp_plugins.cli.demo": "sp-demo", "sp_plugins.cli.bench": "sp-bench", "sp_plugins.cli.scene": "sp-scene",
+    "sp_plugins.cli.fit": "sp-fit", "sp_plugins.cli.export_mesh": "sp-export-mesh", "sp_plugins.cli.sweep": "sp-sweep",
+    "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.nerfstudio.registration": "sp-train",
+}
+
+
+def get(name: str) -> Patch:
+    if name not in ENTRIES:
+        raise KeyError(f"no patch named {name!r}; the registry has {sorted(ENTRIES)}")
+    return importlib.import_module(ENTRIES[name]).PATCH
+
+
+def entries(host: Optional[str] = None) -> List[Patch]:
+    """Every entry (of ``host``: ``nerfstudio`` / ``sdfstudio`` / ``python`` / ``torchmetrics``)
+    whose module imports here."""
+    found = []
+    for name in ENTRIES:
+        try:
+            patch = get(name)
+        except ImportError:
+            continue
+        if host is None or patch.host == host:
+            found.append(patch)
+    return found
+
+
+@contextlib.contextmanager
+def scope(name: str, *args: Any, **kwargs: Any) -> Iterator[Any]:
+    """Patch ``name`` for the block: its guard first, then its context manager."""
+    patch = get(name)
+    patch.guard()
+    with patch.enter(*args, **kwargs) as value:
+        yield value
+
+
+def our_console_command() -> Optional[str]:
+    """The name of our console command running this process (None when the process is not one)."""
+    name = os.path.basename(sys.argv[0]) if sys.argv else ""
+    if name in OUR_COMMANDS:
+        return name
+    argv = list(getattr(sys, "orig_argv", ()))
+    if "-m" in argv[:-1]:
+        return _MODULE_COMMANDS.get(argv[argv.index("-m") + 1])
+    return None
+
+
+_process = contextlib.ExitStack()
+_installed: Dict[str, Any] = {}
+
+
+def install_for_process(name: str, *args: Any, command: Optional[str] = None, **kwargs: Any) -> Any:
+    """Enter ``name``'s scope until the process ends: only in our own console commands (``command``,
+    else the one running), and only for a patch that lists it in ``owned_commands``. Idempotent."""
+    patch = get(name)
+    command = command or our_console_command()
+    if command not in patch.owned_commands:
+        raise RuntimeError(
+            f"sp_plugins patch {name}: installed for the whole process only by our commands "
+            f"{', '.join(patch.owned_commands) or '(none)'}, not by {command or 'this process'}; use registry.scope()"
+        )
+    if name not in _installed:
+        patch.guard()
+        _installed[name] = _process.enter_context(patch.enter(*args, **kwargs))
+    return _installed[name]
+
+
+_held: Dict[str, Tuple[contextlib.ExitStack, set]] = {}
+
+
+def hold(name: str, owner: Any, *args: Any, **kwargs: Any) -> bool:
+    """Keep ``name``'s scope open while ``owner`` (one of our models, data managers or run configs)
+    exists: entered for the first owner, left when the last one is garbage-collected (or by
+    :func:`release`). Returns True when this call entered it."""
+    stack_owners = _held.get(name)
+    key = id(owner)
+    if stack_owners is not None:
+        if key not in stack_owners[1]:
+            stack_owners[1].add(key)
+            weakref.finalize(owner, release, name, key)
+        return False
+    stack = contextlib.ExitStack()
+    stack.enter_context(scope(name, *args, **kwargs))
+    _held[name] = (stack, {key})
+    weakref.finalize(owner, release, name, key)
+    return True
+
+
+def release(name: str, key: Optional[int] = None) -> None:
+    """``owner`` (its ``id``) no longer holds ``name``; the scope ends with the last holder (all of
+    them when ``key`` is None)."""
+    entry = _held.get(name)
+    if entry is None:
+        return
+    stack, owners = entry
+    owners.discard(key) if key is not None else owners.clear()
+    if not owners:
+        del _held[name]
+        stack.close()
+
+
+def held() -> Tuple[str, ...]:
+    return tuple(_held)
+
+
+def installed_for_process() -> Tuple[str, ...]:
+    return tuple(_installed)
