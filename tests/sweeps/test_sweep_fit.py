@@ -1,0 +1,49 @@
+"""``sp-sweep`` of a tiny ``sp-fit`` task as a user runs it: a local Ray with 2 CPUs, a sweep that
+finishes, then a restart that grows the grid by a failing point, runs only the new trials and
+records their failure; no Ray processes or temporary files left behind (see ``run_sweep``)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+FIT_TINY = ("--steps 8 --n-points 2000 --surface-batch 128 --space-batch 128 --encoding.levels 4 "
+            "--encoding.log2-table-size 10 --encoding.base-resolution 8 --hidden 16 --mesh-resolution 24 "
+            "--refine 1 --metric-points 2000")
+NC_RULE, CHAMFER_RULE = "normal_consistency >= 0.6", "chamfer < 0.3"
+
+
+@pytest.mark.timeout(1800)  # about a minute and a half on 2 idle cores; Ray's start alone took a minute at load 10
+def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials(run_sweep, rows, sweep_mesh, tmp_path):
+    out = tmp_path / "sweep"
+    # With --geometric-init the 8 steps leave a sphere (normal consistency about 0.84-0.96, Chamfer
+    # 0.03-0.09 for seeds 0 and 1); without a mesh the rule fails (consistency 0, Chamfer null)
+    spec = {"command": f"sp-fit pointcloud {sweep_mesh} {FIT_TINY} --geometric-init",
+            "grid": {"encoding.max-resolution": [32]},
+            "success": [NC_RULE, CHAMFER_RULE], "metric": "fscore"}
+    proc = run_sweep(spec, out)
+    assert "2 trials: 0 finished already (skipped), 2 to run" in proc.stdout
+    assert "2 of 2 trials finished, 0 failed" in proc.stdout
+    done = {p: p.stat().st_mtime_ns for p in out.glob("trials/*/result.json")}
+    assert len(done) == 2
+
+    # the sweep grows by one grid point that sp-fit refuses (max 4 < base 8): only it runs
+    spec["grid"]["encoding.max-resolution"].append(4)
+    proc = run_sweep(spec, out)
+    assert "4 trials: 2 finished already (skipped), 2 to run" in proc.stdout
+    assert "4 of 4 trials finished, 2 failed" in proc.stdout
+    assert {p: p.stat().st_mtime_ns for p in done} == done, "a finished trial was run again"
+    table = rows(out)
+    assert len(table) == 4 and sorted(r["sp"] for r in table) == ["SP", "SP", "baseline", "baseline"]
+    for r in table:
+        if r["max-resolution"] == "32":
+            assert r["status"] == "ok" and math.isfinite(float(r["wall_seconds"])) and float(r["sound"]) in (0.0, 1.0)
+            assert float(r["success"]) == 1, r  # the rules hold, with a margin
+            assert float(r["normal_consistency"]) >= 0.7 and float(r["chamfer"]) < 0.2, r
+        else:
+            assert r["status"] == "failed" and "base_resolution <= max_resolution" in r["error"] and float(r["success"]) == 0
+    md = (out / "results.md").read_text()
+    assert all(md.count(r["trial"]) == 1 for r in table)  # one row per trial
+    assert f"success ({NC_RULE} and {CHAMFER_RULE}): baseline 1/2 (50%), SP 1/2 (50%)" in md
+    assert (out / "histogram.png").stat().st_size > 1000
