@@ -55,6 +55,13 @@ class _TorchTcnnShim(types.SimpleNamespace):
         )
 
 
+def _looks_like_tcnn(value: Any) -> bool:
+    """tinycudann, nerfstudio's lazy import error standing in for it, or our shim."""
+    from nerfstudio.utils import external
+
+    return value is getattr(external, "tcnn", None) or isinstance(value, (types.ModuleType, _TorchTcnnShim))
+
+
 def check_nerfstudio_sdf_field() -> str:
     """Verify the nerfstudio internals the patch relies on; return the nerfstudio version.
 
@@ -67,6 +74,8 @@ def check_nerfstudio_sdf_field() -> str:
     problems = []
     if not hasattr(sdf_field, PATCHED_ATTRIBUTE):
         problems.append(f"{PATCHED_MODULE} has no module attribute '{PATCHED_ATTRIBUTE}'")
+    elif not _looks_like_tcnn(getattr(sdf_field, PATCHED_ATTRIBUTE)):
+        problems.append(f"{PATCHED_MODULE}.{PATCHED_ATTRIBUTE} = {getattr(sdf_field, PATCHED_ATTRIBUTE)!r} has no Encoding")
     host = getattr(sdf_field, "SDFField", None)
     try:
         init_src = inspect.getsource(host.__init__)

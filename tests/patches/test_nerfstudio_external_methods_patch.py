@@ -24,18 +24,25 @@ def test_nerfstudio_still_makes_the_slow_check():
     assert patch.host_post_init_is_as_expected(), "nerfstudio no longer calls inspect.stack() there: drop the patch?"
 
 
-def test_installing_it_is_idempotent():
+@pytest.fixture
+def fast():
+    """The patch for one test (registry scope); nerfstudio's __post_init__ again after it."""
+    from sp_plugins.patches import registry
+
+    with registry.scope("nerfstudio_external_methods"):
+        yield
+
+
+def test_installing_it_is_idempotent(fast):
     """It goes in only through our own command (sp-train); discovery of our methods leaves it out
     (tests/nerfstudio/test_guest.py checks that in a fresh process)."""
-    assert patch.install_fast_external_methods()
     post_init = ns_external.ExternalMethodDummyTrainerConfig.__post_init__
     assert getattr(post_init, "__sp_original__", None) is not None
     assert patch.install_fast_external_methods()
     assert ns_external.ExternalMethodDummyTrainerConfig.__post_init__ is post_init
 
 
-def test_built_by_get_external_methods_stays_quiet(monkeypatch):
-    patch.install_fast_external_methods()
+def test_built_by_get_external_methods_stays_quiet(fast, monkeypatch):
     printed = []
     monkeypatch.setattr(ns_external.CONSOLE, "print", lambda *a, **k: printed.append(a))
     configs, descriptions = ns_external.get_external_methods()
@@ -44,8 +51,7 @@ def test_built_by_get_external_methods_stays_quiet(monkeypatch):
     assert printed == []
 
 
-def test_built_elsewhere_still_offers_the_install(monkeypatch):
-    patch.install_fast_external_methods()
+def test_built_elsewhere_still_offers_the_install(fast, monkeypatch):
     printed = []
     monkeypatch.setattr(ns_external.CONSOLE, "print", lambda *a, **k: printed.append(a))
     method = ns_external.ExternalMethod(instructions="install me first", configurations=[("x", "x")])

@@ -4,6 +4,7 @@ import functools
 import importlib.metadata
 import inspect
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -27,22 +28,25 @@ def test_nerfstudio_still_needs_the_patch_and_matches_its_signature():
     assert ".cuda()" in inspect.getsource(original), "nerfstudio's mesher no longer hard-codes CUDA: drop the patch?"
 
 
-def test_install_rebinds_both_names_and_uninstall_restores():
-    was = dict(patch._originals)
-    original = was.get(patch.MODULES[0], getattr(ns_mc, patch.FUNCTION))
+def test_the_scope_rebinds_both_names_and_restores_them():
+    from sp_plugins.patches import registry
+
+    original = getattr(ns_mc, patch.FUNCTION)
+    exporter = types.ModuleType(patch.MODULES[1])  # (importing ns-export's module takes 30 s here: its name binding only)
+    exporter.generate_mesh_with_multires_marching_cubes = original
+    saved = sys.modules.get(patch.MODULES[1])
+    sys.modules[patch.MODULES[1]] = saved or exporter
+    exporter = sys.modules[patch.MODULES[1]]
     try:
-        patch.uninstall_cpu_marching_cubes()
-        assert getattr(ns_mc, patch.FUNCTION) is original
-        assert patch.install_cpu_marching_cubes(force=True)
-        assert getattr(ns_mc, patch.FUNCTION) is patch.scoped_marching_cubes
-        exporter = sys.modules.get("nerfstudio.scripts.exporter")
-        if exporter is not None:
+        assert exporter.generate_mesh_with_multires_marching_cubes is original
+        with registry.scope(patch.PATCH.name, force=True) as active:
+            assert active and getattr(ns_mc, patch.FUNCTION) is patch.scoped_marching_cubes
             assert exporter.generate_mesh_with_multires_marching_cubes is patch.scoped_marching_cubes
-        patch.uninstall_cpu_marching_cubes()
-        assert getattr(ns_mc, patch.FUNCTION) is original
+        assert getattr(ns_mc, patch.FUNCTION) is original and exporter.generate_mesh_with_multires_marching_cubes is original
     finally:
-        if was:
-            patch.install_cpu_marching_cubes(force=True)
+        if saved is None:
+            del sys.modules[patch.MODULES[1]]
+    assert patch._originals == {}
 
 
 def _sphere(points):
@@ -69,23 +73,35 @@ def test_cpu_marching_cubes_meshes_a_sphere_outward():
         patch.cpu_marching_cubes(lambda p: p.norm(dim=-1) + 1.0, resolution=16)
 
 
-def test_only_claimed_models_get_the_cpu_mesher(monkeypatch):
-    """The rebinding is scoped: the SDF of a model that is not ours goes to nerfstudio's own mesher."""
+def _our_model():
+    from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, _ = discover_methods()
+    config = methods["sp-neus-hashgrid"].pipeline.model
+    config.sdf_field.num_levels, config.sdf_field.max_res, config.sdf_field.log2_hashmap_size = 4, 32, 10
+    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2)
+
+
+def test_only_an_sdf_of_our_field_gets_the_cpu_mesher_and_only_while_our_model_exists(monkeypatch):
+    """What ns-export hands the mesher: a callable over its pipeline. Ours is recognised by our field's
+    own forward_geonetwork answering the probe; any other SDF goes to nerfstudio's mesher."""
+    import gc
+
+    from sp_plugins.patches import registry
+
+    original = getattr(ns_mc, patch.FUNCTION)
+    model = _our_model()
+    assert patch.PATCH.name in registry.held() and getattr(ns_mc, patch.FUNCTION) is patch.scoped_marching_cubes
     calls = []
-    patch.install_cpu_marching_cubes(force=True)  # the host's mesher is recorded before we stand in for it
-    host = functools.wraps(patch._originals[patch.MODULES[0]])(lambda *args: calls.append(args) or "host mesher")
-    monkeypatch.setitem(patch._originals, patch.MODULES[0], host)
-    ours, theirs = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
-
-    class Pipeline:
-        def __init__(self, model):
-            self.model = model
-
-    def exporter_closure(pipeline):  # what ns-export passes: a lambda over its pipeline
-        return lambda x: _sphere(x) + 0 * len(str(pipeline))
-
-    patch.claim_for_cpu_marching_cubes(ours, force=True)
-    assert patch.scoped_marching_cubes(exporter_closure(Pipeline(theirs)), resolution=16) == "host mesher"
-    assert len(calls) == 1
-    mesh = patch.scoped_marching_cubes(exporter_closure(Pipeline(ours)), resolution=32)
-    assert len(calls) == 1 and mesh.is_watertight
+    monkeypatch.setitem(patch._originals, patch.MODULES[0], lambda *args: calls.append(args) or "host mesher")
+    other = torch.nn.Linear(3, 1)
+    assert patch.scoped_marching_cubes(lambda x: other(x)[:, 0], resolution=16) == "host mesher" and len(calls) == 1
+    assert patch.scoped_marching_cubes(_sphere, resolution=16) == "host mesher" and len(calls) == 2
+    assert patch.evaluates_our_field(lambda x: model.field.forward_geonetwork(x)[:, 0])
+    mesh = patch.scoped_marching_cubes(lambda x: model.field.forward_geonetwork(x)[:, 0] * 0 + _sphere(x), resolution=32)
+    assert len(calls) == 2 and mesh.is_watertight
+    monkeypatch.undo()
+    del model
+    gc.collect()
+    assert patch.PATCH.name not in registry.held() and getattr(ns_mc, patch.FUNCTION) is original

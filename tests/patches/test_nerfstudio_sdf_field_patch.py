@@ -1,6 +1,7 @@
 """The opt-in tcnn fallback for nerfstudio's SDFField: guards on nerfstudio internals, then a short training run."""
 
 import importlib.metadata
+import types
 
 import pytest
 import torch
@@ -111,7 +112,7 @@ def test_patched_sdf_field_get_outputs(restore_patch):
 
 def test_real_tcnn_with_cuda_is_left_alone(restore_patch, monkeypatch):
     patch.uninstall_torch_tcnn_fallback()
-    sentinel = object()
+    sentinel = types.ModuleType("tinycudann")  # what a real tinycudann import binds
     monkeypatch.setattr(sdf_field, "tcnn", sentinel)
     monkeypatch.setattr(external, "TCNN_EXISTS", True)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)

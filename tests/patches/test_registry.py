@@ -1,0 +1,153 @@
+"""The patch registry (issue 32): every entry is guarded, and after each scope the host is exactly
+as it was.
+
+For every entry that imports here (nerfstudio 1.x, torchmetrics and Python's own; the sdfstudio
+entries have the same checks in ``tests/sdfstudio/test_patches.py``):
+
+- its guard passes on the host installed here, and fails, in one line naming the patch, what it
+  expected and the host version it found, when any attribute it names in ``guarded`` is something
+  else (the attribute is replaced for the check, as a changed host would have it);
+- its scope changes what it says it changes inside the block, and after the block every patched
+  attribute, ``sys.excepthook``, ``warnings.filters`` (the same list, the same entries),
+  ``dataclasses.dataclass``, ``sys.meta_path`` and every module that was in ``sys.modules`` are
+  the objects they were.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import importlib
+import sys
+import warnings
+
+import pytest
+import torch
+
+pytest.importorskip("nerfstudio")
+
+from sp_plugins.patches import registry  # noqa: E402
+from sp_plugins.patches.registry import PatchGuardError  # noqa: E402
+
+HOSTS = ("nerfstudio", "python", "torchmetrics")
+ENTRIES = [p for p in registry.entries() if p.host in HOSTS]
+
+
+def test_the_registry_holds_every_patch_module():
+    from pathlib import Path
+
+    folder = Path(registry.__file__).parent
+    modules = {p.stem for p in folder.glob("*.py")} - {"__init__", "registry"}
+    assert modules <= set(registry.ENTRIES), sorted(modules - set(registry.ENTRIES))
+    assert {p.name for p in ENTRIES} >= {"nerfstudio_external_methods", "nerfstudio_sdf_field", "nerfstudio_marching_cubes",
+                                          "nerfstudio_lpips", "host_warnings", "input_error_hook"}
+    for patch in registry.entries():
+        assert patch.version and patch.changes and patch.scope_text and patch.guarded, patch.name
+
+
+def resolve(dotted: str):
+    try:
+        return importlib.import_module(dotted)
+    except ImportError:
+        parent, _, name = dotted.rpartition(".")
+        return getattr(importlib.import_module(parent), name)
+
+
+@pytest.mark.parametrize("patch", ENTRIES, ids=lambda p: p.name)
+def test_every_entry_is_guarded(patch, monkeypatch):
+    patch.guard()  # the host installed here is the one it was written for
+    for where, attr in patch.guarded:
+        with monkeypatch.context() as m:
+            m.setattr(resolve(where), attr, object())
+            with pytest.raises(PatchGuardError) as failure:
+                patch.guard()
+        message = str(failure.value)
+        assert "\n" not in message and f"patch {patch.name}:" in message, message
+        assert f"written for {patch.host} {patch.version}" in message and "found" in message, message
+    patch.guard()  # and the host is back
+
+
+def host_state(patch) -> dict:
+    state = {
+        "excepthook": sys.excepthook,
+        "filters": (warnings.filters, list(warnings.filters)),
+        "dataclass": dataclasses.dataclass,
+        "meta_path": list(sys.meta_path),
+        "modules": dict(sys.modules),
+        "cuda": (torch.cuda.synchronize, torch.cuda.set_device, torch.Tensor.cuda),
+    }
+    for where, attr in patch.guarded:
+        owner = resolve(where)
+        state[f"{where}.{attr}"] = vars(owner).get(attr) if isinstance(owner, type) else getattr(owner, attr)
+    return state
+
+
+def changed(before: dict, after: dict) -> list:
+    found = []
+    for key, value in before.items():
+        if key == "modules":
+            found += [name for name, module in value.items() if after["modules"].get(name) is not module]
+        elif key == "filters":
+            if after["filters"][0] is not value[0] or after["filters"][1] != value[1]:
+                found.append("filters")
+        elif key in ("meta_path",):
+            if after[key] != value:
+                found.append(key)
+        elif isinstance(value, tuple):
+            if any(a is not b for a, b in zip(value, after[key])):
+                found.append(key)
+        elif after[key] is not value:
+            found.append(key)
+    return found
+
+
+ACTIVE = {  # inside the scope: what must be different
+    "nerfstudio_external_methods": lambda: getattr(
+        resolve("nerfstudio.configs.external_methods").ExternalMethodDummyTrainerConfig.__post_init__, "__sp_original__", None) is not None,
+    "nerfstudio_sdf_field": lambda: type(resolve("nerfstudio.fields.sdf_field").tcnn).__name__ == "_TorchTcnnShim",
+    "nerfstudio_marching_cubes": lambda: resolve("nerfstudio.exporter.marching_cubes").generate_mesh_with_multires_marching_cubes.__name__
+    == "scoped_marching_cubes",
+    "nerfstudio_lpips": lambda: hasattr(resolve("torchmetrics.image.lpip").LearnedPerceptualImagePatchSimilarity, "real"),
+    "host_warnings": lambda: any(getattr(f[1], "pattern", "").startswith("Using a non-tuple sequence") for f in warnings.filters),
+    "input_error_hook": lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
+}
+ARGS = {"nerfstudio_marching_cubes": {"force": True}, "nerfstudio_sdf_field": {"force": True}}
+
+
+@pytest.mark.parametrize("patch", ENTRIES, ids=lambda p: p.name)
+def test_after_each_scope_the_host_is_as_it_was(patch, monkeypatch):
+    monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
+    assert patch.name not in registry.held() and patch.name not in registry.installed_for_process()
+    before = host_state(patch)
+    with registry.scope(patch.name, **ARGS.get(patch.name, {})):
+        assert ACTIVE[patch.name](), f"{patch.name}: the scope changed nothing"
+    gc.collect()
+    after = host_state(patch)
+    assert changed(before, after) == [], patch.name
+    assert not ACTIVE[patch.name]()
+
+
+def test_held_scopes_end_with_their_last_owner(monkeypatch):
+    monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
+    patch = registry.get("host_warnings")
+    before = host_state(patch)
+
+    class Owner:
+        pass
+
+    first, second = Owner(), Owner()
+    assert registry.hold("host_warnings", first) and not registry.hold("host_warnings", second)
+    del first
+    gc.collect()
+    assert ACTIVE["host_warnings"]()  # the second still holds it
+    del second
+    gc.collect()
+    assert changed(before, host_state(patch)) == [] and not ACTIVE["host_warnings"]()
+
+
+def test_only_our_commands_keep_a_patch_for_the_process():
+    with pytest.raises(RuntimeError, match="only by our commands"):
+        registry.install_for_process("host_warnings")  # pytest is not one of our commands
+    with pytest.raises(RuntimeError, match="sp-train"):
+        registry.install_for_process("nerfstudio_external_methods", command="sp-fit")
+    assert "host_warnings" not in registry.installed_for_process()
