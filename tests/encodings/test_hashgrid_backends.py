@@ -1,6 +1,12 @@
 """HashGrid backends: the choice follows the module's device, checkpoints move between the torch
 ``table`` and tcnn's flat ``params`` (checked against an independent tcnn-layout stand-in), and a
-forward pass makes no tensor from Python values (a host sync on CUDA)."""
+forward pass makes no tensor from Python values (a host sync on CUDA).
+
+What the layout tests do NOT show: the stand-in (:mod:`sp_plugins.encodings.tcnn_layout`) is our own
+reading of tiny-cuda-nn's ``grid.h``, written by us. ``table`` agreeing with it shows that two
+independent implementations of that reading agree, not that tiny-cuda-nn lays its ``params`` out
+that way; only a run against the real ``tinycudann`` on a GPU checks that (``sp-gpu-check`` and the
+CUDA-only test in tests/nerfstudio/test_nerfacto_hash_grid.py, both skipped without one)."""
 
 import copy
 import logging
@@ -53,7 +59,8 @@ def _output_and_input_grad(module, x):
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_table_is_tcnns_params_layout(name):
-    """The stand-in reads tcnn's layout on its own; given ``table.reshape(-1)`` it computes our outputs."""
+    """The stand-in reads tcnn's layout on its own; given ``table.reshape(-1)`` it computes our outputs
+    (our reading of tcnn against our stand-in of it: see the module docstring)."""
     grid = torch_grid(name)
     standin = TcnnLayoutEncoding(grid.n_input_dims, grid.tcnn_config())
     assert standin.params.dtype == torch.float32 and standin.params.shape == (grid.table.numel(),)

@@ -55,6 +55,9 @@ def test_every_hash_encoding_is_our_grid_with_the_hosts_settings(enabled, tiny_s
 
 
 def test_gpu_layout_grid_weights_load_and_fused_tcnn_is_refused(tiny_scene, tmp_path):
+    """A GPU run's state dict (tcnn's flat ``params`` per encoding, as our reading of tcnn's layout
+    makes them: tests/encodings/test_hashgrid_backends.py, checked against our own stand-in, not
+    tiny-cuda-nn) loads into the CPU model; a fused tcnn MLP is refused."""
     _, model = build(tiny_scene, tmp_path)
     state = model.state_dict()
     gpu_state = {}
