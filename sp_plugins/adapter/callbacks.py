@@ -8,7 +8,7 @@ sdfstudio: ``attributes.config``) and the flag that sets it, which the model pas
 
 from __future__ import annotations
 
-from typing import Any, List, Optional
+from typing import Any, Callable, List, Optional
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
@@ -74,6 +74,21 @@ def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int]):
         sp.set_step(step, total_steps)
 
     return TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=step_to, update_every_num_iters=1)
+
+
+def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes: Any):
+    """A schedule of a model's own (FreeNeRF's frequency mask, Neuralangelo's coarse-to-fine) as one
+    callback: ``at(step, total)`` is applied now, at the step training starts (0, or a resumed
+    run's), and then before every iteration, with the run's length from ``attributes``."""
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    total = trainer_total_steps(attributes)
+    at(start_step(attributes) or 0, total)
+
+    def update(step: int) -> None:
+        at(step, total)
+
+    return TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], update, update_every_num_iters=1)
 
 
 def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, steps_flag: str = "--max-num-iterations") -> List[Any]:

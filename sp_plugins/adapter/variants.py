@@ -173,3 +173,17 @@ def table_refusal(config: Any, *tables: Any) -> Tuple[Optional[type], Optional[s
             if reason:
                 return model, reason
     return model, None
+
+
+def refuse_or_switch_on(config: Any, reason: Optional[str], sp: Any) -> bool:
+    """The start of each host's ``with_sp`` (the same in both): raise ``ValueError("SP cannot be put
+    on <method>: <reason>")`` when ``reason`` is set; for a model config that is ours already (it
+    has ``sp``), switch SP on (an explicit ``sp`` wins) and return True; else return False, and the
+    host converts the model config to its SP variant."""
+    if reason:
+        raise ValueError(f"SP cannot be put on {config.method_name}: {reason}")
+    model = config.pipeline.model
+    if not hasattr(model, "sp"):
+        return False
+    model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
+    return True

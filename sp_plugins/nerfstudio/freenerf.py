@@ -39,13 +39,13 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from jaxtyping import Float
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.field_components.encodings import NeRFEncoding
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from nerfstudio.models.mipnerf import MipNerfModel
 from torch import Tensor
 
-from sp_plugins.adapter.callbacks import trainer_total_steps
+from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.mipnerf import MIPNERF_SP, SPMipNerfModel, SPMipNerfModelConfig
 
@@ -197,14 +197,7 @@ class FreeNeRFModel(SPMipNerfModel, FreeNeRFLosses):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        total = trainer_total_steps(training_callback_attributes)
-        start = int(getattr(training_callback_attributes.trainer, "_start_step", 0))
-        self.frequency_mask_at(start, total)
-
-        def update(step: int) -> None:
-            self.frequency_mask_at(step, total)
-
-        return callbacks + [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], update, update_every_num_iters=1)]
+        return callbacks + [model_schedule_callback(self.frequency_mask_at, training_callback_attributes)]
 
     def get_outputs(self, ray_bundle) -> Dict[str, Tensor]:
         c = self.config

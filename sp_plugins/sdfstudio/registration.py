@@ -105,16 +105,13 @@ def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] =
     A method that is already ours (its model config has ``sp``) comes back with SP enabled (an
     explicit ``sp`` wins). Raises ``ValueError`` naming the reason when SP cannot reach the method."""
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+    from sp_plugins.adapter.variants import refuse_or_switch_on
     from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
 
     config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
     base = config.method_name
-    reason = refusal(config)
-    if reason:
-        raise ValueError(f"SP cannot be put on {base}: {reason}")
     model = config.pipeline.model
-    if hasattr(model, "sp"):  # ours already: switch SP on (an explicit sp wins)
-        model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
+    if refuse_or_switch_on(config, refusal(config), sp):
         text = (spec.description if isinstance(spec, MethodSpecification) else "") or f"sdfstudio {base} {describe(model.sp, False)}."
     else:
         sp = copy.deepcopy(sp) if sp is not None else preset_for(model)

@@ -37,21 +37,23 @@ class FloatLambdaLR(LambdaLR):
         return [float(lr) for lr in super().get_lr()]
 
 
-def _float_lrs(host: LRScheduler, optimizer: Optimizer) -> LRScheduler:
-    """The host's ``LambdaLR`` rebuilt as a :class:`FloatLambdaLR` with the same factors.
+class _FloatLRs:
+    """Mixin for a host scheduler (list it first): its ``LambdaLR`` rebuilt as a
+    :class:`FloatLambdaLR` with the same factors. One mixin for both schedulers, since the fix is
+    the same whatever the factor.
 
     The host scheduler already stepped once (setting numpy learning rates); the new one keeps
     its ``initial_lr`` and overwrites every group's ``lr`` with a float at step 0."""
-    if not isinstance(host, LambdaLR):
-        raise TypeError(f"expected nerfstudio's scheduler to be a LambdaLR, got {type(host).__name__}")
-    return FloatLambdaLR(optimizer, lr_lambda=list(host.lr_lambdas))
-
-
-class FloatExponentialDecayScheduler(ExponentialDecayScheduler):
-    config: "FloatExponentialDecaySchedulerConfig"
 
     def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> LRScheduler:
-        return _float_lrs(super().get_scheduler(optimizer, lr_init), optimizer)
+        host = super().get_scheduler(optimizer, lr_init)  # type: ignore[misc]
+        if not isinstance(host, LambdaLR):
+            raise TypeError(f"expected nerfstudio's scheduler to be a LambdaLR, got {type(host).__name__}")
+        return FloatLambdaLR(optimizer, lr_lambda=list(host.lr_lambdas))
+
+
+class FloatExponentialDecayScheduler(_FloatLRs, ExponentialDecayScheduler):
+    config: "FloatExponentialDecaySchedulerConfig"
 
 
 @dataclass
@@ -61,11 +63,8 @@ class FloatExponentialDecaySchedulerConfig(ExponentialDecaySchedulerConfig):
     _target: Type = field(default_factory=lambda: FloatExponentialDecayScheduler)
 
 
-class FloatCosineDecayScheduler(CosineDecayScheduler):
+class FloatCosineDecayScheduler(_FloatLRs, CosineDecayScheduler):
     config: "FloatCosineDecaySchedulerConfig"
-
-    def get_scheduler(self, optimizer: Optimizer, lr_init: float) -> LRScheduler:
-        return _float_lrs(super().get_scheduler(optimizer, lr_init), optimizer)
 
 
 @dataclass
