@@ -32,8 +32,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import logging
 from pathlib import Path
 from typing import Dict, List, Type
 
@@ -42,7 +40,8 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from bench import failure_regime as fr
-from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.common import OUT_DIR, done_or_run, machine_info, start
+from bench.harness.metrics import table
 from sp_plugins.core import perturb
 from sp_plugins.core.schedule import AlphaSchedule
 from sp_plugins.nerfstudio.neus import SPNeuSModel, SPNeuSModelConfig
@@ -130,11 +129,9 @@ def max_loss_gap(result: dict, steps: int, runs=TRIPLE[1:]) -> float:
 
 
 def summarise(result: dict) -> str:
-    lines = ["| run | PSNR (object) | Chamfer | NC | final loss |", "|---|---|---|---|---|"]
-    for name in TRIPLE:
-        m = result[name]
-        lines.append(f"| {name} | {m['psnr']:.2f} ({m['psnr_object']:.2f}) | {m['chamfer']:.4f} | "
-                     f"{m['normal_consistency']:.3f} | {m['final_loss']:.4f} |")
+    lines = [table(["run", "PSNR (object)", "Chamfer", "NC", "final loss"],
+                   [(name, f"{m['psnr']:.2f} ({m['psnr_object']:.2f})", f"{m['chamfer']:.4f}", f"{m['normal_consistency']:.3f}",
+                     f"{m['final_loss']:.4f}") for name in TRIPLE for m in [result[name]]])]
     gaps = ", ".join(f"first {k}: {max_loss_gap(result, k):.2e}" for k in (1, 10, 50, len(result[TRIPLE[1]]["losses"])))
     base_gap = max_loss_gap(result, 10, runs=TRIPLE[:2])
     lines.append(f"\nlargest |loss(adapter SP) - loss(direct SP)| over the {gaps} steps "
@@ -150,16 +147,9 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     start(1, quiet=("nerfstudio", "PIL", "trimesh"))
     args.out.mkdir(parents=True, exist_ok=True)
-    for name in args.settings:
-        setting = SETTINGS[name]
-        tag = f"{name}_steps{setting.steps}"
-        path = args.out / f"{tag}.json"
-        if path.is_file() and not args.overwrite:
-            logging.info("done already: %s", path.name)
-            result = json.loads(path.read_text())
-        else:
-            result = fr.run_pair(setting, args.out, tag, names=TRIPLE, make=make_config)
-            path.write_text(json.dumps(result, indent=1))
+    for setting, tag in fr.settings_to_run(args.settings, settings=SETTINGS):
+        result, _ = done_or_run(args.out / f"{tag}.json", args.overwrite,
+                                lambda: fr.run_pair(setting, args.out, tag, names=TRIPLE, make=make_config))
         print(f"{tag}\n{summarise(result)}", flush=True)
     print(f"machine: {machine_info()}")
 

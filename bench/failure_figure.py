@@ -7,7 +7,7 @@ same test camera (`sp_plugins.data.render.render_views`). Titles carry object PS
 
 Usage::
 
-    python -m bench.failure_figure --out /work/study/failure_regime dtu-paper_steps600 q-6-views_steps300 \
+    python -m bench.failure_figure --out bench/out/failure_regime dtu-paper_steps600 q-6-views_steps300 \
         --save bench/results/failure_regime/figure.png
 """
 

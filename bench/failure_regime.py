@@ -42,8 +42,8 @@ import torch
 
 from bench.harness import nerfstudio as ns
 from bench.harness import scenes
-from bench.harness.common import OUT_DIR, machine_info, start
-from bench.harness.metrics import crop_to_object, geometry, no_geometry, num, pair_figure, psnr, sdf_mesh
+from bench.harness.common import OUT_DIR, done_or_run, machine_info, start
+from bench.harness.metrics import crop_to_object, geometry, no_geometry, num, pair_figure, psnr, sdf_mesh, table
 from bench.harness.scenes import REAL, SHARED_MESHES, mesh_source  # noqa: F401  (the captures and meshes a setting may name)
 
 PAIRS = {"neus": ("neus-hashgrid", "sp-neus-hashgrid"), "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite")}
@@ -288,20 +288,17 @@ def run_pair(setting: Setting, out: Path, tag: str, names=None, make=None) -> di
 
 
 def summarise(results: List[dict], out: Path) -> str:
-    lines = [
-        "| setting | pair | steps | baseline PSNR (object) | SP PSNR (object) | baseline Chamfer | SP Chamfer | baseline NC | SP NC | s/step | train wall |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    rows = []
     for r in results:
         b, s = (r[name] for name in r.get("pair", PAIR)[:2])
-        lines.append(
-            f"| {r['tag']} | {' vs '.join(r.get('pair', PAIR)[:2])} | {r['setting']['steps']} | {b['psnr']:.2f} ({b['psnr_object']:.2f}) | {s['psnr']:.2f} ({s['psnr_object']:.2f}) | "
-            f"{num(b['chamfer'], 4)} | {num(s['chamfer'], 4)} | {num(b['normal_consistency'], 3)} | {num(s['normal_consistency'], 3)} | "
-            f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f} | {r['train_wall_s'] / 60:.0f} min |"
-        )
-    table = "\n".join(lines)
-    (out / "failure_regime.md").write_text(table + "\n")
-    return table
+        rows.append((r["tag"], " vs ".join(r.get("pair", PAIR)[:2]), r["setting"]["steps"], f"{b['psnr']:.2f} ({b['psnr_object']:.2f})",
+                     f"{s['psnr']:.2f} ({s['psnr_object']:.2f})", num(b["chamfer"], 4), num(s["chamfer"], 4),
+                     num(b["normal_consistency"], 3), num(s["normal_consistency"], 3),
+                     f"{b['median_step_s']:.2f} / {s['median_step_s']:.2f}", f"{r['train_wall_s'] / 60:.0f} min"))
+    text = table(["setting", "pair", "steps", "baseline PSNR (object)", "SP PSNR (object)", "baseline Chamfer", "SP Chamfer",
+                  "baseline NC", "SP NC", "s/step", "train wall"], rows)
+    (out / "failure_regime.md").write_text(text + "\n")
+    return text
 
 
 def quick(mesh: str, out: Path) -> str:
@@ -314,6 +311,15 @@ def quick(mesh: str, out: Path) -> str:
     yes = {True: "yes", False: "no"}
     return (f"baseline PSNR {b['psnr_object']:.2f}, SP PSNR {s['psnr_object']:.2f}, "
             f"baseline failed: {yes[b['failed']]}, SP failed: {yes[s['failed']]}")
+
+
+def settings_to_run(names, steps: Optional[int] = None, settings: Optional[Dict[str, Setting]] = None):
+    """``(setting, tag)`` of each named setting (of :data:`SETTINGS` unless given), at ``steps`` if given;
+    the tag, ``NAME_stepsN``, names its results."""
+    for name in names:
+        setting = (settings or SETTINGS)[name]
+        setting = setting if steps is None else dataclasses.replace(setting, steps=steps)
+        yield setting, f"{name}_steps{setting.steps}"
 
 
 def main(argv=None) -> None:
@@ -342,15 +348,11 @@ def main(argv=None) -> None:
     if args.quick:
         print(quick(args.mesh, args.out))
         return
-    for name in args.settings:
-        setting = SETTINGS[name] if args.steps is None else dataclasses.replace(SETTINGS[name], steps=args.steps)
-        tag = f"{name}_steps{setting.steps}"
+    for setting, tag in settings_to_run(args.settings, args.steps):
         path = args.out / f"{tag}.json"
-        if path.is_file() and not args.overwrite:
-            logging.info("done already: %s", path.name)
+        result, fresh = done_or_run(path, args.overwrite, lambda: run_pair(setting, args.out, tag))
+        if not fresh:
             continue
-        result = run_pair(setting, args.out, tag)
-        path.write_text(json.dumps(result, indent=1))
         logging.info("wrote %s: baseline %.2f dB (object %.2f), SP %.2f dB (object %.2f)", path.name,
                      *(result[n][k] for n in result["pair"] for k in ("psnr", "psnr_object")))
         results = [json.loads(p.read_text()) for p in sorted(args.out.glob("*.json"))]

@@ -53,8 +53,8 @@ import torch
 
 from bench.harness import nerfstudio as ns
 from bench.harness import radiance as rd
-from bench.harness.common import machine_info, paired_timing, ratio_summary, safe_name, start
-from bench.harness.metrics import fmt, loss_figure
+from bench.harness.common import done_or_run, machine_info, paired_timing, ratio_summary, safe_name, start
+from bench.harness.metrics import fmt, loss_figure, ratio_cell, table
 from bench.harness.radiance import BOX, SCALE, SCENES, MipBudget, budget_key
 from bench.harness.scenes import object_mask_paths
 from sp_plugins.nerfstudio.components.views import VIEW_SELECTIONS
@@ -185,9 +185,11 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
                tag: str, overwrite: bool, save_grids: bool = False) -> dict:
     key = budget_key(scene, budget, list(variants), list(methods), seed)
     path = rd.OUT / "relu" / f"{tag}_{scene}_{key}.json"
-    if path.is_file() and not overwrite:
-        logging.info("done already: %s", path.name)
-        return json.loads(path.read_text())
+    return done_or_run(path, overwrite, lambda: train_relu(scene, budget, variants, methods, seed, tag, key, path, save_grids))[0]
+
+
+def train_relu(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], methods: Sequence[str], seed: int, tag: str,
+               key: str, path: Path, save_grids: bool) -> dict:
     data = rd.scene_dir(scene, budget.views, budget.image, budget.test_views)
     work = rd.OUT / "runs" / f"relu-{scene}-{key}"
     runs: Dict[str, ns.Run] = {}
@@ -211,11 +213,15 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
         for variant in variants:
             result[variant.name].update(ns.active_time_ratios(runs[variant.name], runs["relu-field-flat"]))
     result["machine"] = machine_info()
+    figures(runs, result, path)
+    return result
+
+
+def figures(runs: Dict[str, ns.Run], result: dict, path: Path) -> None:
+    """Test renders and loss curves next to the result."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
     ns.save_renders(runs, path.with_suffix(".png"))
     loss_figure([("", {name: result[name]["losses"] for name in runs})], path.with_name(path.stem + "_loss.png"))
-    return result
 
 
 # -- MipNeRF -----------------------------------------------------------------------------------
@@ -224,9 +230,10 @@ def relu_study(scene: str, budget: ReLUBudget, variants: Sequence[SPVariant], me
 def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: bool) -> dict:
     key = budget_key(scene, budget, seed)
     path = rd.OUT / "mipnerf" / f"{tag}_{scene}_{key}.json"
-    if path.is_file() and not overwrite:
-        logging.info("done already: %s", path.name)
-        return json.loads(path.read_text())
+    return done_or_run(path, overwrite, lambda: train_mip(scene, budget, seed, tag, key, path))[0]
+
+
+def train_mip(scene: str, budget: MipBudget, seed: int, tag: str, key: str, path: Path) -> dict:
     data = rd.dtu_scene_dir(scene) if budget.dtu_like else rd.scene_dir(scene, 24, budget.image, budget.test_views)
     work = rd.OUT / "runs" / f"mip-{scene}-{key}"
     runs = {"mipnerf": ns.Run("mipnerf", rd.mip_config(False, data, budget, seed, work), seed),
@@ -241,10 +248,7 @@ def mip_study(scene: str, budget: MipBudget, seed: int, tag: str, overwrite: boo
                      fmt(result[name].get("psnr_object")), result[name]["background_opacity"])
     result["sp-mipnerf"].update(ns.active_time_ratios(runs["sp-mipnerf"], runs["mipnerf"]))
     result["machine"] = machine_info()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
-    ns.save_renders(runs, path.with_suffix(".png"))
-    loss_figure([("", {name: result[name]["losses"] for name in runs})], path.with_name(path.stem + "_loss.png"))
+    figures(runs, result, path)
     return result
 
 
@@ -328,32 +332,21 @@ def cost_study(resolution: int, rays: int, samples: int, color_mode: str, repeat
 
 
 def relu_table(results: List[dict]) -> str:
-    lines = ["| tag | scene | grid | steps | run | train PSNR | test PSNR | SSIM | bg opacity | fg opacity | final train loss | s/step | SP time ratio (active / whole run) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in results:
-        b = r["budget"]
-        for name in r["runs"]:
-            m = r[name]
-            ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
-            lines.append(f"| {r['tag']} | {r['scene']} | {b['resolution']}^3 {b['color_mode']} | {b['steps']} | {name} | "
-                         f"{fmt(m.get('train_psnr'))} | {m['psnr']:.2f} | "
-                         f"{m['ssim']:.3f} | {m['background_opacity']:.4f} | {m['foreground_opacity']:.3f} | {m['final_loss']:.5f} | "
-                         f"{m['median_step_s']:.3f} | {ratio} |")
-    return "\n".join(lines)
+    return table(["tag", "scene", "grid", "steps", "run", "train PSNR", "test PSNR", "SSIM", "bg opacity", "fg opacity",
+                  "final train loss", "s/step", "SP time ratio (active / whole run)"],
+                 [(r["tag"], r["scene"], f"{b['resolution']}^3 {b['color_mode']}", b["steps"], name, fmt(m.get("train_psnr")),
+                   f"{m['psnr']:.2f}", f"{m['ssim']:.3f}", f"{m['background_opacity']:.4f}", f"{m['foreground_opacity']:.3f}",
+                   f"{m['final_loss']:.5f}", f"{m['median_step_s']:.3f}", ratio_cell(m))
+                  for r in results for b in [r["budget"]] for name in r["runs"] for m in [r[name]]])
 
 
 def mip_table(results: List[dict]) -> str:
-    lines = ["| tag | scene | seed | views | steps | run | test PSNR | PSNR in object mask | SSIM | bg opacity | s/step | SP time ratio (active / whole run) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in results:
-        b = r["budget"]
-        for name in r["runs"]:
-            m = r[name]
-            ratio = f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}" if "time_ratio_whole_run" in m else ""
-            scene = f"{r['scene']} (DTU-like)" if b.get("dtu_like") else r["scene"]
-            lines.append(f"| {r['tag']} | {scene} | {r['seed']} | {b['views']} | {b['steps']} | {name} | {m['psnr']:.2f} | {fmt(m.get('psnr_object'))} | {m['ssim']:.3f} | "
-                         f"{m['background_opacity']:.4f} | {m['median_step_s']:.3f} | {ratio} |")
-    return "\n".join(lines)
+    return table(["tag", "scene", "seed", "views", "steps", "run", "test PSNR", "PSNR in object mask", "SSIM", "bg opacity",
+                  "s/step", "SP time ratio (active / whole run)"],
+                 [(r["tag"], f"{r['scene']} (DTU-like)" if b.get("dtu_like") else r["scene"], r["seed"], b["views"], b["steps"],
+                   name, f"{m['psnr']:.2f}", fmt(m.get("psnr_object")), f"{m['ssim']:.3f}", f"{m['background_opacity']:.4f}",
+                   f"{m['median_step_s']:.3f}", ratio_cell(m))
+                  for r in results for b in [r["budget"]] for name in r["runs"] for m in [r[name]]])
 
 
 def collect(study: str, tag: Optional[str]) -> List[dict]:
@@ -436,7 +429,7 @@ def main(argv=None) -> None:
         for scene in args.scenes:
             for seed in args.seeds:
                 relu_study(scene, budget, args.sp, args.methods, seed, args.tag, args.overwrite, args.save_grids)
-        table = relu_table(collect("relu", args.tag))
+        text = relu_table(collect("relu", args.tag))
     elif args.study == "mipnerf" and args.quick:
         from bench import sparse_views
 
@@ -451,21 +444,18 @@ def main(argv=None) -> None:
         for scene in args.scenes:
             for seed in args.seeds:
                 mip_study(scene, budget, seed, args.tag, args.overwrite)
-        table = mip_table(collect("mipnerf", args.tag))
+        text = mip_table(collect("mipnerf", args.tag))
     else:
         results = [cost_study(r, args.rays, args.samples, args.color_mode, args.repeats, v, args.end)
                    for r in args.resolutions for v in args.voxels]
         (rd.OUT / f"cost_{args.tag}.json").write_text(json.dumps(results, indent=1))
-        lines = ["| grid | alpha | s/step plain | SP total | SP arithmetic | slower lookups | alpha = 0 | averaged over the schedule |",
-                 "|---|---|---|---|---|---|---|---|"]
-        for r in results:
-            s = r["summary"]
-            lines.append(f"| {r['resolution']}^3 {r['color_mode']} | {r['alpha_voxels']:g} vox | {s['plain']['median_s']:.3f} | {r['sp_total_ratio']:.3f} | "
-                         f"+{100 * r['sp_arithmetic_share']:.1f}% | +{100 * r['lookup_slowdown_share']:.1f}% | "
-                         f"{s['sp_inactive']['ratio_vs_plain']:.3f} | {r['schedule_average_ratio']:.3f} (end {r['end']}) |")
-        table = "\n".join(lines)
-    (rd.OUT / f"{args.study}_{args.tag}.md").write_text(table + "\n")
-    print(table)
+        text = table(["grid", "alpha", "s/step plain", "SP total", "SP arithmetic", "slower lookups", "alpha = 0", "averaged over the schedule"],
+                     [(f"{r['resolution']}^3 {r['color_mode']}", f"{r['alpha_voxels']:g} vox", f"{s['plain']['median_s']:.3f}",
+                       f"{r['sp_total_ratio']:.3f}", f"+{100 * r['sp_arithmetic_share']:.1f}%", f"+{100 * r['lookup_slowdown_share']:.1f}%",
+                       f"{s['sp_inactive']['ratio_vs_plain']:.3f}", f"{r['schedule_average_ratio']:.3f} (end {r['end']})")
+                      for r in results for s in [r["summary"]]])
+    (rd.OUT / f"{args.study}_{args.tag}.md").write_text(text + "\n")
+    print(text)
     print(f"\nwall time {time.time() - t0:.0f} s; machine: {machine_info()}")
 
 

@@ -27,13 +27,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
 from pathlib import Path
 from typing import List
 
 from bench.harness import nerfstudio as ns
-from bench.harness.common import OUT_DIR, machine_info, start
-from bench.harness.metrics import loss_figure
+from bench.harness.common import OUT_DIR, GridFieldSize, done_or_run, machine_info, start
+from bench.harness.metrics import loss_figure, table
 from bench.harness.scenes import mesh_source, synthetic
 
 PAIRS = {
@@ -47,7 +46,7 @@ SCENES = {"spot": "spot", "bunny": mesh_source("bunny"), "torus": "torus"}
 
 
 @dataclasses.dataclass
-class Budget:
+class Budget(GridFieldSize):
     """The CPU-sized setting (shared by every run; stated in the results)."""
 
     steps: int = 400
@@ -55,11 +54,6 @@ class Budget:
     num_samples: int = 32
     num_samples_importance: int = 16
     num_up_sample_steps: int = 2
-    hidden_dim: int = 64
-    geo_feat_dim: int = 31
-    num_levels: int = 16
-    max_res: int = 256
-    log2_hashmap_size: int = 16
     lr: float = 5e-3
     warm_up_end: int = 100
     views: int = 24
@@ -81,8 +75,7 @@ def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
     if hasattr(model, "c2f_init_levels"):
         model.c2f_init_levels = budget.c2f_init_levels
     b = budget
-    shrink(config, field=dict(hidden_dim=b.hidden_dim, hidden_dim_color=b.hidden_dim, geo_feat_dim=b.geo_feat_dim,
-                              num_levels=b.num_levels, max_res=b.max_res, log2_hashmap_size=b.log2_hashmap_size, bias=0.5),
+    shrink(config, field=dict(**b.field_settings(), bias=0.5),
            num_samples=b.num_samples, num_samples_importance=b.num_samples_importance, num_up_sample_steps=b.num_up_sample_steps,
            background_model="none", background_color="white",  # synthetic objects on white
            eval_num_rays_per_chunk=1024,
@@ -110,29 +103,18 @@ def run_pair(scene: str, pair: str, seed: int, budget: Budget, out: Path) -> dic
 
 
 def summarise(results: List[dict], out: Path) -> str:
-    lines = [
-        "| scene | pair | seed | method | test PSNR | SSIM | Chamfer | normal cons. | F-score | area ratio | s/step |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        for name in PAIRS[r["pair"]]:
-            m = r[name]
-            lines.append(
-                f"| {r['scene']} | {r['pair']} | {r['seed']} | {name} | {m['psnr']:.2f} | {m['ssim']:.3f} | "
-                f"{m['chamfer']:.4f} | {m['normal_consistency']:.3f} | {m['fscore']:.3f} | {m['area_ratio']:.2f} | "
-                f"{m['median_step_s']:.3f} |"
-            )
-    lines.append("")
-    lines.append("| scene | pair | seed | SP per-step time ratio (median of alternating pairs) |")
-    lines.append("|---|---|---|---|")
-    for r in results:
-        lines.append(f"| {r['scene']} | {r['pair']} | {r['seed']} | {r['sp_time_ratio']:.3f} |")
-    table = "\n".join(lines)
-    (out / "sdf_methods.md").write_text(table + "\n")
+    runs = [(r, name, r[name]) for r in results for name in PAIRS[r["pair"]]]
+    text = table(["scene", "pair", "seed", "method", "test PSNR", "SSIM", "Chamfer", "normal cons.", "F-score", "area ratio", "s/step"],
+                 [(r["scene"], r["pair"], r["seed"], name, f"{m['psnr']:.2f}", f"{m['ssim']:.3f}", f"{m['chamfer']:.4f}",
+                   f"{m['normal_consistency']:.3f}", f"{m['fscore']:.3f}", f"{m['area_ratio']:.2f}", f"{m['median_step_s']:.3f}")
+                  for r, name, m in runs])
+    text += "\n\n" + table(["scene", "pair", "seed", "SP per-step time ratio (median of alternating pairs)"],
+                           [(r["scene"], r["pair"], r["seed"], f"{r['sp_time_ratio']:.3f}") for r in results])
+    (out / "sdf_methods.md").write_text(text + "\n")
     (out / "sdf_methods.json").write_text(json.dumps([{k: v for k, v in r.items()} for r in results], indent=1))
     loss_figure([(f"{r['scene']} / {r['pair']} / seed {r['seed']}", {n: r[n]["losses"] for n in PAIRS[r["pair"]]})
                  for r in results], out / "sdf_methods_loss.png")
-    return table
+    return text
 
 
 def main(argv=None) -> None:
@@ -152,11 +134,7 @@ def main(argv=None) -> None:
         for pair in args.pairs:
             for seed in args.seeds:
                 path = args.out / f"{scene}_{pair}_seed{seed}_steps{budget.steps}.json"
-                if path.is_file() and not args.overwrite:
-                    logging.info("done already: %s", path.name)
-                    continue
-                path.write_text(json.dumps(run_pair(scene, pair, seed, budget, args.out), indent=1))
-                logging.info("wrote %s", path)
+                done_or_run(path, args.overwrite, lambda: run_pair(scene, pair, seed, budget, args.out))
     # the summary covers every finished run at this budget, not only the ones asked for now
     done = sorted(args.out.glob(f"*_steps{budget.steps}.json"))
     results = [json.loads(p.read_text()) for p in done]

@@ -45,11 +45,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, is_real
+from bench.failure_regime import FAILED_PSNR, SETTINGS, Setting, is_real, settings_to_run
 from bench.failure_regime import scene_dir as rendered_scene
 from bench.harness import scenes
 from bench.harness import sdfstudio as host
-from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.common import OUT_DIR, done_or_run, machine_info, start
 from bench.harness.metrics import crop_to_object, geometry, no_geometry, num, pair_figure, psnr, sdf_mesh
 
 PAIR = ("neus", "sp-neus")
@@ -276,15 +276,10 @@ def main(argv=None) -> None:
     start(args.threads, quiet=("nerfstudio", "PIL", "trimesh"))
     host.prepare()
     args.out.mkdir(parents=True, exist_ok=True)
-    for name in args.settings:
-        setting = SETTINGS[name] if args.steps is None else dataclasses.replace(SETTINGS[name], steps=args.steps)
-        tag = f"{name}_steps{setting.steps}"
-        path = args.out / f"{tag}.json"
-        if path.is_file() and not args.overwrite:
-            logging.info("done already: %s", path.name)
+    for setting, tag in settings_to_run(args.settings, args.steps):
+        result, fresh = done_or_run(args.out / f"{tag}.json", args.overwrite, lambda: run_pair(setting, args.out, tag))
+        if not fresh:
             continue
-        result = run_pair(setting, args.out, tag)
-        path.write_text(json.dumps(result, indent=1))
         b, s = result[PAIR[0]], result[PAIR[1]]
         print(f"{tag}: neus {b['psnr']:.2f} dB (object {b['psnr_object']:.2f}, Chamfer {num(b['chamfer'], 4)}); "
               f"sp-neus {s['psnr']:.2f} dB (object {s['psnr_object']:.2f}, Chamfer {num(s['chamfer'], 4)})", flush=True)

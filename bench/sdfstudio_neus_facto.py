@@ -28,25 +28,21 @@ import json
 from pathlib import Path
 
 from bench.harness import sdfstudio as host
-from bench.harness.common import OUT_DIR, machine_info, start
+from bench.harness.common import OUT_DIR, GridFieldSize, machine_info, start
+from bench.harness.metrics import table
 from bench.harness.scenes import synthetic
 
 PAIR = ("neus-facto", "sp-neus-facto")
 
 
 @dataclasses.dataclass
-class Budget:
+class Budget(GridFieldSize):
     """The CPU-sized setting shared by both runs (stated in the results)."""
 
     steps: int = 400
     rays: int = 256
     proposal_samples: tuple = (64, 32)
     neus_samples: int = 24
-    hidden_dim: int = 64
-    geo_feat_dim: int = 31
-    num_levels: int = 16
-    max_res: int = 256
-    log2_hashmap_size: int = 16
     lr: float = 5e-3
     warm_up_end: int = 40
     views: int = 16
@@ -61,9 +57,7 @@ def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
     b = budget
     config = host.configure(name, data, out, steps=b.steps, seed=seed, rays=b.rays, experiment=f"{name}-seed{seed}",
                             skip_every_for_val_split=4)
-    host.shrink(config, field=dict(hidden_dim=b.hidden_dim, hidden_dim_color=b.hidden_dim, geo_feat_dim=b.geo_feat_dim,
-                                   num_levels=b.num_levels, max_res=b.max_res, log2_hashmap_size=b.log2_hashmap_size,
-                                   inside_outside=b.inside_outside),
+    host.shrink(config, field=dict(**b.field_settings(), inside_outside=b.inside_outside),
                 num_proposal_samples_per_ray=b.proposal_samples, num_neus_samples_per_ray=b.neus_samples,
                 background_color="white",  # our renders are composited on white
                 lr={"fields": b.lr, "field_background": b.lr}, warm_up_end=b.warm_up_end, max_steps=b.steps)
@@ -86,16 +80,11 @@ def run_pair(scene: str, seed: int, budget: Budget, out: Path) -> dict:
 
 
 def summarise(result: dict) -> str:
-    lines = [
-        "| method | Chamfer | F-score | normal cons. | area ratio | PSNR (train views) | final loss | s/step |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for name in PAIR:
-        m = result[name]
-        lines.append(f"| {name} | {m['chamfer']:.4f} | {m['fscore']:.3f} | {m['normal_consistency']:.3f} | "
-                     f"{m['area_ratio']:.2f} | {m['psnr_train_views']:.2f} | {m['final_loss']:.4f} | {m['median_step_s']:.3f} |")
-    lines.append(f"\nSP per-step time ratio (median of alternating pairs): {result['sp_time_ratio']:.3f}")
-    return "\n".join(lines)
+    rows = [(name, f"{m['chamfer']:.4f}", f"{m['fscore']:.3f}", f"{m['normal_consistency']:.3f}", f"{m['area_ratio']:.2f}",
+             f"{m['psnr_train_views']:.2f}", f"{m['final_loss']:.4f}", f"{m['median_step_s']:.3f}")
+            for name in PAIR for m in [result[name]]]
+    return (table(["method", "Chamfer", "F-score", "normal cons.", "area ratio", "PSNR (train views)", "final loss", "s/step"], rows)
+            + f"\n\nSP per-step time ratio (median of alternating pairs): {result['sp_time_ratio']:.3f}")
 
 
 def main(argv=None) -> None:

@@ -48,7 +48,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 from bench.harness import nerfstudio as ns
 from bench.harness import radiance as rd
 from bench.harness.common import machine_info, safe_name, start
-from bench.harness.metrics import fmt, render_grid
+from bench.harness.metrics import fmt, render_grid, table
 from bench.harness.scenes import object_mask_paths
 
 BASELINE = "mipnerf"
@@ -251,8 +251,7 @@ def summary(results: Sequence[dict]) -> str:
         groups.setdefault(key, []).append(r)
         if r["run"] == BASELINE:
             base[(key[0], key[1], r["seed"])] = r
-    lines = ["| scene | views | run | seeds | PSNR | PSNR object | vs baseline (object) | ahead / seeds | SSIM | SSIM object | s/step |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = []
     for (scene, views, run), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], kv[0][2] != BASELINE, kv[0][2])):
         obj = [r.get("psnr_object") for r in rs]
         paired = [(r.get("psnr_object") or r["psnr"]) - (b.get("psnr_object") or b["psnr"])
@@ -261,10 +260,11 @@ def summary(results: Sequence[dict]) -> str:
         margin = statistics.stdev(spread) if len(spread) > 1 else 0.0
         ahead = "" if run == BASELINE else f"{sum(d > margin for d in paired)} / {len(paired)}"
         diff = "" if run == BASELINE or not paired else (f"{statistics.mean(paired):+.2f}" + (f" ± {statistics.stdev(paired):.2f}" if len(paired) > 1 else ""))
-        lines.append(f"| {scene} | {views} | {run} | {len(rs)} | {_mean_spread([r['psnr'] for r in rs])} | {_mean_spread(obj)} | {diff} | "
-                     f"{ahead} | {_mean_spread([r['ssim'] for r in rs])} | {_mean_spread([r.get('ssim_object') for r in rs])} | "
-                     f"{statistics.mean(r['median_step_s'] for r in rs):.3f} |")
-    return "\n".join(lines)
+        rows.append((scene, views, run, len(rs), _mean_spread([r["psnr"] for r in rs]), _mean_spread(obj), diff, ahead,
+                     _mean_spread([r["ssim"] for r in rs]), _mean_spread([r.get("ssim_object") for r in rs]),
+                     f"{statistics.mean(r['median_step_s'] for r in rs):.3f}"))
+    return table(["scene", "views", "run", "seeds", "PSNR", "PSNR object", "vs baseline (object)", "ahead / seeds", "SSIM",
+                  "SSIM object", "s/step"], rows)
 
 
 def quick_line(results: Dict[str, dict], sp_name: str) -> str:

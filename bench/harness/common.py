@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -9,7 +10,7 @@ import platform
 import statistics
 import time
 from pathlib import Path
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Tuple
 
 import torch
 
@@ -87,6 +88,34 @@ def ratio_summary(times: Dict[str, List[float]], baseline: str) -> dict:
 def safe_name(run: str) -> str:
     """A run's name as a file or folder name (``sp-relu-field[8vox,end0.3]`` -> ``sp-relu-field_8vox_end0.3``)."""
     return run.replace("[", "_").replace("]", "").replace(",", "_")
+
+
+def done_or_run(path: Path, overwrite: bool, run: Callable[[], dict]) -> Tuple[dict, bool]:
+    """A resumable result: the one at ``path`` if it is there (logged as done already) unless ``overwrite``,
+    else ``run()``'s, written to ``path``. Returns ``(result, whether it was computed now)``."""
+    if path.is_file() and not overwrite:
+        logging.info("done already: %s", path.name)
+        return json.loads(path.read_text()), False
+    result = run()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    return result, True
+
+
+@dataclasses.dataclass
+class GridFieldSize:
+    """The size of a NeuS-family SDF field (hash grid and MLPs) at a CPU budget, shared by the SDF studies."""
+
+    hidden_dim: int = 64
+    geo_feat_dim: int = 31
+    num_levels: int = 16
+    max_res: int = 256
+    log2_hashmap_size: int = 16
+
+    def field_settings(self) -> dict:
+        """The field config's settings (``shrink(config, field=...)``); the colour MLP as wide as the SDF's."""
+        return dict(hidden_dim=self.hidden_dim, hidden_dim_color=self.hidden_dim, geo_feat_dim=self.geo_feat_dim,
+                    num_levels=self.num_levels, max_res=self.max_res, log2_hashmap_size=self.log2_hashmap_size)
 
 
 def write_json(name: str, payload: dict) -> Path:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -57,6 +57,19 @@ def _crop(mesh, low, high):
     out.update_faces(keep)
     out.remove_unreferenced_vertices()
     return out
+
+
+def table(columns: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    return "\n".join(lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows])
+
+
+def ratio_cell(m: dict) -> str:
+    """SP's time ratio while active / over the whole run (:func:`bench.harness.lockstep.active_time_ratios`), if measured."""
+    if "time_ratio_whole_run" not in m:
+        return ""
+    return f"{fmt(m.get('time_ratio_while_active'), '.3f')} / {fmt(m.get('time_ratio_whole_run'), '.3f')}"
 
 
 def fmt(value, spec: str = ".2f") -> str:
