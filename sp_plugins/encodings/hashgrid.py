@@ -49,7 +49,7 @@ Precision: the torch backend computes in the input's dtype (float32 or float64, 
 works) and in float32 for half-precision inputs, returning the input's dtype; tcnn's output is
 cast to the input's dtype too.
 
-Training tips (measured in ``bench/hashgrid_speed.py`` on a CPU): use ``torch.optim.Adam(...,
+Training tips (measured in ``bench/speed/hashgrid_speed.py`` on a CPU): use ``torch.optim.Adam(...,
 fused=True)``; at 2^16 points per step it updates the 12M-value table about 5x faster than the
 default Adam. A row-sparse optimizer is not provided: at that batch a step touches about 60% of
 the rows, and finding them costs more than the fused dense update. Coarse-to-fine schedules call

@@ -18,7 +18,7 @@ eikonal loss needs the second):
 - ``splat(w, g)[r] = sum_{l,c,n: row = r} w[l, c, n] * g[n, l]``        (d interp / d table),
 - ``dot(table, g)[l, c, n] = <table[row(l, c, n)], g[n, l]>``           (d interp / d w).
 
-Why it is fast on a CPU (measured in ``bench/hashgrid_speed.py``; what was tried and dropped is
+Why it is fast on a CPU (measured in ``bench/speed/hashgrid_speed.py``; what was tried and dropped is
 listed in ``bench/RESULTS.md``):
 
 - all levels go through a handful of large ops: on a shared CPU every op pays a thread barrier,
