@@ -403,6 +403,16 @@ class ResumableTrainer:
         return self.step_index >= self.config.steps
 
     # -- set-up shared by the tasks (each trainer's __init__ calls these in this order) -------------
+    def _build_field(self, **kwargs):
+        """``NeuralField(config.encoding, **kwargs)`` on the device, initialised from ``config.seed``
+        alone: torch's global generator is forked, so neither what ran before nor the fit's own
+        draws change the initialisation, and it leaves the caller's stream as it was."""
+        from sp_plugins.tasks.fields import NeuralField
+
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.config.seed)
+            return NeuralField(self.config.encoding, **kwargs).to(self.device)
+
     def _setup_sp(self, bounds: tuple[float, float], dim: int):
         """``self.sp`` from ``config.sp``, in training mode, on the trainer's device; returns the
         config it was built from. Unless ``sp.seed`` is set, the noise is seeded with ``seed + 1``:

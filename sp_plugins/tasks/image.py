@@ -36,7 +36,7 @@ from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
 from sp_plugins.tasks.common import ResumableTrainer, run_to_end
-from sp_plugins.tasks.fields import EncodingConfig, NeuralField
+from sp_plugins.tasks.fields import EncodingConfig
 
 
 def _image_sp() -> SPConfig:
@@ -259,12 +259,8 @@ class ImageFitTrainer(ResumableTrainer):
         self.image = image
         self.colours = torch.as_tensor(image.reshape(-1, 3), device=self.device)
         self.positions = pixel_centres(self.height, self.width).to(self.device)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(config.seed)
-            self.field = NeuralField(
-                config.encoding, dim=2, out_dim=3, hidden=config.hidden, activation="relu",
-                include_input=False, bounds=(0.0, 1.0),
-            ).to(self.device)
+        self.field = self._build_field(dim=2, out_dim=3, hidden=config.hidden, activation="relu", include_input=False,
+                                       bounds=(0.0, 1.0))
         if config.level_masking:
             from sp_plugins.encodings.level_mask import PerPointLevelMask
 

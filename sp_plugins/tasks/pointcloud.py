@@ -28,7 +28,7 @@ from torch import Tensor
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, OrientedPoints
 from sp_plugins.tasks.common import SDFTrainer, run_to_end
-from sp_plugins.tasks.fields import EncodingConfig, NeuralField
+from sp_plugins.tasks.fields import EncodingConfig
 
 
 def _pointcloud_sp() -> SPConfig:
@@ -144,20 +144,17 @@ class PointCloudSDFTrainer(SDFTrainer):
         self.frame = Frame.fit(data.points, config.frame_diagonal)
         self.points = torch.as_tensor(self.frame.to_frame(data.points), dtype=torch.float32, device=self.device)
         self.normals = torch.as_tensor(data.normals, dtype=torch.float32, device=self.device)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(config.seed)
-            self.field = NeuralField(
-                config.encoding,
-                dim=3,
-                out_dim=1,
-                hidden=config.hidden,
-                geometric_init=config.geometric_init,
-                include_input=config.geometric_init if config.include_input is None else config.include_input,
-                init_radius=config.init_radius,
-            ).to(self.device)
-            if config.output_bias is not None and not config.geometric_init:
-                with torch.no_grad():
-                    self.field.mlp[-1].bias.fill_(config.output_bias)
+        self.field = self._build_field(
+            dim=3,
+            out_dim=1,
+            hidden=config.hidden,
+            geometric_init=config.geometric_init,
+            include_input=config.geometric_init if config.include_input is None else config.include_input,
+            init_radius=config.init_radius,
+        )
+        if config.output_bias is not None and not config.geometric_init:
+            with torch.no_grad():
+                self.field.mlp[-1].bias.fill_(config.output_bias)
         sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)
         self.optimizer = torch.optim.Adam(self._param_groups(sp_config))
         gamma = config.lr_final_ratio ** (1.0 / max(config.steps - 1, 1))

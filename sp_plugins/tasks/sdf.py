@@ -22,7 +22,7 @@ from torch import Tensor
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, sample_surface
 from sp_plugins.tasks.common import SDFTrainer, run_to_end
-from sp_plugins.tasks.fields import EncodingConfig, NeuralField
+from sp_plugins.tasks.fields import EncodingConfig
 
 
 def _sdf_sp() -> SPConfig:
@@ -114,9 +114,7 @@ class SDFFitTrainer(SDFTrainer):
             (as_t(near), as_t(dists[:n_near])),
             (as_t(uniform), as_t(dists[n_near:])),
         ]
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(config.seed)
-            self.field = NeuralField(config.encoding, dim=3, out_dim=1, hidden=config.hidden, include_input=False).to(self.device)
+        self.field = self._build_field(dim=3, out_dim=1, hidden=config.hidden, include_input=False)
         sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)
         self.optimizer = torch.optim.Adam(self._param_groups(sp_config), betas=(0.9, 0.99), eps=1e-15)
         self._start_steps()
