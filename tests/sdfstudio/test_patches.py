@@ -10,6 +10,8 @@ import subprocess
 import sys
 from types import SimpleNamespace
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -73,23 +75,29 @@ def test_cuda_only_calls_run_on_the_cpu():
     import scripts.train as train
     from nerfstudio.utils import marching_cubes, writer
 
-    from sp_plugins.patches.sdfstudio_cuda import cpu_meaning
+    from sp_plugins.patches.sdfstudio_cuda import CPU_TORCH, cpu_meaning
 
     # the host still makes these calls (fails loudly when sdfstudio changes)
-    assert "torch.cuda.synchronize()" in inspect.getsource(writer.TimeWriter.__enter__.__wrapped__)
-    assert "torch.cuda.set_device" in inspect.getsource(train.train_loop.__wrapped__)
+    assert "torch.cuda.synchronize()" in inspect.getsource(writer.TimeWriter.__enter__)
+    assert "torch.cuda.set_device" in inspect.getsource(train.train_loop)
     assert ".cuda()" in inspect.getsource(marching_cubes.get_surface_sliding.__wrapped__)
     assert extract_mesh.get_surface_sliding is marching_cubes.get_surface_sliding
-    with pytest.raises((RuntimeError, AssertionError)):  # unpatched: no CUDA here
-        writer.TimeWriter.__enter__.__wrapped__(writer.TimeWriter(None, "x", write=False))
+    # only the writer's and the train loop's own `torch` is the CPU view; torch itself is untouched
+    assert writer.torch is CPU_TORCH and train.torch is CPU_TORCH and CPU_TORCH.Tensor is torch.Tensor
+    with pytest.raises((RuntimeError, AssertionError)):  # torch's own: no CUDA here
+        torch.cuda.synchronize()
     with writer.TimeWriter(None, "x", write=False) as timer:
         pass
     assert timer.duration >= 0
-    saved = torch.Tensor.cuda, torch.cuda.synchronize
+    saved = torch.Tensor.cuda, torch.cuda.synchronize, torch.cuda.set_device
+    t = torch.ones(2)
     with cpu_meaning():
-        t = torch.ones(2)
-        assert t.cuda() is t
-    assert (torch.Tensor.cuda, torch.cuda.synchronize) == saved
+        with pytest.raises((RuntimeError, AssertionError)):  # our code (this test) still gets torch's meaning
+            t.cuda()
+        host_code = {"__name__": "nerfstudio.utils.marching_cubes", "t": t}  # code that runs as sdfstudio's
+        exec("moved = t.cuda()", host_code)
+        assert host_code["moved"] is t
+    assert (torch.Tensor.cuda, torch.cuda.synchronize, torch.cuda.set_device) == saved
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU meaning of CUDA-only calls")
@@ -238,3 +246,161 @@ def test_checkpoints_with_numpy_learning_rates_load_in_sdfstudio_and_nowhere_els
     assert trainer._start_step == 8 and optimizers.loaded["fields"]["param_groups"][0]["lr"] == scheduler.get_last_lr()[0]
     with pytest.raises(Exception, match="Weights only load failed"):  # and after it, torch's default again
         torch.load(path, map_location="cpu")
+
+
+# -- the registry (issue 32): every sdfstudio entry guarded; after each scope the host as it was --------------------
+
+
+def _sdfstudio_entries():
+    from sp_plugins.patches import registry
+
+    return [p for p in registry.entries("sdfstudio")]
+
+
+def test_every_sdfstudio_entry_is_guarded(monkeypatch):
+    from sp_plugins.patches import sdfstudio_import_hook
+    from sp_plugins.patches.registry import PatchGuardError
+
+    entries = _sdfstudio_entries()
+    assert {p.name for p in entries} >= {"sdfstudio_import_hook", "sdfstudio_dataclasses", "sdfstudio_torch_six", "sdfstudio_cuda",
+                                         "sdfstudio_lpips", "sdfstudio_tcnn", "sdfstudio_checkpoint_load", "sdfstudio_methods"}
+    real_source = sdfstudio_import_hook.host_source
+    for patch in entries:
+        patch.guard()
+        assert patch.guarded, patch.name
+        for where, attr in patch.guarded:
+            with monkeypatch.context() as m:
+                if where == sdfstudio_import_hook.SOURCE:  # sdfstudio's file no longer holds what the patch fixes
+                    m.setattr(sdfstudio_import_hook, "host_source", lambda rel, attr=attr: "" if rel == attr else real_source(rel))
+                else:
+                    owner = importlib.import_module(where) if where != "torch.Tensor" else torch.Tensor
+                    m.setattr(owner, attr, object())
+                with pytest.raises(PatchGuardError) as failure:
+                    patch.guard()
+            message = str(failure.value)
+            assert "\n" not in message and f"patch {patch.name}:" in message and "written for sdfstudio 370902a" in message, message
+            assert attr in message or attr.rsplit("/", 1)[-1] in message, message
+
+
+SCOPES = r"""
+import dataclasses, gc, importlib, sys, warnings, torch
+from sp_plugins.patches import registry, sdfstudio_import_hook as hook
+
+def state():
+    return {"dataclass": dataclasses.dataclass, "excepthook": sys.excepthook, "filters": warnings.filters,
+            "filter_entries": list(warnings.filters), "meta_path": list(sys.meta_path), "six": "torch._six" in sys.modules,
+            "cuda": (torch.cuda.synchronize, torch.cuda.set_device, torch.Tensor.cuda), "modules": dict(sys.modules)}
+
+from sp_plugins.host_warnings import HOST_WARNINGS
+OURS = {message for _, message, _ in HOST_WARNINGS}
+
+def changed(before, after):
+    out = [k for k in before if k not in ("modules", "filter_entries", "meta_path") and
+           (before[k] != after[k] if isinstance(before[k], (bool, tuple)) else before[k] is not after[k])]
+    # what sdfstudio's third-party imports add themselves (absl's reload detector, numpy's and torch's filters) is
+    # not ours: nothing of ours may be added, nothing that was there may go
+    out += ["meta_path"] * (any(f not in after["meta_path"] for f in before["meta_path"])
+                            or any(type(f).__module__.startswith("sp_plugins") for f in after["meta_path"]))
+    out += ["filter_entries"] * (any(f not in after["filter_entries"] for f in before["filter_entries"])
+                                 or any(getattr(f[1], "pattern", None) in OURS for f in after["filter_entries"]))
+    return out + [n for n, m in before["modules"].items() if after["modules"].get(n) is not m]
+
+before = state()
+with registry.scope("sdfstudio_import_hook"), registry.scope("sdfstudio_dataclasses"), registry.scope("sdfstudio_torch_six"):
+    import nerfstudio.configs.base_config as base_config         # needs the tolerant dataclass
+    from nerfstudio.data.utils import nerfstudio_collate          # needs torch._six
+    assert nerfstudio_collate.string_classes == (str,)
+    assert base_config.dataclasses is not dataclasses if hasattr(base_config, "dataclasses") else True
+    inside = state()
+print("IMPORT_SCOPES_CHANGED", [k for k in changed(before, state()) if k != "modules"])
+# every entry in turn, over modules already imported: each rebinding put back
+for name in ("sdfstudio_cuda", "sdfstudio_lpips", "sdfstudio_tcnn", "sdfstudio_checkpoint_load"):
+    with registry.scope("sdfstudio_import_hook"), registry.scope("sdfstudio_dataclasses"), registry.scope("sdfstudio_torch_six"):
+        for module in ("nerfstudio.utils.writer", "nerfstudio.utils.marching_cubes", "nerfstudio.models.base_surface_model",
+                       "nerfstudio.fields.sdf_field", "nerfstudio.engine.trainer", "nerfstudio.utils.eval_utils"):
+            importlib.import_module(module)
+    mods = {m: dict(vars(sys.modules[m])) for m in ("nerfstudio.utils.writer", "nerfstudio.utils.marching_cubes",
+            "nerfstudio.models.base_surface_model", "nerfstudio.fields.sdf_field", "nerfstudio.utils.eval_utils")}
+    classes = {c: dict(vars(c)) for c in (sys.modules["nerfstudio.engine.trainer"].Trainer,)}
+    before = state()
+    with registry.scope(name):
+        differs = [m for m in mods if any(vars(sys.modules[m]).get(k) is not v for k, v in mods[m].items())]
+        differs += [c.__name__ for c in classes if any(vars(c).get(k) is not v for k, v in classes[c].items())]
+    after_mods = [m for m in mods if any(vars(sys.modules[m]).get(k) is not v for k, v in mods[m].items())]
+    after_mods += [c.__name__ for c in classes if any(vars(c).get(k) is not v for k, v in classes[c].items())]
+    print("SCOPE", name, "CHANGED_INSIDE", bool(differs) or name == "sdfstudio_tcnn", "AFTER", changed(before, state()) + after_mods)
+"""
+
+
+def test_after_each_sdfstudio_scope_the_host_is_as_it_was():
+    """In a fresh process (no install_all): the import scopes let sdfstudio import and leave
+    dataclasses, sys.modules, torch, the hook and the filters as they were; each rebinding scope
+    changes sdfstudio's modules inside and puts them back after."""
+    e = env()
+    e["SP_SDFSTUDIO_HOOK"] = "0"
+    proc = subprocess.run([sys.executable, "-c", SCOPES], env=e, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout
+    assert "IMPORT_SCOPES_CHANGED []" in out, out
+    for name in ("sdfstudio_cuda", "sdfstudio_lpips", "sdfstudio_checkpoint_load"):
+        assert f"SCOPE {name} CHANGED_INSIDE True AFTER []" in out, out
+    assert "SCOPE sdfstudio_tcnn CHANGED_INSIDE True AFTER []" in out, out
+
+
+GUEST_RUN = r"""
+import dataclasses, sys, warnings, torch
+from pathlib import Path
+data, out = Path(sys.argv[1]), Path(sys.argv[2])
+real = {"dataclass": dataclasses.dataclass, "excepthook": sys.excepthook, "filters": warnings.filters,
+        "cuda": (torch.cuda.synchronize, torch.cuda.set_device, torch.Tensor.cuda)}
+from sp_plugins.patches.sdfstudio_import_hook import HOST_PACKAGES, install_all
+install_all()  # what sp-sdfstudio-train does first
+import scripts.train as train
+import nerfstudio.configs.method_configs as host
+from sp_plugins.patches import registry
+registry.install_for_process("sdfstudio_methods", command="sp-sdfstudio-train")
+from tests.helpers.sdf_configs import tiny_config
+config = tiny_config(host.method_configs["sp-neus"], data, out, steps=2)
+config.machine.num_gpus = 0
+seen = {}
+train.train_loop(local_rank=0, world_size=0, config=config)  # what main() runs for --machine.num-gpus 0
+print("TRAINED", any(out.rglob("*.ckpt")))
+leaks = [k for k, v in real.items() if (v != (torch.cuda.synchronize, torch.cuda.set_device, torch.Tensor.cuda) if k == "cuda"
+         else v is not {"dataclass": dataclasses.dataclass, "excepthook": sys.excepthook, "filters": warnings.filters}[k])]
+print("PROCESS_LEAKS", leaks, "six" if "torch._six" in sys.modules else "")
+from sp_plugins.patches.sdfstudio_dataclasses import TOLERANT, _tolerant_dataclass
+tolerant = sorted(name for name, module in list(sys.modules.items())
+                  if module is not None and name.partition(".")[0] not in HOST_PACKAGES
+                  and name not in ("__main__", "__mp_main__", "sp_plugins.patches.sdfstudio_dataclasses")
+                  and any(value is _tolerant_dataclass or value is TOLERANT for value in list(vars(module).values())))
+print("OTHER_MODULES_WITH_OUR_DATACLASS", tolerant[:5])
+host_tolerant = vars(sys.modules["nerfstudio.configs.base_config"])["dataclass"] is _tolerant_dataclass
+print("SDFSTUDIO_HAS_ITS_OWN", host_tolerant)
+try:
+    import torch._six
+    print("TORCH_SIX_IMPORTS_ELSEWHERE True")
+except ImportError:
+    print("TORCH_SIX_IMPORTS_ELSEWHERE False")
+"""
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU run")
+def test_an_sdfstudio_run_leaves_the_rest_of_the_process_as_it_was(sdf_scene, tmp_path):
+    """The guest test for sdfstudio (issue 32): a fresh process with every sdfstudio patch (as
+    sp-sdfstudio-train has them) trains sp-neus two steps through sdfstudio's own train_loop; then
+    dataclasses.dataclass, sys.excepthook, warnings.filters and torch's CUDA functions are the
+    objects they were, no module outside sdfstudio's packages holds our tolerant dataclass (the
+    third-party ones sdfstudio imported first included), and torch._six exists only for sdfstudio."""
+    import os
+
+    e = env()
+    e["SP_SDFSTUDIO_HOOK"] = "0"
+    e["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2]), e.get("PYTHONPATH", "")])
+    proc = subprocess.run([sys.executable, "-c", GUEST_RUN, str(sdf_scene), str(tmp_path / "out")], env=e, capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout
+    assert "TRAINED True" in out, out
+    assert "PROCESS_LEAKS [] \n" in out or "PROCESS_LEAKS [] " in out, out
+    assert "OTHER_MODULES_WITH_OUR_DATACLASS []" in out, out
+    assert "SDFSTUDIO_HAS_ITS_OWN True" in out and "TORCH_SIX_IMPORTS_ELSEWHERE False" in out, out
