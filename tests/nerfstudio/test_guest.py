@@ -2,9 +2,13 @@
 
 nerfstudio imports every plugin's method configs in every ``ns-*`` command. In a fresh process we
 snapshot what a plugin could change (the exception hook, the warning filters, the host names our
-patches rebind), let nerfstudio discover its plugins, and compare. Building one of our SDF models
-then must leave nerfstudio's ``tcnn`` as it was, and send another model's SDF to nerfstudio's own
-mesher.
+patches rebind, ``dataclasses.dataclass``), let nerfstudio discover its plugins, and compare.
+Building one of our SDF models then must leave nerfstudio's ``tcnn`` and torchmetrics' LPIPS as they
+were (their registry scopes end with the build); while the model exists the patches it holds (the
+one-line error hook, the warning filters, the CPU mesher without CUDA) are in force, and the mesher
+still sends another model's SDF to nerfstudio's own; once the model is gone everything is as before
+discovery. (The sdfstudio counterpart, one run in a fresh process, is in
+``tests/sdfstudio/test_patches.py``.)
 """
 
 from __future__ import annotations
@@ -13,12 +17,12 @@ import subprocess
 import sys
 
 import pytest
-from ns_commands import ENV
+from tests.helpers.ns_commands import ENV
 
 pytest.importorskip("nerfstudio")
 
 SNAPSHOT = r'''
-import sys, warnings, importlib
+import sys, warnings, importlib, dataclasses, gc
 for name in ("nerfstudio.engine.trainer", "nerfstudio.pipelines.base_pipeline", "nerfstudio.models.nerfacto",
              "nerfstudio.models.vanilla_nerf", "nerfstudio.models.tensorf", "nerfstudio.models.mipnerf",
              "nerfstudio.models.neus", "nerfstudio.fields.sdf_field", "nerfstudio.exporter.marching_cubes",
@@ -39,6 +43,7 @@ def state():
         "mesher": mc.generate_mesh_with_multires_marching_cubes,
         "fields": (nerfacto.NerfactoField, vanilla.NeRFField, tensorf.TensoRFField, mipnerf.NeRFField),
         "lpips": lpip.LearnedPerceptualImagePatchSimilarity,
+        "dataclass": dataclasses.dataclass,
     }
 
 before = state()
@@ -53,19 +58,28 @@ print("CHANGED_BY_DISCOVERY", changed)
 BUILD = r'''
 import torch
 from nerfstudio.data.scene_box import SceneBox
+from sp_plugins.patches import nerfstudio_marching_cubes as patch, registry
 config = methods["sp-neus-hashgrid"].pipeline.model
 config.sdf_field.num_levels, config.sdf_field.max_res, config.sdf_field.log2_hashmap_size = 4, 32, 10
 model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2)
 print("TCNN_RESTORED", sdf_field.tcnn is before["tcnn"])
-from sp_plugins.patches import nerfstudio_marching_cubes as patch
-calls = []
-patch._originals[patch.MODULES[0]] = lambda *a: calls.append(1) or "host"
-class P:  # what ns-export closes over
-    def __init__(self, m): self.model = m
-def closure(p): return lambda x: x.norm(dim=-1) - 0.5 + 0 * id(p)
-other = torch.nn.Linear(1, 1)
-print("OTHER_GOES_TO_HOST", mc.generate_mesh_with_multires_marching_cubes(closure(P(other)), resolution=16) == "host")
-print("OURS_ON_CPU", len(mc.generate_mesh_with_multires_marching_cubes(closure(P(model)), resolution=16).faces) > 0 and len(calls) == 1)
+print("LPIPS_RESTORED", lpip.LearnedPerceptualImagePatchSimilarity is before["lpips"])
+print("HELD_BY_OUR_MODEL", sorted(registry.held()))
+ours = lambda x: model.field.forward_geonetwork(x)[:, 0] * 0 + x.norm(dim=-1) - 0.5  # what ns-export passes, on a sphere
+if torch.cuda.is_available():  # nerfstudio's own mesher serves everything: nothing is installed
+    print("MESHER_UNTOUCHED", mc.generate_mesh_with_multires_marching_cubes is before["mesher"])
+else:
+    calls = []
+    host = patch._originals[patch.MODULES[0]]
+    patch._originals[patch.MODULES[0]] = lambda *a: calls.append(1) or "host"  # nerfstudio's mesher needs CUDA: count the calls
+    other = torch.nn.Linear(3, 1)  # an SDF that is not ours
+    print("OTHER_GOES_TO_HOST", mc.generate_mesh_with_multires_marching_cubes(lambda x: other(x)[:, 0], resolution=16) == "host")
+    print("OURS_ON_CPU", len(mc.generate_mesh_with_multires_marching_cubes(ours, resolution=16).faces) > 0 and len(calls) == 1)
+    patch._originals[patch.MODULES[0]] = host
+del model, ours
+gc.collect()
+after = state()
+print("CHANGED_AFTER_OUR_MODEL", [key for key in before if before[key] != after[key]], sorted(registry.held()))
 '''
 
 
@@ -78,6 +92,13 @@ def run_python(code: str) -> str:
 def test_discovering_our_methods_changes_nothing_and_building_ours_is_scoped():
     out = run_python(SNAPSHOT + BUILD)
     assert "CHANGED_BY_DISCOVERY []" in out, out
-    assert "TCNN_RESTORED True" in out, out
-    assert "OTHER_GOES_TO_HOST True" in out, out
-    assert "OURS_ON_CPU True" in out, out
+    assert "TCNN_RESTORED True" in out and "LPIPS_RESTORED True" in out, out
+    import torch
+
+    if torch.cuda.is_available():
+        assert "HELD_BY_OUR_MODEL ['host_warnings', 'input_error_hook']" in out and "MESHER_UNTOUCHED True" in out, out
+    else:
+        assert "HELD_BY_OUR_MODEL ['host_warnings', 'input_error_hook', 'nerfstudio_marching_cubes']" in out, out
+        assert "OTHER_GOES_TO_HOST True" in out, out
+        assert "OURS_ON_CPU True" in out, out
+    assert "CHANGED_AFTER_OUR_MODEL [] []" in out, out
