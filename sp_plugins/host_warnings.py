@@ -11,10 +11,12 @@ Scope (:mod:`sp_plugins.patches.registry`):
 - our console commands (``sp-train``, ``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``,
   ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``) own their process: there the filters stay
   until it ends (``registry.install_for_process``);
-- under nerfstudio's own ``ns-*`` commands they are in force only while our code runs (building
-  our data manager or model, ``ns-train``'s checks of our run): ``warnings.filters`` is the same
-  list object with the same entries after each block. A nerfacto user sees every warning
-  nerfstudio and torch print, as without sp-plugins.
+- under nerfstudio's own ``ns-*`` commands they are held by our code's objects (our model, our
+  data manager, the checked run config of our method; ``registry.hold``): in force while one of
+  them exists, i.e. while ``ns-train`` trains our method or ``ns-eval`` evaluates it, and removed
+  with the last of them (``warnings.filters`` is the same list object with the entries it had). A
+  nerfacto user sees every warning nerfstudio and torch print, as without sp-plugins; warnings
+  raised before our method is built (nerfstudio's imports, ``torch.jit.script``) still print once.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.
 """
 
@@ -88,7 +90,7 @@ PATCH = Patch(
     host="python",
     version="3.10-3.12",
     changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
-    scope_text="our code's calls under ns-* (our data manager's and model's build, ns-train's checks of our run); process-wide in our sp-* commands",
+    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands",
     check=_check,
     enter=host_warnings_filtered,
     guarded=(("warnings", "filters"), ("warnings", "_filters_mutated")),
