@@ -19,6 +19,7 @@ A new patch goes into ``patches/<host>_<what>.py`` with a ``PATCH`` and a line i
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import importlib
 import importlib.metadata
@@ -174,6 +175,8 @@ def install_for_process(name: str, *args: Any, command: Optional[str] = None, **
         )
     if name not in _installed:
         patch.guard()
+        if not _installed:
+            atexit.register(_process.close)  # (before the interpreter tears its modules down)
         _installed[name] = _process.enter_context(patch.enter(*args, **kwargs))
     return _installed[name]
 
