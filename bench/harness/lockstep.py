@@ -87,8 +87,9 @@ def run_summary(run: Run, metrics: dict) -> dict:
     }
 
 
-def time_ratio(sp: Run, base: Run, skip: int = 10) -> float:
-    """Median over alternating step pairs of SP's time over the baseline's (the first ``skip`` left out)."""
+def time_ratio(sp: Run, base: Run) -> float:
+    """Median over alternating step pairs of SP's time over the baseline's (the first tenth, at most 10 pairs, left out)."""
+    skip = min(10, len(sp.times) // 10)
     return statistics.median(s / b for s, b in zip(sp.times[skip:], base.times[skip:]))
 
 
