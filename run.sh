@@ -159,7 +159,9 @@ run_tests() {
     local workers="${SP_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}" xdist=()
     [ "$workers" -gt 8 ] && workers=8
     if [ "$workers" -gt 1 ] && "$venv/bin/python" -c "import xdist" 2>/dev/null; then xdist=(-n "$workers" --dist loadfile --no-loadscope-reorder); fi
-    main_rc=0; "$venv/bin/python" -m pytest -q ${xdist[@]+"${xdist[@]}"} ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
+    # CI=true: the 25 slowest tests listed after the summary (what bounds the suite's wall time)
+    local slowest=(); [ "${CI:-}" = true ] && slowest=(--durations=25)
+    main_rc=0; "$venv/bin/python" -m pytest -q ${xdist[@]+"${xdist[@]}"} ${slowest[@]+"${slowest[@]}"} ${opts[@]+"${opts[@]}"} ${main_paths[@]+"${main_paths[@]}"} || main_rc=$?
   fi
   if [ -n "$sdf_pid" ]; then
     sdf_rc=0; wait "$sdf_pid" || sdf_rc=$?
