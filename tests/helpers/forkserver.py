@@ -27,7 +27,7 @@ import sys
 import time
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 
 
@@ -52,6 +52,7 @@ def _child(case: dict, out: int, err: int) -> None:
     try:
         if case.get("cwd"):
             os.chdir(case["cwd"])
+        os.environ.update(case.get("env") or {})
         if case.get("fsize") is not None:
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead of killing
             resource.setrlimit(resource.RLIMIT_FSIZE, (int(case["fsize"]), int(case["fsize"])))
@@ -159,6 +160,18 @@ class ForkServer:
         answer = self.proc.stdout.readline()
         assert answer, "the fork server died"
         return {r["name"]: r for r in json.loads(answer)["results"]}
+
+    def call(self, args: List[str], env: Optional[Dict[str, str]] = None, expect: int = 0):
+        """One command line ``[<console script or its path>, *args]`` in a forked child, as
+        :func:`subprocess.run` would run it; fails with its output's tail unless it exits ``expect``.
+        Returns a :class:`subprocess.CompletedProcess`."""
+        script, *rest = [str(a) for a in args]
+        result = self.run([{"name": "call", "script": Path(script).name, "args": rest, "env": env or {}}])["call"]
+        proc = subprocess.CompletedProcess(args, result["rc"], result["stdout"], result["stderr"])
+        assert proc.returncode == expect, (
+            f"{' '.join(map(str, args))} (forked) exited {proc.returncode}\n--- stdout\n{proc.stdout[-3000:]}\n"
+            f"--- stderr\n{proc.stderr[-4000:]}")
+        return proc
 
     def close(self) -> None:
         """Stop the server (it holds no state worth a clean shutdown of nerfstudio's imports)."""

@@ -10,7 +10,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import List, Sequence
 
 BIN = Path(sys.executable).parent
 
@@ -26,26 +26,15 @@ def _report(args: Sequence[str], proc: subprocess.CompletedProcess) -> str:
     return f"{' '.join(map(str, args))}\n--- stdout\n{proc.stdout[-3000:]}\n--- stderr\n{proc.stderr[-4000:]}"
 
 
-def run(args: Sequence[str], timeout: int = 600) -> subprocess.CompletedProcess:
-    """Run ``args`` on one torch thread; fail with the tail of its output when it fails."""
+def run(args: Sequence[str], timeout: int = 600, server=None) -> subprocess.CompletedProcess:
+    """Run ``args`` on one torch thread; fail with the tail of its output when it fails. ``server``: a
+    :class:`~tests.helpers.forkserver.ForkServer` (``args[0]`` a console script) runs it in a forked
+    child instead of a new interpreter."""
+    if server is not None:
+        return server.call(list(args))
     proc = subprocess.run(list(args), env=ENV, capture_output=True, text=True, timeout=timeout)
     assert proc.returncode == 0, _report(args, proc)
     return proc
-
-
-def run_many(commands: Dict[str, List[str]], parallel: int = 2, timeout: int = 900) -> Dict[str, subprocess.CompletedProcess]:
-    """Run several commands, ``parallel`` at a time (each on one thread: their start-up, mostly
-    nerfstudio's imports, is what costs); fail naming every command that failed."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    def one(args):
-        return subprocess.run(list(args), env=ENV, capture_output=True, text=True, timeout=timeout)
-
-    with ThreadPoolExecutor(parallel) as pool:
-        procs = dict(zip(commands, pool.map(one, commands.values())))
-    failed = [f"[{name}] " + _report(commands[name], p) for name, p in procs.items() if p.returncode != 0]
-    assert not failed, "\n\n".join(failed)
-    return procs
 
 
 RUN_FLAGS = [
@@ -72,10 +61,10 @@ NERFACTO_FLAGS = [
 ]
 
 
-def ns_train(method: str, out: Path, data_args: List[str], *flags: str, steps: int = 2) -> Path:
-    """Train ``method`` for ``steps`` and return the ``config.yml`` it wrote."""
+def ns_train(method: str, out: Path, data_args: List[str], *flags: str, steps: int = 2, server=None) -> Path:
+    """Train ``method`` for ``steps`` and return the ``config.yml`` it wrote (``server``: see :func:`run`)."""
     proc = run([command("ns-train"), method, *RUN_FLAGS, "--max-num-iterations", str(steps), "--steps-per-save", str(steps),
-                "--output-dir", str(out), *flags, *data_args])
+                "--output-dir", str(out), *flags, *data_args], server=server)
     # the host's per-step deprecation warnings are filtered once our plugin is imported
     assert "non-tuple sequence for multidimensional indexing" not in proc.stderr
     (config,) = out.glob("**/config.yml")
@@ -95,6 +84,6 @@ def check_eval(proc: subprocess.CompletedProcess, out: Path) -> dict:
     return results
 
 
-def ns_eval(config: Path, out: Path) -> dict:
+def ns_eval(config: Path, out: Path, server=None) -> dict:
     """``ns-eval`` on the checkpoint; returns its results (asserts PSNR is finite)."""
-    return check_eval(run(ns_eval_args(config, out)), out)
+    return check_eval(run(ns_eval_args(config, out), server=server), out)

@@ -6,6 +6,10 @@ points, as a plugin author ships one. Its fields read positions each in their ow
 (``get_positions()``, ``get_start_positions()`` with an eikonal gradient, ``get_gaussian_blob()``,
 and one that reads them from the samples' metadata) and log, against the plain samples the model
 made, how far what they read moved (``TOY_FIELD_LOG``).
+
+The plugin methods' ``sp-train`` / ``ns-eval`` / ``ns-render`` runs are forked from one process that
+imported those commands (and discovered the plugin) once (``tests/helpers/forkserver.py``); the help,
+the refusals and the plugin's registration run the real scripts.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+
+from tests.helpers.forkserver import ForkServer
 from tests.helpers.ns_commands import ENV, RUN_FLAGS, _report, command
 
 pytest.importorskip("nerfstudio")
@@ -58,28 +64,38 @@ def log_lines(path: Path):
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
-def sp_train_toy(method, env, out, tiny_scene, log, expect=0):
-    """``sp-train METHOD``: SP (alpha 0.05) for the first half of 4 steps, then plain."""
-    return run_env(
-        [command("sp-train"), method, *RUN_FLAGS, "--max-num-iterations", STEPS, "--steps-per-save", STEPS,
-         "--steps-per-eval-batch", 1000, "--steps-per-eval-image", 1000, "--steps-per-eval-all-images", 1000,
-         "--output-dir", out, "--pipeline.model.sp.alpha0", "0.05", "--pipeline.model.sp.schedule", "step",
-         "--pipeline.model.sp.end", "0.5", "--pipeline.model.sp.seed", "0",
-         "blender-data", "--data", tiny_scene / "blender"],
-        dict(env, TOY_FIELD_LOG=str(log)), expect=expect,
-    )
+def sp_train_toy(method, env, out, tiny_scene, log, expect=0, server=None):
+    """``sp-train METHOD``: SP (alpha 0.05) for the first half of 4 steps, then plain (``server``: forked
+    from the fork server instead of a new interpreter)."""
+    args = [command("sp-train"), method, *RUN_FLAGS, "--max-num-iterations", STEPS, "--steps-per-save", STEPS,
+            "--steps-per-eval-batch", 1000, "--steps-per-eval-image", 1000, "--steps-per-eval-all-images", 1000,
+            "--output-dir", out, "--pipeline.model.sp.alpha0", "0.05", "--pipeline.model.sp.schedule", "step",
+            "--pipeline.model.sp.end", "0.5", "--pipeline.model.sp.seed", "0",
+            "blender-data", "--data", tiny_scene / "blender"]
+    if server is not None:
+        return server.call(args, {"TOY_FIELD_LOG": str(log)}, expect=expect)
+    return run_env(args, dict(env, TOY_FIELD_LOG=str(log)), expect=expect)
 
 
 TOY_METHODS = {"toy-method": "ToyModel", "toy-sdf": "ToySDFModel", "toy-blob": "ToyBlobModel"}
 """Plugin fields reading get_positions(), get_start_positions() (+ eikonal), get_gaussian_blob()."""
 
 
+@pytest.fixture(scope="module")
+def toy_server(toy):
+    """``sp-train``, ``ns-eval`` and ``ns-render`` imported once, the plugin discovered (its path set)."""
+    _, env = toy
+    server = ForkServer(["sp-train", "ns-eval", "ns-render"], env)
+    yield server
+    server.close()
+
+
 @pytest.fixture(scope="module", params=sorted(TOY_METHODS))
-def toy_run(request, toy, tiny_scene, tmp_path_factory):
+def toy_run(request, toy, toy_server, tiny_scene, tmp_path_factory):
     root, env = toy
     out = tmp_path_factory.mktemp(f"{request.param}-run")
     log = out / "train.jsonl"
-    proc = sp_train_toy(request.param, env, out, tiny_scene, log)
+    proc = sp_train_toy(request.param, env, out, tiny_scene, log, server=toy_server)
     (config,) = out.glob("**/config.yml")
     return request.param, config, log, proc, env
 
@@ -96,15 +112,15 @@ def test_sp_train_trains_a_plugin_method_with_its_field_perturbed_then_plain(toy
     assert f"sp_plugins.nerfstudio.variants.SPModel__toyplugin_d{module}_d{TOY_METHODS[method]}" in config.read_text()
 
 
-def test_ns_eval_and_ns_render_load_the_plugin_checkpoint_unperturbed(toy_run, tmp_path):
+def test_ns_eval_and_ns_render_load_the_plugin_checkpoint_unperturbed(toy_run, toy_server, tmp_path):
     _, config, _, _, env = toy_run
     log = tmp_path / "eval.jsonl"
-    env = dict(env, TOY_FIELD_LOG=str(log))
-    run_env([command("ns-eval"), "--load-config", config, "--output-path", tmp_path / "eval.json"], env)
+    env = {"TOY_FIELD_LOG": str(log)}
+    toy_server.call([command("ns-eval"), "--load-config", config, "--output-path", tmp_path / "eval.json"], env)
     results = json.loads((tmp_path / "eval.json").read_text())["results"]
     assert math.isfinite(results["psnr"])
-    run_env([command("ns-render"), "dataset", "--load-config", config, "--split", "test", "--output-path",
-             tmp_path / "renders", "--rendered-output-names", "rgb", "--image-format", "png"], env)
+    toy_server.call([command("ns-render"), "dataset", "--load-config", config, "--split", "test", "--output-path",
+                     tmp_path / "renders", "--rendered-output-names", "rgb", "--image-format", "png"], env)
     assert list((tmp_path / "renders").glob("**/*.png"))
     queries = log_lines(log)
     assert queries and not any(q["training"] for q in queries)
