@@ -21,7 +21,6 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-_EXTRA_STATE_KEY = "_extra_state"  # torch.nn.Module's key for get_extra_state()
 
 
 class StochasticPreconditioner(nn.Module):
@@ -51,9 +50,8 @@ class StochasticPreconditioner(nn.Module):
     restored when this module next draws on a device of that type), so a run resumed from a
     checkpoint draws the same noise as one that was never interrupted. With ``seed=None`` the
     generator's seed is drawn from torch's global generator at the first draw (plus the rank), so
-    an unseeded run is still random per run and still resumes to the same noise. Checkpoints
-    without the generator state (written before it was saved) load, also strictly; such a resume
-    starts a new noise stream. A state saved by another distributed rank (a multi-process run
+    an unseeded run is still random per run and still resumes to the same noise (a checkpoint
+    without that state, as sp-plugins 0.1 wrote, is refused by a strict load). A state saved by another distributed rank (a multi-process run
     saves rank 0's) or under another ``seed`` is not restored: that rank starts a new stream,
     seeded from ``(seed, rank, step)`` (seeded runs) or the global generator (``seed=None``).
 
@@ -170,20 +168,13 @@ class StochasticPreconditioner(nn.Module):
         return self.training and on
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
-        extra_key = prefix + _EXTRA_STATE_KEY
         if not any(key.startswith(prefix) for key in state_dict):
             # a pass with none of this module's entries: nothing to load, keep what an earlier pass
             # set (nerfstudio's pipeline loads its model, then itself non-strictly without the model's keys)
             super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
             return
-        had_extra = extra_key in state_dict
         self._reseed_at = None
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
-        if not had_extra and extra_key in missing_keys:
-            # a checkpoint written before the generator state was saved: it loads (also strictly);
-            # the noise after it is a new stream
-            missing_keys.remove(extra_key)
-            self._saved_generator_states = {}
         self._total = int(self.total_steps)  # a sync, but only when a checkpoint loads
         self._step = int(self.step)
         if self._total >= 0 or self.config.schedule == "constant":

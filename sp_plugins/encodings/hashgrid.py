@@ -16,8 +16,8 @@ one flat float32 vector, and the torch backend's ``table``, the same flat vector
 nerfstudio's tcnn ``HashEncoding`` uses the same ``tcnn_encoding.params`` key) and so do the
 optimizer's moments: torch's optimizers keep them per parameter, by position, with the
 parameter's shape, so a run resumed under the other backend (trained on a CPU, continued on a GPU
-with tcnn, or the reverse) carries on. Older checkpoints with a ``[rows, features]`` table load
-too (their weights; Adam's moments of that shape do not). The layout, read from tiny-cuda-nn's source
+with tcnn, or the reverse) carries on. The ``[rows, features]`` table of sp-plugins 0.1 does not
+load (a size mismatch). The layout, read from tiny-cuda-nn's source
 (``include/tiny-cuda-nn/encodings/grid.h``: ``GridEncodingTemplated``'s constructor and
 ``grid_index``; ``bindings/torch/tinycudann/modules.py`` and ``bindings.cpp`` for the dtype):
 
@@ -318,13 +318,13 @@ class HashGrid(nn.Module):
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
         """Checkpoints move between backends: the torch backend's ``table`` and tcnn's
         ``tcnn_encoding.params`` are the same flat vector (see the module docstring), so either
-        loads into either; an older ``[rows, features]`` table is flattened."""
+        loads into either."""
         table_key, tcnn_key = prefix + "table", prefix + "tcnn_encoding.params"
         n_values = self.n_table_rows * self.features_per_level
         source = tcnn_key if self.backend == "torch" else table_key
         target = table_key if self.backend == "torch" else tcnn_key
-        if (source in state_dict and target not in state_dict) or (target in state_dict and state_dict[target].dim() != 1):
-            value = state_dict.pop(source if target not in state_dict else target)
+        if source in state_dict and target not in state_dict:
+            value = state_dict.pop(source)
             if value.numel() != n_values:
                 error_msgs.append(
                     f"HashGrid {prefix or '(root)'}: the checkpoint's {source!r} holds {value.numel()} grid values, this grid "

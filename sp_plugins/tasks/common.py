@@ -293,17 +293,6 @@ class StepRecord(Mapping):
         return f"StepRecord({dict(self)})"
 
 
-def _fit_moments_to_parameters(optimizer: torch.optim.Optimizer) -> None:
-    """Per-parameter optimizer state of another shape but the same size, reshaped to the parameter:
-    a checkpoint whose hash-grid table was ``[rows, F]`` (before both backends shared tcnn's flat
-    layout) resumes with its moments instead of failing at the first step."""
-    for group in optimizer.param_groups:
-        for p in group["params"]:
-            for key, value in optimizer.state.get(p, {}).items():
-                if isinstance(value, torch.Tensor) and value.shape != p.shape and value.numel() == p.numel() and value.dim() > 0:
-                    optimizer.state[p][key] = value.reshape(p.shape)
-
-
 class ResumableTrainer:
     """``state_dict`` / ``load_state_dict`` for the task trainers: everything a fit's trajectory
     depends on that is not rebuilt from its config and data (those are rebuilt identically on
@@ -383,7 +372,6 @@ class ResumableTrainer:
         self.field.load_state_dict(state["field"])
         self.sp.load_state_dict(state["sp"])
         self.optimizer.load_state_dict(state["optimizer"])
-        _fit_moments_to_parameters(self.optimizer)
         if getattr(self, "scheduler", None) is not None:
             self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])

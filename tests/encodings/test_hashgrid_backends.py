@@ -232,12 +232,12 @@ def test_a_run_resumed_under_the_other_backend_keeps_its_adam_moments(first, the
         torch.testing.assert_close(b.reshape(-1), a.reshape(-1), rtol=1e-4, atol=1e-5)
 
 
-def test_an_older_rows_by_features_table_still_loads():
+def test_the_rows_by_features_table_of_0_1_is_refused():
     grid = torch_grid("hash+dense")
-    old = {"table": grid.table.detach().view(grid.n_table_rows, -1).clone()}  # the layout before the flat table
+    old = {"table": grid.table.detach().view(grid.n_table_rows, -1).clone()}  # sp-plugins 0.1's layout
     fresh = HashGrid(**CONFIGS["hash+dense"], backend="torch")
-    fresh.load_state_dict(old)
-    assert fresh.table.dim() == 1 and torch.equal(fresh.table, grid.table)
+    with pytest.raises(RuntimeError, match="size mismatch for table"):
+        fresh.load_state_dict(old)
 
 
 def test_tcnn_is_built_and_called_under_its_own_device(fake_tcnn, monkeypatch):
