@@ -284,7 +284,7 @@ class ImageFitTrainer(ResumableTrainer):
                     f"({sp_config.schedule}, end={sp_config.end}) never ends before the last step ({config.steps - 1}): "
                     "give --sp.end < 1"
                 )
-        # fused: about 5-10x faster on a CPU for a 2^17+ table (bench/hashgrid_speed.py)
+        # fused: about 5-10x faster on a CPU for a 2^17+ table (bench/speed/hashgrid_speed.py)
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=self.device.type in ("cpu", "cuda"))
         self._start_steps()
         self.phase2_step: Optional[int] = None
