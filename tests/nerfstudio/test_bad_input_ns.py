@@ -27,6 +27,7 @@ import pytest
 import torch
 import yaml
 
+from tests.helpers import errors
 from tests.helpers.forkserver import ForkServer
 from tests.helpers.fs_faults import listing, make_read_only, undo_read_only
 from tests.helpers.ns_commands import ENV, RUN_FLAGS, SDF_FLAGS, command
@@ -37,17 +38,9 @@ TRAIN = [*RUN_FLAGS, *SDF_FLAGS, "--max-num-iterations", "2", "--steps-per-save"
 
 
 def one_line_error(result: dict, *says: str, prog: str) -> str:
-    """Exit status 2, a last stderr line ``<prog>: error: ...`` holding every word of ``says``, no traceback."""
-    report = f"[{result['name']}] rc={result['rc']}\n--- stderr\n{result['stderr'][-3000:]}\n--- stdout\n{result['stdout'][-1500:]}"
-    assert result["rc"] == 2, report
-    assert "Traceback" not in result["stderr"], report
-    lines = [line for line in result["stderr"].splitlines() if line.strip()]
-    errors = [line for line in lines if ": error: " in line]
-    assert len(errors) == 1 and errors[0] == lines[-1], report
-    assert errors[0].startswith(f"{prog}: error: "), report
-    for word in says:
-        assert word in errors[0], f"{word!r} not in the error line\n{report}"
-    return errors[0]
+    """Exit status 2, a last stderr line ``<prog>: error: ...`` holding every word of ``says`` (the
+    only error line), no traceback."""
+    return errors.one_line_error(result["rc"], result["stderr"], prog, *says, stdout=result["stdout"], name=result["name"])
 
 
 def saved_run(scene: Path, dest: Path, edit=None, checkpoint: str = "truncated") -> Path:
