@@ -34,7 +34,7 @@ import torch
 
 from sp_plugins.patches.registry import Patch
 from sp_plugins.patches.sdfstudio_import_hook import (
-    HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_attribute, expect_source, patching,
+    HOST_COMMIT, expect_attribute, expect_source, patching, sdfstudio_patch,
 )
 
 __all__ = ["HOST_COMMIT", "PATCH", "numpy_scalar_globals"]
@@ -108,14 +108,8 @@ def _check(patch: Patch) -> None:
     patch.expect(callable(getattr(torch, "load", None)), "torch.load", f"torch.load = {getattr(torch, 'load', None)!r}")
 
 
-PATCH = Patch(
-    name="sdfstudio_checkpoint_load",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_checkpoint_load", _check, numpy_scalars_in_sdfstudio_loads, "nerfstudio/engine/trainer.py",
+    "nerfstudio/utils/eval_utils.py", guarded=(("torch", "load"),),
     changes="Trainer._load_checkpoint and eval_utils.eval_load_checkpoint: weights-only torch.load also accepts numpy's plain scalars",
-    scope_text="those two sdfstudio functions' calls (safe_globals per call); process-wide (those modules) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=numpy_scalars_in_sdfstudio_loads,
-    guarded=((SOURCE, "nerfstudio/engine/trainer.py"), (SOURCE, "nerfstudio/utils/eval_utils.py"), ("torch", "load")),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="those two sdfstudio functions' calls (safe_globals per call); process-wide (those modules) in sp-sdfstudio-* / the hook")

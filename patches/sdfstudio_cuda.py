@@ -39,7 +39,7 @@ import torch
 
 from sp_plugins.patches.registry import Patch
 from sp_plugins.patches.sdfstudio_import_hook import (
-    HOST_COMMIT, HOST_PACKAGES, SDFSTUDIO_OWNERS, SOURCE, expect_attribute, expect_source, patching,
+    HOST_COMMIT, HOST_PACKAGES, expect_attribute, expect_source, patching, sdfstudio_patch,
 )
 
 __all__ = ["CPU_TORCH", "HOST_COMMIT", "PATCH", "cpu_meaning", "cpu_safe"]
@@ -186,15 +186,8 @@ def _check(patch: Patch) -> None:
     patch.expect(callable(getattr(torch.Tensor, "cuda", None)), "torch.Tensor.cuda", f"torch.Tensor.cuda = {getattr(torch.Tensor, 'cuda', None)!r}")
 
 
-PATCH = Patch(
-    name="sdfstudio_cuda",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_cuda", _check, cpu_safe_sdfstudio, *SOURCES,
+    guarded=(("torch.cuda", "synchronize"), ("torch.cuda", "set_device"), ("torch.Tensor", "cuda")),
     changes="writer's / scripts.train's `torch` -> a view with CPU cuda.synchronize/set_device; mesh functions and pair parsers: Tensor.cuda() stays put for sdfstudio's calls",
-    scope_text="no CUDA only; those modules' own calls (Tensor.cuda: during the mesh / parser call); process-wide (those modules) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=cpu_safe_sdfstudio,
-    guarded=(("torch.cuda", "synchronize"), ("torch.cuda", "set_device"), ("torch.Tensor", "cuda"))
-    + tuple((SOURCE, relative) for relative in SOURCES),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="no CUDA only; those modules' own calls (Tensor.cuda: during the mesh / parser call); process-wide (those modules) in sp-sdfstudio-* / the hook")

@@ -27,7 +27,7 @@ from typing import Iterator
 
 from sp_plugins.patches.registry import Patch
 from sp_plugins.patches.sdfstudio_import_hook import (
-    HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching,
+    HOST_COMMIT, expect_source, patching, sdfstudio_patch,
 )
 
 __all__ = ["HOST_COMMIT", "PATCH", "TOLERANT", "rejected_by_python", "tolerant_dataclasses"]
@@ -80,14 +80,7 @@ def _check(patch: Patch) -> None:
                  f"dataclasses.dataclass = {real!r}")
 
 
-PATCH = Patch(
-    name="sdfstudio_dataclasses",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_dataclasses", _check, tolerant_dataclasses, "nerfstudio/configs/base_config.py", guarded=(("dataclasses", "dataclass"),),
     changes="`dataclasses` as imported by sdfstudio's modules only: a dataclass that turns mutable defaults into default_factory",
-    scope_text="sdfstudio's modules executed in the block; process-wide (those modules only) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=tolerant_dataclasses,
-    guarded=(("dataclasses", "dataclass"), (SOURCE, "nerfstudio/configs/base_config.py")),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="sdfstudio's modules executed in the block; process-wide (those modules only) in sp-sdfstudio-* / the hook")

@@ -44,6 +44,17 @@ SDFSTUDIO_OWNERS = ("sp-sdfstudio-train", "sp-sdfstudio-extract-mesh", "sdfstudi
 """Who keeps the sdfstudio patches for the process: our two commands, and ``sdfstudio`` (a process
 that imports sdfstudio through :func:`install_all`: the opt-in hook, a test session, a bench)."""
 
+
+def sdfstudio_patch(name: str, check: Callable[[Patch], None], enter: Callable[..., Any], *sources: str,
+                    guarded: Tuple[Tuple[str, str], ...] = (), **fields: Any) -> Patch:
+    """The :class:`Patch` of an ``sdfstudio_*`` entry: host sdfstudio at :data:`HOST_COMMIT`, kept
+    for the process by :data:`SDFSTUDIO_OWNERS`; its guard reads ``guarded`` and each of sdfstudio's
+    files in ``sources`` (paths under the install, as (:data:`SOURCE`, path) pairs). ``fields``:
+    ``changes``, ``scope_text`` and any other :class:`Patch` field."""
+    guarded = tuple(guarded) + tuple((SOURCE, relative) for relative in sources)
+    return Patch(name=name, host="sdfstudio", version=HOST_COMMIT, check=check, enter=enter, guarded=guarded,
+                 owned_commands=SDFSTUDIO_OWNERS, **fields)
+
 _MISSING = object()
 _imports: Dict[str, Callable[[], ModuleType]] = {}
 _after: Dict[str, List[Tuple[Callable[[ModuleType, Callable], None], Callable]]] = {}
@@ -234,18 +245,11 @@ def expect_attribute(patch: Patch, module: ModuleType, attr: str, snippet: str =
     return value
 
 
-PATCH = Patch(
-    name="sdfstudio_import_hook",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_import_hook", _check, finder, "nerfstudio/models/bakedangelo.py", "scripts/train.py",
     changes="sys.meta_path: a finder whose loader runs sdfstudio's modules (only) with the sdfstudio_* patches",
     scope_text="the block; process-wide (sdfstudio's modules only) in sp-sdfstudio-* and, opt-in, the .pth hook",
-    check=_check,
-    enter=finder,
-    guarded=((SOURCE, "nerfstudio/models/bakedangelo.py"), (SOURCE, "scripts/train.py")),
-    owned_commands=SDFSTUDIO_OWNERS,
-    found=lambda: "at " + str(nerfstudio_dir() or "none"),
-)
+    found=lambda: "at " + str(nerfstudio_dir() or "none"))
 
 
 def install_all(register_methods: bool = False, command: str = "sdfstudio") -> None:

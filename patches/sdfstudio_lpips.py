@@ -17,7 +17,7 @@ from typing import Iterator
 
 from sp_plugins.adapter.lpips import MissingLPIPS, lpips_weights_path, offline_factory
 from sp_plugins.patches.registry import Patch
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, expect_source, patching, sdfstudio_patch
 
 __all__ = ["HOST_COMMIT", "MissingLPIPS", "PATCH", "lpips_weights_path"]
 
@@ -49,14 +49,7 @@ def _check(patch: Patch) -> None:
     expect_source(patch, "nerfstudio/models/base_surface_model.py", f"from torchmetrics.image.lpip import {NAME}")
 
 
-PATCH = Patch(
-    name="sdfstudio_lpips",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_lpips", _check, offline_lpips_for_sdfstudio, "nerfstudio/models/base_surface_model.py",
     changes=f"{NAME} as bound in sdfstudio's model modules: cached weights or a NaN stand-in, never a download, not in the state dict",
-    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=offline_lpips_for_sdfstudio,
-    guarded=((SOURCE, "nerfstudio/models/base_surface_model.py"),),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook")

@@ -16,7 +16,7 @@ from typing import Iterator, List, Tuple
 
 from sp_plugins.patches.registry import Patch
 from sp_plugins.patches.sdfstudio_import_hook import (
-    HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_attribute, expect_source, patching,
+    expect_attribute, expect_source, patching, sdfstudio_patch,
 )
 
 __all__ = ["PATCH", "our_methods_in_ns_train"]
@@ -53,14 +53,7 @@ def _check(patch: Patch) -> None:
     expect_source(patch, "scripts/train.py", UNION)
 
 
-PATCH = Patch(
-    name="sdfstudio_methods",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_methods", _check, our_methods_in_ns_train, "nerfstudio/configs/method_configs.py", "scripts/train.py",
     changes="method_configs / descriptions dicts and the tyro union AnnotatedBaseConfigUnion (method_configs, scripts.train): our methods added",
-    scope_text="process-wide in sp-sdfstudio-train and, opt-in, in sdfstudio's ns-train with the .pth hook",
-    check=_check,
-    enter=our_methods_in_ns_train,
-    guarded=((SOURCE, "nerfstudio/configs/method_configs.py"), (SOURCE, "scripts/train.py")),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="process-wide in sp-sdfstudio-train and, opt-in, in sdfstudio's ns-train with the .pth hook")

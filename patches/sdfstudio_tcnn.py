@@ -35,7 +35,7 @@ import contextlib
 from typing import Iterator
 
 from sp_plugins.patches.registry import Patch
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, expect_source, patching, sdfstudio_patch
 
 __all__ = ["Encoding", "HOST_COMMIT", "Network", "NetworkWithInputEncoding", "PATCH"]
 
@@ -167,14 +167,7 @@ def _check(patch: Patch) -> None:
     expect_source(patch, "nerfstudio/fields/sdf_field.py", "import tinycudann as tcnn", "tcnn.Encoding(")
 
 
-PATCH = Patch(
-    name="sdfstudio_tcnn",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_tcnn", _check, tcnn_stand_in_for_sdfstudio, "nerfstudio/fields/sdf_field.py",
     changes="`tcnn` global of sdfstudio's field modules whose tinycudann import failed: this pure-torch stand-in",
-    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=tcnn_stand_in_for_sdfstudio,
-    guarded=((SOURCE, "nerfstudio/fields/sdf_field.py"),),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="those sdfstudio modules; process-wide (those modules) in sp-sdfstudio-* / the hook")

@@ -18,7 +18,7 @@ import types
 from typing import Iterator
 
 from sp_plugins.patches.registry import Patch
-from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, SDFSTUDIO_OWNERS, SOURCE, expect_source, patching
+from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, expect_source, patching, sdfstudio_patch
 
 __all__ = ["HOST_COMMIT", "PATCH", "STAND_IN", "torch_six_for_sdfstudio"]
 
@@ -46,14 +46,7 @@ def _check(patch: Patch) -> None:
     expect_source(patch, "nerfstudio/data/utils/nerfstudio_collate.py", "from torch._six import string_classes")
 
 
-PATCH = Patch(
-    name="sdfstudio_torch_six",
-    host="sdfstudio",
-    version=HOST_COMMIT,
+PATCH = sdfstudio_patch(
+    "sdfstudio_torch_six", _check, torch_six_for_sdfstudio, "nerfstudio/data/utils/nerfstudio_collate.py",
     changes="`torch._six` as imported by sdfstudio's modules only (torch >= 2 has none): string_classes = (str,)",
-    scope_text="sdfstudio's modules executed in the block; process-wide (those modules only) in sp-sdfstudio-* / the hook",
-    check=_check,
-    enter=torch_six_for_sdfstudio,
-    guarded=((SOURCE, "nerfstudio/data/utils/nerfstudio_collate.py"),),
-    owned_commands=SDFSTUDIO_OWNERS,
-)
+    scope_text="sdfstudio's modules executed in the block; process-wide (those modules only) in sp-sdfstudio-* / the hook")
