@@ -190,7 +190,7 @@ def test_it_trains_and_the_callback_moves_the_mask_every_step(tiny_scene, tmp_pa
     assert trainer.pipeline.model.perturbed_calls() == 0
 
 
-def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, tmp_path):
+def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, ns_server, tmp_path):
     from tests.helpers.ns_commands import ns_eval
 
     config = tiny_radiance_config("freenerf-lite", tiny_scene, tmp_path, steps=4)
@@ -200,7 +200,7 @@ def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, tmp_path):
     state = torch.load(next(config.get_checkpoint_dir().glob("step-*.ckpt")), map_location="cpu", weights_only=True)
     saved = state["pipeline"]["_model.field.position_encoding.freq_mask"]
     assert torch.equal(saved, trainer.pipeline.model.encoding.freq_mask) and not bool((saved == 1).all())
-    results = ns_eval(config.get_base_dir() / "config.yml", tmp_path)
+    results = ns_eval(config.get_base_dir() / "config.yml", tmp_path, server=ns_server)
     assert math.isfinite(results["psnr"])
 
 

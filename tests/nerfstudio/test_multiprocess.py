@@ -123,7 +123,7 @@ def test_ranks_draw_different_noise_and_keep_identical_parameters(family, ddp_ru
         assert any(not torch.equal(start[k], end[k]) for k in grid), "the alpha grid did not train"
 
 
-def test_rank0_checkpoint_holds_the_synchronised_parameters_and_loads_in_ns_eval(ddp_runs, tmp_path):
+def test_rank0_checkpoint_holds_the_synchronised_parameters_and_loads_in_ns_eval(ddp_runs, ns_server, tmp_path):
     results, workdir, configs = ddp_runs
     config = configs[EVAL_FAMILY]
     (ckpt,) = config.get_checkpoint_dir().glob("*.ckpt")  # written once, by rank 0
@@ -135,7 +135,7 @@ def test_rank0_checkpoint_holds_the_synchronised_parameters_and_loads_in_ns_eval
     final = step_state(workdir, EVAL_FAMILY, 1, STEPS - 1)["params"]  # rank 1's, equal to rank 0's
     for k, v in final.items():
         assert torch.equal(model[k], v), k
-    results = ns_eval(config.get_base_dir() / "config.yml", tmp_path)
+    results = ns_eval(config.get_base_dir() / "config.yml", tmp_path, server=ns_server)
     assert results["psnr"] > 0
 
 

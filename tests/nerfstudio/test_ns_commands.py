@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.helpers.forkserver import ForkServer
 from tests.helpers.errors import refused
 from tests.helpers.ns_commands import ENV, _report, check_eval, command, ns_eval_args
 from tests.helpers.ns_configs import SDF_METHODS, tiny_sdf_config, run_recording
@@ -57,13 +56,11 @@ def test_every_method_keeps_its_learning_rates_python_floats():
             ), f"{name}: optimizer group {group!r} uses {type(scheduler).__name__}, whose numpy learning rates ns-eval cannot load"
 
 
-@pytest.fixture(scope="module")
-def server():
-    """The test fork server (``tests/helpers/forkserver.py``): ``ns-eval`` and ``sp-export-mesh`` run in
-    processes forked from one import of them, not paying nerfstudio's imports per command."""
-    server = ForkServer(["ns-eval", "sp-export-mesh"], ENV)
-    yield server
-    server.close()
+@pytest.fixture
+def server(ns_server):
+    """The session's fork server (tests/nerfstudio/conftest.py): ``ns-eval`` and ``sp-export-mesh`` run
+    in processes forked from one import of them, not paying nerfstudio's imports per command."""
+    return ns_server
 
 
 def test_ns_eval_loads_every_method_checkpoint(checkpoints, server, tmp_path):

@@ -19,9 +19,8 @@ import pytest
 import trimesh
 
 from tests.helpers.errors import refused
-from tests.helpers.forkserver import ForkServer
 from tests.helpers.fox_crop import fox_missing, make_fox_crop
-from tests.helpers.ns_commands import ENV, NERFACTO_FLAGS, RUN_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
+from tests.helpers.ns_commands import NERFACTO_FLAGS, RUN_FLAGS, SDF_FLAGS, command, ns_eval, ns_train, run
 
 
 @pytest.fixture(scope="module")
@@ -34,12 +33,10 @@ def fox(tmp_path_factory):
     return make_fox_crop(tmp_path_factory.mktemp("fox"), views=7, factor=5)
 
 
-@pytest.fixture(scope="module")
-def server(fox):
-    """The fork server for the commands below (nerfstudio and every method imported once)."""
-    server = ForkServer(["ns-train", "ns-eval", "ns-render", "sp-export-mesh"], ENV)
-    yield server
-    server.close()
+@pytest.fixture
+def server(fox, ns_server):
+    """The session's fork server (tests/nerfstudio/conftest.py), once the capture is there."""
+    return ns_server
 
 
 def _data(fox):
