@@ -18,12 +18,10 @@ class ToyBlobField(ToyField):
         return torch.nn.functional.softplus(h[..., :1]), h[..., 1:]
 
 
+class ToyBlobModel(ToyModel):
+    field_class = ToyBlobField
+
+
 @dataclass
 class ToyBlobModelConfig(ToyModelConfig):
     _target: Type = field(default_factory=lambda: ToyBlobModel)
-
-
-class ToyBlobModel(ToyModel):
-    def populate_modules(self) -> None:
-        super().populate_modules()
-        self.field = ToyBlobField(self.config.width)

@@ -20,15 +20,8 @@ class BypassField(ToyField):
         return super().get_outputs(ray_samples, density_embedding)
 
 
-@dataclass
-class BypassModelConfig(ToyModelConfig):
-    _target: Type = field(default_factory=lambda: BypassModel)
-
-
 class BypassModel(ToyModel):
-    def populate_modules(self) -> None:
-        super().populate_modules()
-        self.field = BypassField(self.config.width)
+    field_class = BypassField
 
     def get_outputs(self, ray_bundle):
         samples = self.sampler(ray_bundle)
@@ -39,3 +32,8 @@ class BypassModel(ToyModel):
 
         weights = samples.get_weights(out[FieldHeadNames.DENSITY])
         return {"rgb": self.renderer(rgb=out[FieldHeadNames.RGB], weights=weights)}
+
+
+@dataclass
+class BypassModelConfig(ToyModelConfig):
+    _target: Type = field(default_factory=lambda: BypassModel)

@@ -8,12 +8,12 @@ import toyplugin.fieldlib as fieldlib
 from toyplugin.model import ToyModel, ToyModelConfig
 
 
-@dataclass
-class HiddenFieldModelConfig(ToyModelConfig):
-    _target: Type = field(default_factory=lambda: HiddenFieldModel)
-
-
 class HiddenFieldModel(ToyModel):
     def populate_modules(self) -> None:
         super().populate_modules()
         self.field = fieldlib.PlainField(self.config.width)
+
+
+@dataclass
+class HiddenFieldModelConfig(ToyModelConfig):
+    _target: Type = field(default_factory=lambda: HiddenFieldModel)

@@ -58,10 +58,12 @@ class ToyModelConfig(ModelConfig):
 
 class ToyModel(Model):
     config: ToyModelConfig
+    field_class: Type[ToyField] = ToyField
+    """The field the model builds (a subclass's own field: set this)."""
 
     def populate_modules(self) -> None:
         super().populate_modules()
-        self.field = ToyField(self.config.width)
+        self.field = self.field_class(self.config.width)
         self.sampler = UniformSampler(num_samples=self.config.num_samples)
         self.renderer = RGBRenderer(background_color="white")
         self.rgb_loss = MSELoss()

@@ -29,15 +29,8 @@ class ToySDFField(ToyField):
                 FieldHeadNames.GRADIENT: grad}
 
 
-@dataclass
-class ToySDFModelConfig(ToyModelConfig):
-    _target: Type = field(default_factory=lambda: ToySDFModel)
-
-
 class ToySDFModel(ToyModel):
-    def populate_modules(self) -> None:
-        super().populate_modules()
-        self.field = ToySDFField(self.config.width)
+    field_class = ToySDFField
 
     def get_outputs(self, ray_bundle):
         outputs = super().get_outputs(ray_bundle)
@@ -50,3 +43,8 @@ class ToySDFModel(ToyModel):
         if self.training:
             losses["eikonal_loss"] = 0.1 * outputs["eikonal"]
         return losses
+
+
+@dataclass
+class ToySDFModelConfig(ToyModelConfig):
+    _target: Type = field(default_factory=lambda: ToySDFModel)
