@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import Patch, python_patch
 
 __all__ = ["PATCH", "input_errors_as_one_line"]
 
@@ -66,15 +66,7 @@ def _check(patch: Patch) -> None:
     patch.expect(callable(getattr(sys, "__excepthook__", None)), "sys.__excepthook__", "none")
 
 
-PATCH = Patch(
-    name="input_error_hook",
-    host="python",
-    version="3.10-3.12",
+PATCH = python_patch(
+    "input_error_hook", _check, input_errors_as_one_line, (("sys", "excepthook"), ("sys", "__excepthook__")),
     changes="sys.excepthook: wraps the hook in force; a failure our checks describe prints one line and exits 2",
-    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in sp-train and sp-export-mesh",
-    check=_check,
-    enter=input_errors_as_one_line,
-    guarded=(("sys", "excepthook"), ("sys", "__excepthook__")),
-    owned_commands=("sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check"),
-    found=lambda: sys.version.split()[0],
-)
+    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in sp-train and sp-export-mesh")

@@ -28,7 +28,7 @@ import logging
 import sys
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import Patch, nerfstudio_patch
 
 logger = logging.getLogger(__name__)
 
@@ -109,14 +109,8 @@ def _check(patch: Patch) -> None:
                  "a __post_init__ without that check")
 
 
-PATCH = Patch(
-    name="nerfstudio_external_methods",
-    host="nerfstudio",
-    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+PATCH = nerfstudio_patch(
+    "nerfstudio_external_methods", TESTED_NERFSTUDIO_VERSIONS, _check, fast_external_methods,
+    (("nerfstudio.configs.external_methods", "ExternalMethodDummyTrainerConfig"),), owned_commands=("sp-train",),
     changes="ExternalMethodDummyTrainerConfig.__post_init__: asks sys._getframe instead of inspect.stack() (2 s off start-up)",
-    scope_text="process-wide in sp-train only (before it imports nerfstudio's method list)",
-    check=_check,
-    enter=fast_external_methods,
-    guarded=(("nerfstudio.configs.external_methods", "ExternalMethodDummyTrainerConfig"),),
-    owned_commands=("sp-train",),
-)
+    scope_text="process-wide in sp-train only (before it imports nerfstudio's method list)")

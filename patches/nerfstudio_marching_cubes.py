@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterator, Optional, Tuple
 import numpy as np
 import torch
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import nerfstudio_patch
 
 logger = logging.getLogger(__name__)
 
@@ -112,19 +112,17 @@ def evaluates_our_field(fn: Callable[[torch.Tensor], torch.Tensor]) -> bool:
     return bool(found)
 
 
-def scoped_marching_cubes(
-    geometry_callable_field: Callable[[torch.Tensor], torch.Tensor],
-    resolution: int = 1024,
-    bounding_box_min: Tuple[float, float, float] = (-1.0, -1.0, -1.0),
-    bounding_box_max: Tuple[float, float, float] = (1.0, 1.0, 1.0),
-    isosurface_threshold: float = 0.0,
-    coarse_mask: Optional[torch.Tensor] = None,
-):
-    """nerfstudio's mesher, except for an SDF of one of our fields: :func:`cpu_marching_cubes`."""
-    args = (geometry_callable_field, resolution, bounding_box_min, bounding_box_max, isosurface_threshold, coarse_mask)
-    if evaluates_our_field(geometry_callable_field):
-        return cpu_marching_cubes(*args)
-    return _originals[MODULES[0]](*args)
+def scoped_marching_cubes(*args: Any, **kwargs: Any):
+    """nerfstudio's mesher, except for an SDF of one of our fields: :func:`cpu_marching_cubes`. Takes
+    the arguments of both (the guard holds their signatures equal) and hands them on positionally."""
+    bound = inspect.signature(cpu_marching_cubes).bind(*args, **kwargs)
+    bound.apply_defaults()
+    if evaluates_our_field(bound.args[0]):
+        return cpu_marching_cubes(*bound.args)
+    return _originals[MODULES[0]](*bound.args)
+
+
+scoped_marching_cubes.__signature__ = inspect.signature(cpu_marching_cubes)  # type: ignore[attr-defined]
 
 
 @contextlib.contextmanager
@@ -162,13 +160,8 @@ def hold_for(model: Any, force: bool = False) -> bool:
     return True
 
 
-PATCH = Patch(
-    name="nerfstudio_marching_cubes",
-    host="nerfstudio",
-    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+PATCH = nerfstudio_patch(
+    "nerfstudio_marching_cubes", TESTED_NERFSTUDIO_VERSIONS, lambda patch: check_nerfstudio_marching_cubes() and None,
+    cpu_mesher_for_our_fields, ((MODULES[0], FUNCTION),),
     changes=f"{MODULES[0]}.{FUNCTION} and its import in {MODULES[1]}: our CPU mesher for an SDF that evaluates our field",
-    scope_text="without CUDA only: while one of our SDF models exists (ns-export builds it, then meshes)",
-    check=lambda patch: check_nerfstudio_marching_cubes() and None,
-    enter=cpu_mesher_for_our_fields,
-    guarded=((MODULES[0], FUNCTION),),
-)
+    scope_text="without CUDA only: while one of our SDF models exists (ns-export builds it, then meshes)")

@@ -27,7 +27,7 @@ from typing import Any, Iterator, Mapping, Optional
 import torch
 
 from sp_plugins.encodings.hashgrid import HashGrid
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import nerfstudio_patch
 
 logger = logging.getLogger(__name__)
 
@@ -150,13 +150,8 @@ def torch_tcnn_fallback(force: bool = False) -> Iterator[bool]:
             uninstall_torch_tcnn_fallback()
 
 
-PATCH = Patch(
-    name="nerfstudio_sdf_field",
-    host="nerfstudio",
-    version=", ".join(TESTED_NERFSTUDIO_VERSIONS),
+PATCH = nerfstudio_patch(
+    "nerfstudio_sdf_field", TESTED_NERFSTUDIO_VERSIONS, lambda patch: check_nerfstudio_sdf_field(), torch_tcnn_fallback,
+    ((PATCHED_MODULE, PATCHED_ATTRIBUTE), (PATCHED_MODULE, "SDFField")),
     changes=f"{PATCHED_MODULE}.{PATCHED_ATTRIBUTE}: a namespace whose Encoding is our torch HashGrid (no tiny-cuda-nn, or no CUDA)",
-    scope_text="the construction of our SDF field's host part (SPSDFField.__init__)",
-    check=lambda patch: check_nerfstudio_sdf_field(),
-    enter=torch_tcnn_fallback,
-    guarded=((PATCHED_MODULE, PATCHED_ATTRIBUTE), (PATCHED_MODULE, "SDFField")),
-)
+    scope_text="the construction of our SDF field's host part (SPSDFField.__init__)")

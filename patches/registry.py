@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ContextManager, Dict, Iterator, List, Optional, Tuple
 
 __all__ = [
-    "ENTRIES", "OUR_COMMANDS", "Patch", "PatchGuardError", "entries", "get", "install_for_process",
-    "our_console_command", "scope", "host_version", "hold", "release",
+    "ENTRIES", "OUR_COMMANDS", "SP_COMMANDS", "Patch", "PatchGuardError", "entries", "get", "install_for_process",
+    "nerfstudio_patch", "our_console_command", "python_patch", "scope", "host_version", "hold", "release",
 ]
 
 
@@ -108,15 +108,32 @@ SDFSTUDIO = tuple(name for name in ENTRIES if name.startswith("sdfstudio_") and 
 """What sdfstudio at its pinned commit needs to import and run here (the import hook first);
 ``sdfstudio_methods`` (our methods in its ns-train) is separate."""
 
-OUR_COMMANDS: Tuple[str, ...] = (
+SP_COMMANDS: Tuple[str, ...] = (
     "sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check",
-    "sp-sdfstudio-train", "sp-sdfstudio-extract-mesh",
 )
+"""Our console commands outside sdfstudio (they own their process: the Python-level patches stay there)."""
+OUR_COMMANDS: Tuple[str, ...] = SP_COMMANDS + ("sp-sdfstudio-train", "sp-sdfstudio-extract-mesh")
 _MODULE_COMMANDS = {  # ``python -m <module>`` runs the same command
     "sp_plugins.cli.demo": "sp-demo", "sp_plugins.cli.bench": "sp-bench", "sp_plugins.cli.scene": "sp-scene",
     "sp_plugins.cli.fit": "sp-fit", "sp_plugins.cli.export_mesh": "sp-export-mesh", "sp_plugins.cli.sweep": "sp-sweep",
     "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.nerfstudio.registration": "sp-train",
 }
+
+
+def python_patch(name: str, check: Callable[[Patch], None], enter: Callable[..., ContextManager],
+                 guarded: Tuple[Tuple[str, str], ...], **fields: Any) -> Patch:
+    """The :class:`Patch` of a change to Python itself (``sys.excepthook``, ``warnings.filters``),
+    kept for the process by :data:`SP_COMMANDS`; ``fields``: ``changes``, ``scope_text``."""
+    return Patch(name=name, host="python", version="3.10-3.12", check=check, enter=enter, guarded=guarded,
+                 owned_commands=SP_COMMANDS, found=lambda: sys.version.split()[0], **fields)
+
+
+def nerfstudio_patch(name: str, tested_versions: Tuple[str, ...], check: Callable[[Patch], None],
+                     enter: Callable[..., ContextManager], guarded: Tuple[Tuple[str, str], ...], **fields: Any) -> Patch:
+    """The :class:`Patch` of a change to nerfstudio, written for ``tested_versions``; ``fields``:
+    ``changes``, ``scope_text`` (and ``owned_commands`` where our commands keep it)."""
+    return Patch(name=name, host="nerfstudio", version=", ".join(tested_versions), check=check, enter=enter,
+                 guarded=guarded, **fields)
 
 
 def get(name: str) -> Patch:

@@ -24,11 +24,10 @@ from __future__ import annotations
 
 import contextlib
 import os
-import sys
 import warnings
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import Patch, python_patch
 
 HOST_WARNINGS: tuple[tuple[type[Warning], str, str], ...] = (
     # (category, message regex, module regex): why it is not actionable
@@ -85,15 +84,7 @@ def _check(patch: Patch) -> None:
     patch.expect(callable(getattr(warnings, "filterwarnings", None)), "warnings.filterwarnings()", "no warnings.filterwarnings")
 
 
-PATCH = Patch(
-    name="host_warnings",
-    host="python",
-    version="3.10-3.12",
+PATCH = python_patch(
+    "host_warnings", _check, host_warnings_filtered, (("warnings", "filters"), ("warnings", "_filters_mutated")),
     changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
-    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands",
-    check=_check,
-    enter=host_warnings_filtered,
-    guarded=(("warnings", "filters"), ("warnings", "_filters_mutated")),
-    owned_commands=("sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check"),
-    found=lambda: sys.version.split()[0],
-)
+    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands")

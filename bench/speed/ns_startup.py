@@ -27,23 +27,23 @@ def main(argv=None) -> None:
     import nerfstudio.configs.method_configs  # noqa: F401  (the whole host, with our configs: the patch is in)
     from nerfstudio.configs import external_methods as ns_external
 
-    from sp_plugins.patches.nerfstudio_external_methods import install_fast_external_methods
+    from sp_plugins.patches import registry
 
-    assert install_fast_external_methods(), "the patch does not apply to this nerfstudio"
-    cls = ns_external.ExternalMethodDummyTrainerConfig
-    ours = cls.__post_init__
-    variants = {"nerfstudio": ours.__sp_original__, "patched": ours}
-    times = {name: [] for name in variants}
-    order = ["nerfstudio", "patched", "patched", "nerfstudio"]
-    for _ in range(args.repeats):
-        for name in order:
-            cls.__post_init__ = variants[name]
-            inspect._filesbymodname.clear()  # a fresh process has not filled inspect's module caches yet
-            inspect.modulesbyfile.clear()
-            t0 = time.perf_counter()
-            ns_external.get_external_methods()
-            times[name].append(time.perf_counter() - t0)
-    cls.__post_init__ = ours
+    with registry.scope("nerfstudio_external_methods") as active:  # (its guard first; nerfstudio's again after)
+        assert active, "the patch does not apply to this nerfstudio"
+        cls = ns_external.ExternalMethodDummyTrainerConfig
+        ours = cls.__post_init__
+        variants = {"nerfstudio": ours.__sp_original__, "patched": ours}
+        times = {name: [] for name in variants}
+        order = ["nerfstudio", "patched", "patched", "nerfstudio"]
+        for _ in range(args.repeats):
+            for name in order:
+                cls.__post_init__ = variants[name]
+                inspect._filesbymodname.clear()  # a fresh process has not filled inspect's module caches yet
+                inspect.modulesbyfile.clear()
+                t0 = time.perf_counter()
+                ns_external.get_external_methods()
+                times[name].append(time.perf_counter() - t0)
     pairs = [a / b for a, b in zip(times["nerfstudio"], times["patched"])]
     print(f"modules loaded: {len(sys.modules)}")
     for name, ts in times.items():

@@ -2,8 +2,8 @@
 
 nerfstudio's commands have no error handler, so an exception raised while the trainer sets up
 prints a deep traceback. Our own input checks raise :class:`InputError` (a ``ValueError``); an
-exception hook prints an uncaught ``InputError`` as ``<command>: error: ...`` and exits with
-status 2. The same hook recognizes a few failures the host's own code hits on bad files, from
+exception hook (registry entry ``input_error_hook``, :mod:`sp_plugins.patches.input_error_hook`)
+prints an uncaught ``InputError`` as ``<command>: error: ...`` and exits with status 2. The same hook recognizes a few failures the host's own code hits on bad files, from
 where they were raised (:func:`describe_failure`): a checkpoint that ``torch.load`` cannot read
 (truncated, damaged, not a checkpoint), a checkpoint that ``torch.save`` could not write (full
 disk; the partial file is removed), and an ``OSError`` writing a file (read-only folder, full
@@ -17,8 +17,6 @@ from __future__ import annotations
 import errno
 import os
 import re
-import sys
-from pathlib import Path
 from types import TracebackType
 from typing import Optional
 
@@ -140,22 +138,3 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
     if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename:
         return write_failure(exc)
     return None
-
-
-def _one_line_input_errors(previous):
-    def hook(kind, value, traceback):
-        message = describe_failure(value, traceback) if isinstance(value, Exception) else None
-        if message is not None:
-            print(f"{Path(sys.argv[0]).name}: error: {message}", file=sys.stderr)
-            sys.stderr.flush()
-            raise SystemExit(2)
-        previous(kind, value, traceback)
-
-    hook.sp_plugins_input_errors = True  # type: ignore[attr-defined]
-    return hook
-
-
-def install_input_error_hook() -> None:
-    """Idempotent: wraps whatever hook is installed (Python's, rich's...)."""
-    if not getattr(sys.excepthook, "sp_plugins_input_errors", False):
-        sys.excepthook = _one_line_input_errors(sys.excepthook)

@@ -98,13 +98,16 @@ def _export(args) -> int:
     config = _load_saved_config(args.load_config)
 
     from sp_plugins.adapter.checks import check_checkpoint_file, check_writable_dir
-    from sp_plugins.adapter.errors import InputError, describe_failure, first_line, install_input_error_hook, write_failure
+    from sp_plugins.adapter.errors import InputError, describe_failure, first_line, write_failure
 
     try:
         check_writable_dir(args.output_dir, "--output-dir")  # before minutes of meshing
     except InputError as err:
         raise _Refused(str(err)) from None
-    install_input_error_hook()  # our command: our models' input errors print as one line here too
+    from sp_plugins.patches import registry
+
+    # our command: our models' input errors print as one line here too
+    registry.install_for_process("input_error_hook", command="sp-export-mesh")
     import torch
     from nerfstudio.utils import eval_utils
 

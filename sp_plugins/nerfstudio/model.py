@@ -28,7 +28,7 @@ from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.checks import check_known_settings
-from sp_plugins.adapter.errors import InputError, install_input_error_hook
+from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
 __all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]

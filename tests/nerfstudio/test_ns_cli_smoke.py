@@ -56,14 +56,14 @@ def test_ns_train_reports_a_missing_data_folder_in_one_line(tmp_path):
 
 
 def test_input_error_hook_prints_one_line_and_leaves_other_errors_alone(capsys, monkeypatch):
-    from sp_plugins.adapter.errors import InputError, install_input_error_hook
+    from sp_plugins.adapter.errors import InputError
+    from sp_plugins.patches import registry
 
     seen = []
     monkeypatch.setattr(sys, "excepthook", lambda *exc: seen.append(exc[0]))
-    install_input_error_hook()
-    install_input_error_hook()  # idempotent: one wrapper
-    with pytest.raises(SystemExit) as exit_info:
-        sys.excepthook(InputError, InputError("bad --data"), None)
-    assert exit_info.value.code == 2 and capsys.readouterr().err.strip().endswith("error: bad --data")
-    sys.excepthook(KeyError, KeyError("x"), None)
+    with registry.scope("input_error_hook"), registry.scope("input_error_hook"):  # idempotent: one wrapper
+        with pytest.raises(SystemExit) as exit_info:
+            sys.excepthook(InputError, InputError("bad --data"), None)
+        assert exit_info.value.code == 2 and capsys.readouterr().err.strip().endswith("error: bad --data")
+        sys.excepthook(KeyError, KeyError("x"), None)
     assert seen == [KeyError]
