@@ -52,7 +52,7 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Every bad input through ``sp-fit``: ``name -> (result, out, before, after)``. Each runs as its own
-    process, forked from a server that imported sp-fit once (``tests/forkserver.py``; an sp-fit
+    process, forked from a server that imported sp-fit once (``tests/helpers/forkserver.py``; an sp-fit
     start-up is 5-7 s here); the first case also runs as the real console script, to show the two agree."""
     from tests.helpers.forkserver import ForkServer
 

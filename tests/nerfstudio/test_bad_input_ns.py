@@ -4,7 +4,7 @@ written or overwritten.
 
 Every command runs as its own process. To keep this within budget (an ``ns-*`` start-up imports
 nerfstudio and every method: 20-30 s here), the commands run in children of one fork server that
-imported them once (``tests/forkserver.py``: the console script's entry point, ``sys.argv`` and the
+imported them once (``tests/helpers/forkserver.py``: the console script's entry point, ``sys.argv`` and the
 interpreter's handling of an uncaught exception and of ``SystemExit``). The truncated checkpoint
 under ``ns-eval`` runs the real console script instead, so the one-line report is also shown from a
 real interpreter's top level (our exception hook ends with ``SystemExit(2)``). The runs these
@@ -28,7 +28,6 @@ import torch
 import yaml
 
 from tests.helpers import errors
-from tests.helpers.forkserver import ForkServer
 from tests.helpers.fs_faults import listing, make_read_only, undo_read_only
 from tests.helpers.ns_commands import ENV, RUN_FLAGS, SDF_FLAGS, command
 from tests.helpers.ns_configs import tiny_sdf_config
@@ -66,7 +65,7 @@ def truncate(path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def cases(tiny_scene, tmp_path_factory):
+def cases(tiny_scene, ns_server, tmp_path_factory):
     """Every bad input, prepared, run in one batch (two at a time) while the real ``ns-eval`` runs
     one case; ``name -> (result, before, after)``, where before / after list the folder the command
     must leave alone."""
@@ -135,14 +134,10 @@ def cases(tiny_scene, tmp_path_factory):
                             env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     plan["eval-truncated"] = (None, root / "eval-t")
     before["eval-truncated"] = listing(root / "eval-t")
-    server = None
-    try:
-        server = ForkServer(["ns-train", "ns-eval", "sp-export-mesh", "nerfstudio.utils.eval_utils", "sp_plugins.nerfstudio.runs"], ENV)
-        results = server.run([dict(case, name=name) for name, (case, _) in plan.items() if case is not None], parallel=2)
+    try:  # the session's fork server (tests/nerfstudio/conftest.py)
+        results = ns_server.run([dict(case, name=name) for name, (case, _) in plan.items() if case is not None], parallel=2)
         out, err = real.communicate(timeout=600)
     finally:
-        if server is not None:
-            server.close()
         if real.poll() is None:
             real.kill()
         if read_only_ok:

@@ -25,7 +25,6 @@ import pytest
 import torch
 import yaml
 
-from tests.helpers.forkserver import ForkServer
 from tests.helpers.ns_commands import ENV, command
 from tests.helpers.ns_configs import tiny_sdf_config, run_recording
 
@@ -238,7 +237,7 @@ def _one_line(proc, prog: str, *says: str) -> str:
     return errors[0]
 
 
-def test_console_scripts_refuse_a_hostile_run_and_load_a_real_one(trained, tmp_path):
+def test_console_scripts_refuse_a_hostile_run_and_load_a_real_one(trained, ns_server, tmp_path):
     marker = tmp_path / "marker"
     hostile = tmp_path / "hostile" / "config.yml"
     hostile.parent.mkdir()
@@ -258,10 +257,9 @@ def test_console_scripts_refuse_a_hostile_run_and_load_a_real_one(trained, tmp_p
     }
     started = {name: subprocess.Popen(list(map(str, args)), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                       text=True, cwd=tmp_path) for name, (args, env) in real.items()}
-    # the real runs' loads, through the fork server (one import of nerfstudio for both: see tests/forkserver.py)
-    server = ForkServer(["sp-export-mesh", "sp-train"], ENV)
+    # the real runs' loads, through the session's fork server (tests/nerfstudio/conftest.py, tests/helpers/forkserver.py)
     try:
-        forked = server.run([
+        forked = ns_server.run([
             {"name": "mesh-real", "script": "sp-export-mesh", "cwd": str(tmp_path),
              "args": ["--load-config", str(trained), "--output-dir", str(tmp_path / "m3"), "--resolution", "16"]},
             {"name": "train-real", "script": "sp-train", "cwd": str(tmp_path), "args": [METHOD, "--load-config", str(copy)]},
@@ -271,7 +269,6 @@ def test_console_scripts_refuse_a_hostile_run_and_load_a_real_one(trained, tmp_p
             out, err = proc.communicate(timeout=600)
             procs[name] = SimpleNamespace(returncode=proc.returncode, stdout=out, stderr=err)
     finally:
-        server.close()
         for proc in started.values():
             if proc.poll() is None:
                 proc.kill()
