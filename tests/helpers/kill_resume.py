@@ -73,3 +73,14 @@ def assert_same(a, b, where="") -> None:
 def model_params(trainer) -> dict:
     """A detached copy of the trainer's model parameters, by name."""
     return {k: v.detach().clone() for k, v in trainer.pipeline.model.named_parameters()}
+
+
+def assert_same_run(trainer, record: dict, full, full_record: dict, steps) -> None:
+    """``trainer`` equal to the bit to ``full`` (the uninterrupted run): ``record`` at each of ``steps``, the
+    model's parameters, the optimizers' states and the preconditioner's."""
+    for step in steps:
+        assert_same(record[step], full_record[step], f"step {step}")
+    assert_same(model_params(trainer), model_params(full), "parameters")
+    assert_same({k: v.state_dict() for k, v in trainer.optimizers.optimizers.items()},
+                {k: v.state_dict() for k, v in full.optimizers.optimizers.items()}, "optimizers")
+    assert_same(trainer.pipeline.model.sp.state_dict(), full.pipeline.model.sp.state_dict(), "sp")

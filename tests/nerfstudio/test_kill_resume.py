@@ -49,7 +49,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.helpers.kill_resume import assert_same, model_params, own_global_rng, restore_global_rng, wait_for_ready
+from tests.helpers.kill_resume import assert_same, assert_same_run, model_params, own_global_rng, restore_global_rng, wait_for_ready
 from tests.helpers.ns_configs import tiny_radiance_config, tiny_sdf_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -249,12 +249,7 @@ def test_killed_run_resumes_to_the_same_schedule_and_sp_state_and_drifts_only_by
 
     # 3. control: with the global RNG state of the killed run at K restored, everything is exact
     control, control_record = resume(tmp_path / "control", rng=rng_at_k)
-    for step in after_k:
-        assert_same(control_record[step], full_record[step], f"step {step}")
-    assert_same(model_params(control), model_params(full), "parameters")
-    assert_same({k: v.state_dict() for k, v in control.optimizers.optimizers.items()},
-                {k: v.state_dict() for k, v in full.optimizers.optimizers.items()}, "optimizers")
-    assert_same(control.pipeline.model.sp.state_dict(), full.pipeline.model.sp.state_dict(), "sp")
+    assert_same_run(control, control_record, full, full_record, after_k)
 
 
 def test_a_second_load_pass_without_the_preconditioners_entries_keeps_its_restored_state():

@@ -53,7 +53,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers.kill_resume import assert_same, model_params, own_global_rng, restore_global_rng, wait_for_ready
+from tests.helpers.kill_resume import assert_same, assert_same_run, model_params, own_global_rng, restore_global_rng, wait_for_ready
 from tests.helpers.sdf_configs import env, run_dir, train_args
 
 pytestmark = pytest.mark.usefixtures("patched")
@@ -260,9 +260,4 @@ def test_killed_sp_neus_resumes_to_the_same_schedule_and_sp_stream_and_drifts_on
     # 3. control: with the global RNG states of the killed run at K restored, everything is exact
     control, control_record = resume(tmp_path / "control", rng=rng_at_k)
     control_record.pop("setup")
-    for step in after_k:
-        assert_same(control_record[step], full_record[step], f"step {step}")
-    assert_same(model_params(control), model_params(full), "parameters")
-    assert_same({k: v.state_dict() for k, v in control.optimizers.optimizers.items()},
-                {k: v.state_dict() for k, v in full.optimizers.optimizers.items()}, "optimizers")
-    assert_same(control.pipeline.model.sp.state_dict(), full.pipeline.model.sp.state_dict(), "sp")
+    assert_same_run(control, control_record, full, full_record, after_k)

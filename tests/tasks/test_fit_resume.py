@@ -20,6 +20,7 @@ from sp_plugins.tasks import checkpoint as ckpt_io
 from sp_plugins.tasks.image import ImageFitTrainer, save_image
 from sp_plugins.tasks.pointcloud import PointCloudSDFTrainer
 from sp_plugins.tasks.sdf import SDFFitTrainer
+from tests.helpers.kill_resume import assert_same
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["--encoding.levels", "4", "--encoding.log2-table-size", "12", "--encoding.base-resolution", "8",
@@ -76,22 +77,6 @@ def run_killed(args, out: Path, mode: str, at: int) -> None:
 
 def read_checkpoint(out: Path) -> dict:
     return torch.load(ckpt_io.checkpoint_path(out), map_location="cpu", weights_only=True)
-
-
-def assert_same_state(a, b, where="") -> None:
-    """Nested dicts / lists of tensors and numbers, equal to the bit."""
-    if isinstance(a, torch.Tensor):
-        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b), where
-    elif isinstance(a, dict):
-        assert set(a) == set(b), (where, set(a) ^ set(b))
-        for k in a:
-            assert_same_state(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (u, v) in enumerate(zip(a, b)):
-            assert_same_state(u, v, f"{where}[{i}]")
-    else:
-        assert a == b, (where, a, b)
 
 
 @pytest.fixture(scope="module")
@@ -181,10 +166,10 @@ def test_killed_run_resumes_to_the_uninterrupted_result(case, mode, at, inputs, 
     whole = uninterrupted(case)
     end, ref = read_checkpoint(out), read_checkpoint(whole)
     for part in ("field", "sp", "optimizer", "generator", "history", "step"):  # the loss trajectory is history
-        assert_same_state(end["trainer"][part], ref["trainer"][part], part)
+        assert_same(end["trainer"][part], ref["trainer"][part], part)
     assert len(end["trainer"]["history"]["loss"]) == STEPS
     if "scheduler" in ref["trainer"]:
-        assert_same_state(end["trainer"]["scheduler"], ref["trainer"]["scheduler"], "scheduler")
+        assert_same(end["trainer"]["scheduler"], ref["trainer"]["scheduler"], "scheduler")
     if case == "image-phase2":
         assert end["trainer"]["phase2_step"] == ref["trainer"]["phase2_step"] == 6
     assert results(out) == results(whole)  # metrics.json (timings aside), mesh.ply / fitted.png / alpha_map.png
