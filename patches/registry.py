@@ -14,7 +14,9 @@ The one exception is :func:`install_for_process`: our own console commands (``sp
 ``owned_commands`` may stay installed there until the process ends. The README's patch table
 says which.
 
-A new patch goes into ``patches/<host>_<what>.py`` with a ``PATCH`` and a line in :data:`ENTRIES`.
+A new patch goes into ``patches/<host>_<what>.py`` with a ``PATCH`` and a line in :data:`ENTRIES`;
+:func:`python_patch`, :func:`nerfstudio_patch` and ``sdfstudio_import_hook.sdfstudio_patch`` fill in
+the host, version and owning commands of a patch of that host.
 """
 
 from __future__ import annotations
