@@ -90,7 +90,7 @@ def test_sp_train_offers_exactly_our_methods_with_sp_off_that_are_no_baseline():
 
 
 def test_the_builtin_list_is_the_one_sp_train_trains_end_to_end():
-    import test_with_sp
+    from tests.nerfstudio import test_with_sp
 
     assert set(BUILTIN) == set(test_with_sp.BUILTIN_TRAIN) - set(SDF_LAYOUT)
 
