@@ -33,10 +33,18 @@ def tiny_sdf_config(name: str, scene: Path, out: Path, *, layout: str = "blender
     return config
 
 
-def run_recording(config, stop_after=None):
-    """Train with the real trainer, recording each iteration's loss and metrics."""
+def stop_after_step(trainer, step: int) -> None:
+    """``trainer`` stops after iteration ``step`` (a training callback)."""
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
+    def stop(step):  # (nerfstudio requires the argument's name)
+        trainer.stop_training = True
+
+    trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(step,)))
+
+
+def run_recording(config, stop_after=None):
+    """Train with the real trainer, recording each iteration's loss and metrics."""
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
@@ -50,11 +58,7 @@ def run_recording(config, stop_after=None):
 
     trainer.train_iteration = recording
     if stop_after is not None:
-
-        def stop(step):
-            trainer.stop_training = True
-
-        trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(stop_after,)))
+        stop_after_step(trainer, stop_after)
     trainer.train()
     return trainer, record
 

@@ -50,7 +50,7 @@ import pytest
 import torch
 
 from tests.helpers.kill_resume import assert_same, assert_same_run, model_params, own_global_rng, restore_global_rng, wait_for_ready
-from tests.helpers.ns_configs import tiny_radiance_config, tiny_sdf_config
+from tests.helpers.ns_configs import stop_after_step, tiny_radiance_config, tiny_sdf_config
 
 ROOT = Path(__file__).resolve().parents[2]
 STEPS, KILL_AT = 8, 4
@@ -121,7 +121,6 @@ def build(family: str, scene: Path, out: Path):
 def ns_train(config, *, stop_after=None, rng=None):
     """``train_loop`` of ns-train, recording each step's loss, loss terms, metrics and alpha. ``rng``:
     global RNG states to restore after the setup (the control resume)."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from nerfstudio.scripts.train import _set_random_seed
 
     config.save_config()
@@ -142,10 +141,7 @@ def ns_train(config, *, stop_after=None, rng=None):
 
         trainer.train_iteration = recording
         if stop_after is not None:
-            def stop(step):
-                trainer.stop_training = True
-
-            trainer.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], stop, iters=(stop_after,)))
+            stop_after_step(trainer, stop_after)
         if rng is not None:
             restore_global_rng(rng)
         trainer.train()
