@@ -185,7 +185,8 @@ def data_dir(setting: Setting, scene: Path) -> Path:
 
 def make_config(name: str, data: Path, setting: Setting, out: Path, tag: str):
     from sp_plugins.nerfstudio.neus import GRID_GROUP
-    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+    from sp_plugins.adapter.shrink import shrink
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     config = method_config(name)
     model = config.pipeline.model

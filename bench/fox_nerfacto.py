@@ -42,7 +42,8 @@ def recipe_flags() -> List[str]:
 def fox_config(sp: bool, steps: int, out: Path, data: Path):
     from nerfstudio.data.dataparsers.instant_ngp_dataparser import InstantNGPDataParserConfig
 
-    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+    from sp_plugins.adapter.shrink import shrink
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     config = method_config("sp-nerfacto")
     configure_run(config, data, steps=steps, output_dir=out, experiment_name=f"fox-{'sp' if sp else 'baseline'}")

@@ -146,7 +146,8 @@ def relu_config(name: str, data: Path, budget: ReLUBudget, variant: Optional[SPV
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from sp_plugins.nerfstudio.relu_field.lr import StagedStepDecaySchedulerConfig
-    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+    from sp_plugins.adapter.shrink import shrink
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     late_lr = variant is not None or name == SP_LR_FLAT
     config = method_config("relu-field-flat" if name == SP_LR_FLAT else name)

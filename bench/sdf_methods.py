@@ -64,7 +64,8 @@ class Budget(GridFieldSize):
 
 
 def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):
-    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+    from sp_plugins.adapter.shrink import shrink
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     method, _, variant = name.partition("+")
     config = method_config(method)

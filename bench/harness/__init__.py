@@ -4,7 +4,7 @@
   one process from the same weights on the same rays, alternating step by step) and what every
   study reports per run (seconds per step, final loss, time ratios);
 - :mod:`~bench.harness.nerfstudio` / :mod:`~bench.harness.sdfstudio`: each host's trainer for that
-  driver and its own evaluation; trainer configs are shrunk by ``sp_plugins.nerfstudio.runs.shrink``;
+  driver and its own evaluation; trainer configs are shrunk by ``sp_plugins.adapter.shrink``;
 - :mod:`~bench.harness.metrics`: PSNR, SDF meshes against the true mesh, table cells, figures;
 - :mod:`~bench.harness.scenes`: meshes by file or name, scenes rendered once, real captures;
 - :mod:`~bench.harness.radiance`: the CPU-sized MipNeRF and the scenes the radiance studies share;

@@ -97,7 +97,8 @@ def dtu_near_far(data: Path) -> Tuple[float, float]:
 def mip_config(sp: bool, data: Path, budget: MipBudget, seed: int, out: Path, method: str = "sp-mipnerf",
                name: Optional[str] = None):
     """``method`` (sp-mipnerf, or freenerf-lite: the same MipNeRF) at ``budget``, SP on or off."""
-    from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+    from sp_plugins.adapter.shrink import shrink
+    from sp_plugins.nerfstudio.runs import configure_run, method_config
 
     config = method_config(method)
     m = config.pipeline.model

@@ -2,7 +2,7 @@
 
 :func:`prepare` readies the host once per process (our compatibility patches, sdfstudio's import
 order, our methods added); :func:`configure` points one of its method configs at a scene at a
-benchmark's size (then ``sp_plugins.nerfstudio.runs.shrink``, which imports no host, shrinks it);
+benchmark's size (then ``sp_plugins.adapter.shrink``, which imports no host, shrinks it);
 :class:`Run` is its trainer driven step by step.
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from bench.harness import lockstep, metrics
 from bench.harness.lockstep import run_summary, step_stats, time_ratio, train_together  # noqa: F401
-from sp_plugins.nerfstudio.runs import shrink  # noqa: F401  (host neutral)
+from sp_plugins.adapter.shrink import shrink  # noqa: F401
 
 
 def prepare() -> None:

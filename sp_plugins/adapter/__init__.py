@@ -14,6 +14,7 @@ The pieces both hosts need live here, one idea per module:
 - :mod:`.callbacks`: the schedule's training callbacks. Both hosts are a package named
   ``nerfstudio`` (1.x, and sdfstudio's 0.1 fork) with the same ``nerfstudio.engine.callbacks``, so
   this one module imports it, lazily: the only place here that touches a host;
+- :mod:`.shrink`: a trainer config of either host made CPU-sized (tests, benchmarks);
 - :mod:`.presets`, :mod:`.checks`, :mod:`.errors`, :mod:`.safe_config`, :mod:`.lpips`: presets,
   input checks with one-line errors, the restricted config loader, LPIPS without downloads.
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sp_plugins.nerfstudio.runs import configure_run, method_config, shrink
+from sp_plugins.adapter.shrink import shrink
+from sp_plugins.nerfstudio.runs import configure_run, method_config
 
 SDF_METHODS = ("sp-neus", "neus-hashgrid", "sp-neus-hashgrid", "neuralangelo-lite", "sp-neuralangelo-lite")
 
