@@ -31,6 +31,9 @@ QUIET_RAY_ENV = {
     # then dropped the worker and the sweep waited forever
     "RAY_worker_register_timeout_seconds": "900",
     "RAY_agent_register_timeout_ms": "900000",
+    # a local Ray's workers at this command's priority, not niceness 15: on a busy machine a niced
+    # worker took minutes just to start (import ray) before its trial could run
+    "RAY_worker_niceness": "0",
 }
 
 
