@@ -69,4 +69,5 @@ def _check(patch: Patch) -> None:
 PATCH = python_patch(
     "input_error_hook", _check, input_errors_as_one_line, (("sys", "excepthook"), ("sys", "__excepthook__")),
     changes="sys.excepthook: wraps the hook in force; a failure our checks describe prints one line and exits 2",
+    shown=lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
     scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in sp-train and sp-export-mesh")

@@ -7,7 +7,12 @@ expected and what it found) when the host no longer looks as the patch was writt
 scope, a context manager. Nothing else installs a patch: code that needs one enters
 ``registry.scope(name)``, which runs the guard and then the patch's own context manager; when the
 block ends the host is as it was (the tests check the identity of every patched attribute, the
-warning filters, ``sys.excepthook``, ``sys.modules`` and ``dataclasses.dataclass``).
+warning filters, ``sys.excepthook``, ``sys.modules`` and ``dataclasses.dataclass``). Entries are
+re-entrant per process: entering a patch that is already in force (a scope inside a scope of the
+same patch, a model's build inside ``sp-gpu-check``'s LPIPS scope, a scope while a :func:`hold` or
+:func:`install_for_process` keeps it) only counts; the guard and the patch's own context manager
+run at the outermost entry, and the host is restored when the last entry ends, in whatever order
+they end.
 
 The one exception is :func:`install_for_process`: our own console commands (``sp-train``,
 ``sp-fit``, ``sp-sdfstudio-train`` ...) own their process, and a patch that lists the command in
@@ -27,13 +32,14 @@ import importlib
 import importlib.metadata
 import os
 import sys
+import threading
 import weakref
 from dataclasses import dataclass, field
 from typing import Any, Callable, ContextManager, Dict, Iterator, List, Optional, Tuple
 
 __all__ = [
     "ENTRIES", "OUR_COMMANDS", "SP_COMMANDS", "Patch", "PatchGuardError", "entries", "get", "install_for_process",
-    "nerfstudio_patch", "our_console_command", "python_patch", "scope", "host_version", "hold", "release",
+    "nerfstudio_patch", "our_console_command", "python_patch", "scope", "host_version", "hold", "release", "in_force",
 ]
 
 
@@ -72,6 +78,9 @@ class Patch:
     """Our console commands that keep it installed for their whole process."""
     found: Callable[[], str] = field(default=lambda: "")
     """The host version found (for the guard's message)."""
+    shown: Optional[Callable[[], bool]] = None
+    """Whether the host still shows the patch (for a patch whose target others replace, such as
+    ``sys.excepthook``): a nested entry finding it gone enters the patch again for its own block."""
 
     def fail(self, expected: str, found: str) -> None:
         version = self.found() or host_version(self.host)
@@ -158,13 +167,71 @@ def entries(host: Optional[str] = None) -> List[Patch]:
     return found
 
 
+_active: Dict[str, List[Any]] = {}
+"""name -> [depth, the ExitStack holding the patch's own context manager, the value it yielded]:
+the entries in force in this process (through :func:`scope`, :func:`hold` or
+:func:`install_for_process`)."""
+_lock = threading.RLock()
+
+
+def _enter(name: str, args: Tuple[Any, ...], kwargs: Dict[str, Any]) -> Tuple[Any, Optional[contextlib.ExitStack]]:
+    """One more entry of ``name``: the outermost runs the guard and the patch's context manager; a
+    nested one (the patch already in force in this process) only counts, and gets the outer value
+    (the outermost entry's arguments decide), unless the host no longer shows the patch
+    (:attr:`Patch.shown`): then it enters the patch again, on a stack of its own (returned)."""
+    with _lock:
+        entry = _active.get(name)
+        if entry is not None:
+            patch = get(name)
+            own = None
+            if patch.shown is not None and not patch.shown():
+                patch.guard()
+                own = contextlib.ExitStack()
+                own.enter_context(patch.enter(*args, **kwargs))
+            entry[0] += 1
+            return entry[2], own
+        patch = get(name)
+        patch.guard()
+        stack = contextlib.ExitStack()
+        value = stack.enter_context(patch.enter(*args, **kwargs))
+        _active[name] = [1, stack, value]
+        return value, None
+
+
+def _exit(name: str, own: Optional[contextlib.ExitStack] = None, exc_type: Any = None, exc: Any = None,
+          tb: Any = None) -> bool:
+    """One entry of ``name`` ends (its own stack first); the last one (in whatever order they end)
+    restores the host. Returns whether the patch's context manager suppressed the exception."""
+    suppressed = bool(own.__exit__(exc_type, exc, tb)) if own is not None else False
+    if suppressed:
+        exc_type = exc = tb = None
+    with _lock:
+        entry = _active[name]
+        entry[0] -= 1
+        if entry[0] > 0:
+            return suppressed
+        del _active[name]
+    return bool(entry[1].__exit__(exc_type, exc, tb)) or suppressed
+
+
 @contextlib.contextmanager
 def scope(name: str, *args: Any, **kwargs: Any) -> Iterator[Any]:
-    """Patch ``name`` for the block: its guard first, then its context manager."""
-    patch = get(name)
-    patch.guard()
-    with patch.enter(*args, **kwargs) as value:
+    """Patch ``name`` for the block: its guard first, then its context manager. Re-entrant: inside
+    a block (or a :func:`hold`, or :func:`install_for_process`) of the same patch it only counts,
+    and the host is restored when the last of them ends."""
+    value, own = _enter(name, args, kwargs)
+    try:
         yield value
+    except BaseException:
+        if not _exit(name, own, *sys.exc_info()):
+            raise
+    else:
+        _exit(name, own)
+
+
+def in_force() -> Tuple[str, ...]:
+    """The entries in force in this process now (scopes, holds and process installs)."""
+    return tuple(_active)
 
 
 def our_console_command() -> Optional[str]:
@@ -193,10 +260,10 @@ def install_for_process(name: str, *args: Any, command: Optional[str] = None, **
             f"{', '.join(patch.owned_commands) or '(none)'}, not by {command or 'this process'}; use registry.scope()"
         )
     if name not in _installed:
-        patch.guard()
         if not _installed:
             atexit.register(_process.close)  # (before the interpreter tears its modules down)
-        _installed[name] = _process.enter_context(patch.enter(*args, **kwargs))
+        _installed[name], own = _enter(name, args, kwargs)
+        _process.callback(_exit, name, own)
     return _installed[name]
 
 

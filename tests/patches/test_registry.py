@@ -33,6 +33,13 @@ HOSTS = ("nerfstudio", "python", "torchmetrics")
 ENTRIES = [p for p in registry.entries() if p.host in HOSTS]
 
 
+@pytest.fixture(autouse=True)
+def _collect_models_of_earlier_files():
+    """A model built by an earlier test file in this process (an xdist worker runs many) may be
+    cyclic garbage that still holds its patches (``registry.hold``) until the next collection."""
+    gc.collect()
+
+
 def test_the_registry_holds_every_patch_module():
     from pathlib import Path
 
@@ -125,6 +132,66 @@ def test_after_each_scope_the_host_is_as_it_was(patch, monkeypatch):
     after = host_state(patch)
     assert changed(before, after) == [], patch.name
     assert not ACTIVE[patch.name]()
+
+
+@pytest.mark.parametrize("patch", ENTRIES, ids=lambda p: p.name)
+def test_a_scope_inside_its_own_scope_only_counts(patch, monkeypatch):
+    """Re-entrance: a model's build inside sp-gpu-check's LPIPS scope enters it again; the guard runs
+    at the outermost entry only, and the host is restored only after the outer exit (also when a
+    held scope outlives the block it started in)."""
+    monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
+    assert patch.name not in registry.in_force()
+    before = host_state(patch)
+    args = ARGS.get(patch.name, {})
+    with registry.scope(patch.name, **args) as outer:
+        inside = host_state(patch)
+        with registry.scope(patch.name, **args) as inner:
+            assert inner is outer and ACTIVE[patch.name]()
+            with registry.scope(patch.name, **args):
+                assert changed(inside, host_state(patch)) == []
+        assert ACTIVE[patch.name]() and changed(inside, host_state(patch)) == [], f"{patch.name}: left by the inner exit"
+        assert registry.in_force().count(patch.name) == 1
+    gc.collect()
+    assert changed(before, host_state(patch)) == [] and not ACTIVE[patch.name](), patch.name
+    assert patch.name not in registry.in_force()
+
+    class Owner:
+        pass
+
+    owner = Owner()
+    with registry.scope(patch.name, **args):
+        registry.hold(patch.name, owner, **args)  # (inside the block: held past it)
+    assert ACTIVE[patch.name](), f"{patch.name}: the hold ended with the block"
+    with pytest.raises(ValueError):
+        with registry.scope(patch.name, **args):
+            raise ValueError("inside")
+    assert ACTIVE[patch.name]()
+    del owner
+    gc.collect()
+    assert changed(before, host_state(patch)) == [] and not ACTIVE[patch.name](), patch.name
+    assert patch.name not in registry.in_force() and patch.name not in registry.held()
+
+
+def test_a_nested_scope_enters_again_where_the_host_dropped_the_patch(monkeypatch):
+    """sys.excepthook replaced while our hook is held (pytest's monkeypatch, another library): a
+    scope inside that hold wraps the hook in force for its block, as an outermost one would."""
+    from sp_plugins.adapter.errors import InputError
+
+    class Owner:
+        pass
+
+    owner, seen = Owner(), []
+    registry.hold("input_error_hook", owner)
+    with monkeypatch.context() as m:
+        m.setattr(sys, "excepthook", lambda *exc: seen.append(exc[0]))
+        replaced = sys.excepthook
+        with registry.scope("input_error_hook"):
+            with pytest.raises(SystemExit):
+                sys.excepthook(InputError, InputError("bad"), None)
+        assert sys.excepthook is replaced and "input_error_hook" in registry.in_force()
+    del owner
+    gc.collect()
+    assert "input_error_hook" not in registry.in_force()
 
 
 def test_held_scopes_end_with_their_last_owner(monkeypatch):
