@@ -47,13 +47,13 @@ def _remove_large_checkpoints_after_the_test(request):
 
 # -- order: the slowest files first ---------------------------------------------------------------
 SLOW_FIRST = (
-    "sweeps/test_sweep_fit.py", "sweeps/test_sweep_ns.py", "nerfstudio/test_real_capture.py", "nerfstudio/test_with_sp.py",
-    "nerfstudio/test_ns_commands.py", "nerfstudio/test_bad_input_ns.py", "bench/test_failure_regime.py",
-    "nerfstudio/test_kill_resume.py", "nerfstudio/test_multiprocess.py", "nerfstudio/test_relu_field_thr3ed.py",
-    "cli/test_demo.py", "test_wheel.py", "nerfstudio/test_safe_config_ns.py", "nerfstudio/test_sp_option_matrix.py",
-    "cli/test_fuzz_inputs.py",
+    "sweeps/test_sweep_fit.py", "sweeps/test_sweep_ns.py", "test_wheel.py", "nerfstudio/test_with_sp.py",
+    "nerfstudio/test_ns_commands.py", "cli/test_demo.py", "bench/test_failure_regime.py", "nerfstudio/test_kill_resume.py",
+    "nerfstudio/test_bad_input_ns.py", "nerfstudio/test_safe_config_ns.py", "nerfstudio/test_multiprocess.py",
+    "nerfstudio/test_relu_field_thr3ed.py", "nerfstudio/test_real_capture.py", "bench/test_gpu_check.py",
+    "cli/test_fuzz_inputs.py", "nerfstudio/test_sp_option_matrix.py",
 )
-"""Files of a minute or more (``--durations``, 2026-12-02). ``./run.sh test`` hands whole files to
+"""Files of half a minute or more (``--durations`` of the CI run, 2026-12-04). ``./run.sh test`` hands whole files to
 pytest-xdist workers in collection order (``--no-loadscope-reorder``: by default xdist starts with the
 files of most tests); a slow file drawn last would run alone at the end."""
 
