@@ -68,7 +68,8 @@ class _SphericalHarmonics(nn.Module):
     def __init__(self, n_input_dims: int, degree: int) -> None:
         super().__init__()
         if n_input_dims != 3 or not 1 <= degree <= 5:
-            raise NotImplementedError(f"SphericalHarmonics with n_input_dims={n_input_dims}, degree={degree}")
+            raise NotImplementedError(f"the torch stand-in for tinycudann has no SphericalHarmonics with n_input_dims={n_input_dims}, "
+                                      f"degree={degree} (it has 3 inputs, degree 1-5); install tiny-cuda-nn")
         self.degree = degree
         self.n_output_dims = degree**2
 
@@ -111,11 +112,11 @@ class Network(nn.Module):
         super().__init__()
         otype = network_config.get("otype", "FullyFusedMLP")
         if otype not in ("FullyFusedMLP", "CutlassMLP"):
-            raise NotImplementedError(f"the torch stand-in for tinycudann has no network otype={otype!r}")
+            raise NotImplementedError(f"the torch stand-in for tinycudann has no network otype={otype!r}; install tiny-cuda-nn")
         act, out_act = network_config.get("activation", "ReLU"), network_config.get("output_activation", "None")
         for name in (act, out_act):
             if name not in _ACTIVATIONS:
-                raise NotImplementedError(f"the torch stand-in for tinycudann has no activation {name!r}")
+                raise NotImplementedError(f"the torch stand-in for tinycudann has no activation {name!r}; install tiny-cuda-nn")
         width, hidden = int(network_config.get("n_neurons", 64)), int(network_config.get("n_hidden_layers", 1))
         dims = [n_input_dims] + [width] * hidden + [n_output_dims]
         layers: list = []
