@@ -273,10 +273,14 @@ _held: Dict[str, Tuple[contextlib.ExitStack, set]] = {}
 def hold(name: str, owner: Any, *args: Any, **kwargs: Any) -> bool:
     """Keep ``name``'s scope open while ``owner`` (one of our models, data managers or run configs)
     exists: entered for the first owner, left when the last one is garbage-collected (or by
-    :func:`release`). Returns True when this call entered it."""
+    :func:`release`). A later owner enters it again if the host no longer shows it
+    (:attr:`Patch.shown`). Returns True when this call entered it."""
     stack_owners = _held.get(name)
     key = id(owner)
     if stack_owners is not None:
+        patch = get(name)
+        if patch.shown is not None and not patch.shown():  # (dropped meanwhile, e.g. by a catch_warnings block)
+            stack_owners[0].enter_context(scope(name, *args, **kwargs))
         if key not in stack_owners[1]:
             stack_owners[1].add(key)
             weakref.finalize(owner, release, name, key)

@@ -76,6 +76,15 @@ def host_warnings_filtered() -> Iterator[bool]:
         warnings._filters_mutated()  # type: ignore[attr-defined]  (drop the per-module "once" caches)
 
 
+def host_warnings_shown() -> bool:
+    """Whether every filter is in ``warnings.filters`` now. A ``warnings.catch_warnings`` block that
+    ends (pytest wraps every test in one) restores the list it saved, dropping filters a hold added
+    inside it: a later scope then enters them again (registry ``Patch.shown``)."""
+    present = {(f[1].pattern if f[1] is not None else None, f[2], f[3].pattern if f[3] is not None else None)
+               for f in warnings.filters if f[0] == "ignore"}
+    return all((message, category, module) in present for category, message, module in HOST_WARNINGS)
+
+
 def _check(patch: Patch) -> None:
     patch.expect(isinstance(getattr(warnings, "filters", None), list), "warnings.filters a list",
                  f"warnings.filters = {type(getattr(warnings, 'filters', None)).__name__}")
@@ -87,4 +96,5 @@ def _check(patch: Patch) -> None:
 PATCH = python_patch(
     "host_warnings", _check, host_warnings_filtered, (("warnings", "filters"), ("warnings", "_filters_mutated")),
     changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
+    shown=lambda: _keep_all() or host_warnings_shown(),
     scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands")
