@@ -1,7 +1,9 @@
 """A few-view, downsampled crop of the real fox capture (instant-ngp format), built at test time.
 
-``/work/shared/data/real/fox`` (50 photographs, 135x240, COLMAP poses) is not in the repository;
-``SP_FOX_CAPTURE`` points elsewhere. Tests that need it skip when it is missing.
+``../shared/data/real/fox`` beside the checkout (50 photographs, 135x240, COLMAP poses) is not in
+the repository; ``SP_FOX_CAPTURE`` points elsewhere (the same lookup as the benchmarks',
+``bench.harness.scenes.FOX``). Tests that need it skip, naming the path, when it is missing; with
+``CI=true`` (``.ci/run``) they fail instead, so a CI without the capture does not look green.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Optional
 
-FOX = Path(os.environ.get("SP_FOX_CAPTURE", "/work/shared/data/real/fox"))
+FOX = Path(os.environ.get("SP_FOX_CAPTURE", Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "fox"))
 
 
 def fox_missing(source: Optional[Path] = None) -> Optional[str]:
