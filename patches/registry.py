@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ContextManager, Dict, Iterator, List, Optional, Tuple
 
 __all__ = [
-    "ENTRIES", "OUR_COMMANDS", "SP_COMMANDS", "Patch", "PatchGuardError", "entries", "get", "install_for_process",
+    "ENTRIES", "OUR_COMMANDS", "SP_COMMANDS", "Patch", "PatchGuardError", "end_for_process", "entries", "get", "install_for_process",
     "nerfstudio_patch", "our_console_command", "python_patch", "scope", "host_version", "hold", "release", "in_force",
 ]
 
@@ -259,12 +259,27 @@ def install_for_process(name: str, *args: Any, command: Optional[str] = None, **
             f"sp_plugins patch {name}: installed for the whole process only by our commands "
             f"{', '.join(patch.owned_commands) or '(none)'}, not by {command or 'this process'}; use registry.scope()"
         )
+    global _atexit_registered
     if name not in _installed:
-        if not _installed:
-            atexit.register(_process.close)  # (before the interpreter tears its modules down)
+        if not _atexit_registered:
+            atexit.register(end_for_process)  # (before the interpreter tears its modules down)
+            _atexit_registered = True
         _installed[name], own = _enter(name, args, kwargs)
         _process.callback(_exit, name, own)
     return _installed[name]
+
+
+_atexit_registered = False
+
+
+def end_for_process() -> None:
+    """End every :func:`install_for_process` entry now, as the process's exit does. For a test that
+    runs one of our console commands' ``main`` inside its own process, the way a new process would
+    run it: after the call the process is as it was before."""
+    global _process
+    stack, _process = _process, contextlib.ExitStack()
+    _installed.clear()
+    stack.close()
 
 
 _held: Dict[str, Tuple[contextlib.ExitStack, set]] = {}

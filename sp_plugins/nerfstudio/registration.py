@@ -153,6 +153,20 @@ def _method_argument(argv: list) -> Optional[str]:
 
 def train(argv: Optional[list] = None) -> None:
     """``sp-train METHOD [ns-train flags]``: nerfstudio's ``ns-train`` with SP on ``METHOD``."""
+    _import_modules_that_keep_their_import_error()
+    _train(argv)
+
+
+def _import_modules_that_keep_their_import_error() -> None:
+    """nerfstudio's ``utils.external`` keeps the ``ImportError`` of a missing tiny-cuda-nn in a module
+    global; its traceback holds every frame that was importing it, locals included, for good. Imported
+    here, that is this call and :func:`train`'s (which binds only ``argv``), not the frame that later
+    holds the run config and trainer (they would outlive a ``train()`` called from Python, a notebook
+    or a test, with the patches they hold)."""
+    import nerfstudio.utils.external  # noqa: F401
+
+
+def _train(argv: Optional[list]) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     # our own command: the process is ours, so the process-wide conveniences go in here
     from sp_plugins.nerfstudio.model import install_process_settings

@@ -82,6 +82,11 @@ def _settings(kind: str):
 
 
 def _call(fn, argv, prog: str) -> int:
+    """The command's exit status; afterwards ``sys.argv`` and what the command installed for its
+    process (``registry.install_for_process``) are as they were, as when a process ends."""
+    from sp_plugins.patches import registry
+
+    saved_argv = sys.argv
     sys.argv = [str(BIN / prog), *map(str, argv)]
     try:
         rc = fn(list(map(str, argv)))
@@ -93,6 +98,9 @@ def _call(fn, argv, prog: str) -> int:
         except SystemExit as stop:
             return stop.code if isinstance(stop.code, int) else 1
         return 1
+    finally:
+        sys.argv = saved_argv
+        registry.end_for_process()
     return 0 if rc is None else rc
 
 

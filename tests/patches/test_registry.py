@@ -218,3 +218,19 @@ def test_only_our_commands_keep_a_patch_for_the_process():
     with pytest.raises(RuntimeError, match="sp-train"):
         registry.install_for_process("nerfstudio_external_methods", command="sp-fit")
     assert "host_warnings" not in registry.installed_for_process()
+
+
+def test_what_a_command_keeps_for_its_process_ends_as_at_exit(monkeypatch):
+    """``end_for_process`` (for tests that run a command's main in their own process) leaves the
+    process as it was: the patched state restored, nothing counted as in force."""
+    patch = registry.get("host_warnings")
+    before = host_state(patch)
+    monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
+    was_in_force = "host_warnings" in registry.in_force()
+    registry.install_for_process("host_warnings", command="sp-fit")
+    assert "host_warnings" in registry.installed_for_process() and ACTIVE["host_warnings"]()
+    registry.end_for_process()
+    assert "host_warnings" not in registry.installed_for_process()
+    assert ("host_warnings" in registry.in_force()) is was_in_force
+    if not was_in_force:
+        assert changed(before, host_state(patch)) == []
