@@ -386,7 +386,8 @@ def main(argv=None) -> None:
                      help="one paired triple (mipnerf, sp-mipnerf at --quick-sp, freenerf-lite) on MESH (a mesh file or a "
                           "key of SCENES) at the cheapest failing size (bench.sparse_views.QUICK; flags still win), "
                           "printing 'baseline PSNR X, SP PSNR Y, FreeNeRF PSNR Z (object)' last")
-    mip.add_argument("--quick-sp", default="0.04@0.333", metavar="ALPHA0@END[:grid]", help="the SP run of --quick")
+    mip.add_argument("--quick-sp", default="1.0@0.333", metavar="ALPHA0@END[:grid]",
+                     help="the SP run of --quick (default: the sparse-view setting, alpha0 about the object's radius)")
     mip.add_argument("--up-axis", choices=["x", "y", "z"], help="of the --quick mesh (known meshes: their own)")
     for f in dataclasses.fields(MipBudget):
         flag = "--" + f.name.replace("_", "-")

@@ -50,6 +50,7 @@ _ANY = "tests/sdfstudio/test_any_method.py::"
 SDF_TRAINS: TestSet = ("sdfstudio", (_ANY + "test_sp_method_trains_two_steps_with_sp_active[neus]",
                                      _ANY + "test_sp_method_trains_two_steps_with_sp_active[neuralangelo]"))
 SDF_MOVES: TestSet = ("sdfstudio", (_ANY + "test_the_fields_queries_move_against_the_plain_positions",))
+SPARSE_GAP: TestSet = ("main", ("tests/bench/test_sparse_views_gap.py",))
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,9 @@ MUTATIONS: List[Mutation] = [
     Mutation("nerfstudio seam: offsets not applied", "sp_plugins/nerfstudio/seam.py",
              'values["origins"] = frustums.origins + (q - x)', 'values["origins"] = frustums.origins',
              (NS_SEAM, NS_MATRIX)),
+    Mutation("MipNeRF's Gaussian means not moved (issue 31's gap)", "sp_plugins/nerfstudio/seam.py",
+             'values["origins"] = frustums.origins + (q - x)', 'values["origins"] = frustums.origins',
+             (SPARSE_GAP,)),
     Mutation("sdfstudio seam: contraction does not move", "sp_plugins/sdfstudio/seam.py",
              "moved = handle.sp(plain)", "moved = plain", (SDF_TRAINS, SDF_MOVES)),
     Mutation("sdfstudio seam: contraction returns its input", "sp_plugins/sdfstudio/seam.py",

@@ -113,7 +113,7 @@ def test_quick_prints_the_three_psnrs_last(bench_out, mesh, capsys):
     (result,) = [json.loads(p.read_text()) for p in (sv.out_dir() / "toy-quick").glob(f"*/{sv.BASELINE}.json")]
     assert (result["budget"]["views"], result["budget"]["lr"], result["budget"]["steps"]) == (3, 2e-3, 3)  # QUICK, flags win
     sp = json.loads(next((sv.out_dir() / "toy-quick").glob("*/sp*.json")).read_text())
-    assert sp["sp"] == {"alpha0": 0.04, "end": 0.333, "grid": False}  # the preset
+    assert sp["sp"] == {"alpha0": 1.0, "end": 0.333, "grid": False}  # the sparse-view setting (sv.SPARSE)
     assert last.startswith(f"baseline PSNR {result['psnr_object']:.2f},")
 
 
@@ -127,6 +127,8 @@ def test_summary_pairs_seeds_and_counts_those_ahead_beyond_the_baseline_spread()
     assert rows[2].startswith(f"| spot | 3 | {sv.BASELINE} | 2 | 14.50 ± 0.71 | 10.50 ± 0.71 |  |  |")
     # paired differences +2.0 and +0.2; the baseline's seed spread is 0.71: one seed ahead beyond it
     assert rows[3].startswith("| spot | 3 | sp[1@0.3] | 2 | 15.60 ± 0.57 | 11.60 ± 0.57 | +1.10 ± 1.27 | 1 / 2 |")
+    # whole-image SSIM: the same on every run here, so no seed is ahead beyond the spread (0)
+    assert rows[3].split(" | ")[8:10] == ["0.50 ± 0.00", "0 / 2"]
 
 
 @pytest.mark.parametrize("text", ["0.4", "0.4@0", "0.4@1.5", "-1@0.3", "0.4@0.3:mesh"])
