@@ -130,7 +130,8 @@ def copy_checkout(dest: Path) -> None:
 def environment(copy: Path) -> Dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("SP_SDFSTUDIO_TESTS", "SP_SDFSTUDIO_MISSING")}
     env["PYTHONPATH"] = os.pathsep.join([str(copy), *filter(None, [os.environ.get("PYTHONPATH")])])
-    env.update(OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", PYTHONDONTWRITEBYTECODE="1")
+    env.update(OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", PYTHONDONTWRITEBYTECODE="1",
+               SP_SLOW_TESTS="1")  # (the opt-in tests too: tests/bench/test_sparse_views_gap.py)
     return env
 
 

@@ -2,14 +2,21 @@
 setting (alpha0 about the object's radius, to 0 at a third of training) ends above plain MipNeRF,
 trained as a pair (same initial weights, same rays at every step).
 
-The size is the smallest the screen found where the gap still shows (``bench/RESULTS.md``, "Sparse
-views against FreeNeRF-lite"): 800 steps of 64 rays, 32 + 32 samples, the study's 4 x 128 MLP,
-49 + 3 views of 48x36 (the study: 2000 steps, 256 rays, 96x72). At 500 steps, or with a 4 x 64 MLP,
-the two runs end within 0.1 dB of each other. Since the pair starts alike and sees the same rays,
-SP that no longer moves the Gaussian means (the seam skipped, the offset dropped, alpha stuck at 0)
-trains the baseline again, to the same numbers, and the margins below fail.
+Opt-in (``SP_SLOW_TESTS=1``; reported as skipped otherwise): about 13 minutes on one core. The size
+is the study's own (2000 steps of 256 rays, 32 + 32 samples, a 4 x 128 MLP, 49 + 3 views of 96x72),
+because it is the smallest size at which the gap showed on every seed measured (whole-image SSIM
++0.18 / +0.18 / +0.04 on seeds 0-2). Smaller sizes that fit the suite do not hold it: at 800 steps of
+128 rays on 48x36 images, seed 0 gains +0.61 dB inside the object and seed 1 loses 0.79 dB; at 500
+steps, or with a 4 x 64 MLP, the pair ends within 0.1 dB (``bench/RESULTS.md``). A test pinned to one
+such seed would fail on any change to the random stream, not only when SP breaks.
+
+Since the pair starts alike and sees the same rays, SP that no longer moves the Gaussian means (the
+seam skipped, the offset dropped, alpha stuck at 0) trains the baseline again, to the same numbers,
+and the margins below fail (``python tests/mutations.py --only "MipNeRF's Gaussian means not moved"``).
+The seam's own tests (``tests/nerfstudio/test_seam.py``) catch that breakage in the default suite.
 """
 
+import os
 import sys
 from pathlib import Path
 
@@ -20,31 +27,30 @@ sys.path.insert(0, str(ROOT))  # the checkout: bench/ is not an installed packag
 import bench.sparse_views as sv  # noqa: E402
 from bench.harness import radiance as rd  # noqa: E402
 
-GAP_BUDGET = rd.MipBudget(steps=800, rays=64, coarse=32, fine=32, mlp_num_layers=4, mlp_layer_width=128, head_width=64,
+pytestmark = pytest.mark.skipif(os.environ.get("SP_SLOW_TESTS") != "1",
+                                reason="about 13 minutes on one core: SP_SLOW_TESTS=1 runs it")
+
+GAP_BUDGET = rd.MipBudget(steps=2000, rays=256, coarse=32, fine=32, mlp_num_layers=4, mlp_layer_width=128, head_width=64,
                           views=3, dtu_like=True, lr=2e-3)
-RESOLUTION = (48, 36)
 SP = sv.SPSetting.parse(sv.SPARSE)
 
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):
-    out = tmp_path_factory.mktemp("gap") / "radiance_methods"
     patch = pytest.MonkeyPatch()
-    patch.setattr(rd, "OUT", out)
-    real = rd.dtu_scene_dir
-    patch.setattr(rd, "dtu_scene_dir", lambda scene, up_axis=None: real(scene, up_axis, views=49, test_views=3, resolution=RESOLUTION))
+    patch.setattr(rd, "OUT", tmp_path_factory.mktemp("gap") / "radiance_methods")
     try:
         yield sv.study("spot", GAP_BUDGET, 0, sv.run_specs([SP], freenerf=None), "gap")
     finally:
         patch.undo()
 
 
-@pytest.mark.timeout(900)
+@pytest.mark.timeout(3600)
 def test_sp_at_the_sparse_view_setting_ends_above_mipnerf_on_three_views(pair):
     base, sp = pair[sv.BASELINE], pair[SP.name]
     assert base["init_weights"] == sp["init_weights"]  # paired: one start
     assert base["alphas"][0] == 0.0 and sp["alphas"][0] == pytest.approx(1.0)
     assert sp["alphas"][-1] == 0.0  # SP over before the end: what is scored is an ordinary field
-    # measured here: object 11.63 -> 12.12 dB, whole image 15.90 -> 16.14 dB
-    assert sp["psnr_object"] > base["psnr_object"] + 0.25, (base["psnr_object"], sp["psnr_object"])
-    assert sp["psnr"] > base["psnr"] + 0.1, (base["psnr"], sp["psnr"])
+    # the study's seed 0: object 11.57 -> 13.58 dB, whole-image SSIM 0.141 -> 0.321
+    assert sp["ssim"] > base["ssim"] + 0.1, (base["ssim"], sp["ssim"])
+    assert sp["psnr_object"] > base["psnr_object"] + 1.0, (base["psnr_object"], sp["psnr_object"])
