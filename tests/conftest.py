@@ -8,10 +8,25 @@ import torch  # noqa: E402
 torch.set_num_threads(int(os.environ.get("SP_TEST_THREADS", "1")))
 
 
+def _import_nerfstudios_external_module_here() -> None:
+    """nerfstudio 1.x's ``utils.external`` keeps the ImportError of a missing tiny-cuda-nn in a module
+    global, and its traceback every frame that was importing it, locals included, for the life of the
+    process. Imported first inside a test, it would keep that test's model alive, and with it the
+    patches the model holds (``registry.hold``), for every later test of the worker. Imported here, it
+    keeps this function's frame. (Not in sdfstudio's environment: its ``nerfstudio`` has no such module.)"""
+    import importlib.util
+
+    spec = importlib.util.find_spec("nerfstudio")  # (a top-level spec imports nothing)
+    if spec is not None and spec.origin and (Path(spec.origin).parent / "utils" / "external.py").is_file():
+        import nerfstudio.utils.external  # noqa: F401
+
+
 # -- disk: a test's large checkpoints go when the test is done ------------------------------------
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+
+_import_nerfstudios_external_module_here()
 
 LARGE_BYTES = 4 * 2**20
 """Checkpoint-like files above this size are removed from a test's ``tmp_path`` after the test (the
