@@ -223,7 +223,7 @@ def test_console_scripts_run_from_the_wheel(fresh_env):
     assert "--budget" in demo_help and "quick" in demo_help
     # the quick budget, cut to a few steps: the point is that the installed demo finds its scene and runs
     out_dir = work / "demo"
-    proc = _run([str(bindir / "sp-demo"), "--budget", "quick", "--steps", str(DEMO_STEPS), "--threads", "1",
+    proc = _run([str(bindir / "sp-demo"), "--budget", "quick", "--steps", str(DEMO_STEPS), "--mesh-resolution", "48", "--threads", "1",
                  "--out", str(out_dir)], cwd=work, env=env, timeout=400)
     assert "| metric | baseline | SP | SP / baseline |" in proc.stdout
     assert (out_dir / "results.json").is_file()

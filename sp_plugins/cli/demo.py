@@ -38,6 +38,8 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     ap.add_argument("--out", default="sp-demo", help="output folder (default: ./sp-demo)")
     ap.add_argument("--budget", choices=sorted(BUDGETS), default="default", help="quick (300 steps, 1-2.5 min), default (2000 steps, 4-10 min on 2 idle cores), long (4000 steps)")
     ap.add_argument("--steps", type=int, default=None, help="override the budget's number of steps")
+    ap.add_argument("--mesh-resolution", type=int, default=None,
+                    help="marching-cubes grid of the final meshes (default: the budget's, 128 / 192 / 256)")
     ap.add_argument("--alpha0", type=float, default=0.03, help="SP's alpha in the [-1, 1] frame (default 0.03)")
     ap.add_argument("--sp-end", type=float, default=0.2, help="SP stops at this fraction of training (default 0.2)")
     ap.add_argument("--seed", type=int, default=0)
@@ -55,6 +57,9 @@ def _paired_configs(args: argparse.Namespace):
     steps = args.steps or steps
     if steps < 10:
         raise ValueError(f"--steps {steps}: use at least 10")
+    resolution = args.mesh_resolution or resolution
+    if resolution < 16:
+        raise ValueError(f"--mesh-resolution {resolution}: use at least 16")
     # Hash grid without geometric initialisation and with a zero output bias: the setting in
     # which the paper reports plain hash grids failing and SP rescuing them.
     base = PointCloudSDFConfig(
