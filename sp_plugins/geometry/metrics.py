@@ -31,8 +31,13 @@ def sample_surface(
 def directed_distances(
     src: Float[np.ndarray, "n 3"], dst: Float[np.ndarray, "m 3"], dst_tree: Optional[cKDTree] = None
 ) -> tuple[Float[np.ndarray, "n"], np.ndarray]:
-    """Distance from every ``src`` point to its nearest ``dst`` point, and that point's index."""
-    tree = dst_tree if dst_tree is not None else cKDTree(dst)
+    """Distance from every ``src`` point to its nearest ``dst`` point, and that point's index.
+
+    The tree is built with sliding-midpoint splits and uncompacted nodes: with scipy's defaults,
+    queries far from a reconstruction that missed the surface (a blob, a fog mesh: mean distance a
+    quarter of the diagonal) took 4.5 s for 50k points where these take 0.5 s, and matched points
+    cost the same (0.36 vs 0.34 s for 200k); the distances are exact either way."""
+    tree = dst_tree if dst_tree is not None else cKDTree(dst, balanced_tree=False, compact_nodes=False)
     dist, idx = tree.query(src, k=1, workers=1)
     return dist, idx
 
