@@ -138,10 +138,11 @@ run_tests() {
       export SP_SDFSTUDIO_TESTS=separate
     fi
   fi
-  if [ "$run_main" = 1 ]; then setup; fi
   if [ "$run_sdf" = 1 ]; then
     # the two suites share nothing but the CPU: each runs one torch thread (tests/conftest.py), so on
-    # two or more cores they run side by side; the sdfstudio report is printed after the main one
+    # two or more cores they run side by side; the sdfstudio report is printed after the main one.
+    # The sdfstudio suite starts before the main environment is installed: a fresh clone's install
+    # (mostly waiting on downloads and disk) overlaps its tests
     [ ${#sdf_paths[@]} -gt 0 ] || sdf_paths=(tests/sdfstudio)
     sdf_log="$(mktemp "${TMPDIR:-/tmp}/sp-sdfstudio-tests.XXXXXX")"
     if [ "$run_main" = 1 ]; then
@@ -154,6 +155,10 @@ run_tests() {
     fi
   fi
   if [ "$run_main" = 1 ]; then
+    # a failed install ends this script (set -e): the sdfstudio run beside it ends with it
+    [ -n "$sdf_pid" ] && trap "kill $sdf_pid 2>/dev/null || true" EXIT
+    setup
+    trap - EXIT
     # the main suite is spread over SP_TEST_WORKERS processes (default: the cores, at most 8; 1 = one
     # process), a test file per worker at a time so its module fixtures are built once
     local workers="${SP_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}" xdist=()
