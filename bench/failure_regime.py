@@ -63,27 +63,47 @@ class Setting:
     mesh: str = "spot"
     """a mesh file, a bundled / primitive name, or the stem of one of ../shared/data/meshes"""
     up_axis: str = "z"
+    """the mesh's up axis (meshes of ../shared/data/meshes: their own)"""
     dtu_like: bool = True
+    """the DTU-like scene (ground, backdrop, a frontal cap of views) rather than the white-background one"""
     background_model: str = "mlp"
+    """the model's background: mlp (NeRF++) or none"""
     background_mlp: tuple = (4, 64)
     """layers, width of the NeRF++ background (nerfstudio's 8 x 256 took ~40% of a CPU step)"""
     geometric_init: bool = True
+    """start the SDF as a sphere (NeuS's init)"""
     lr: float = 5e-3
+    """Adam learning rate of the MLPs"""
     grid_lr: float = 1e-2
+    """Adam learning rate of the hash grid"""
     max_res: int = 2048
+    """the hash grid's finest resolution"""
     log2_hashmap_size: int = 19
+    """log2 of the hash table's rows per level"""
     num_levels: int = 16
+    """hash levels"""
     views: int = 49
+    """training views"""
     test_views: int = 3
+    """held-out views scored"""
     resolution: tuple = (96, 72)
+    """width, height in pixels of the renders"""
     steps: int = 600
+    """training steps of both runs"""
     rays: int = 256
+    """rays per training batch"""
     num_samples: int = 32
+    """NeuS samples per ray before up-sampling"""
     num_samples_importance: int = 16
+    """samples added per up-sampling round"""
     hidden_dim: int = 64
+    """width of the SDF and colour MLPs"""
     warm_up_end: int = 50
+    """steps of the learning rate's linear warm-up"""
     seed: int = 0
+    """the seed of both runs (weights, rays, SP noise)"""
     mesh_resolution: int = 96
+    """marching-cubes grid points per axis of the final meshes"""
     sp_alpha0: Optional[float] = None
     """the SP run's alpha0 (None: the NeuS preset, 0.013)"""
     sp_end: Optional[float] = None

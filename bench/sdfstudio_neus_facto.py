@@ -40,14 +40,23 @@ class Budget(GridFieldSize):
     """The CPU-sized setting shared by both runs (stated in the results)."""
 
     steps: int = 400
+    """training steps of both runs"""
     rays: int = 256
+    """rays per training batch"""
     proposal_samples: tuple = (64, 32)
+    """samples per ray of the two proposal rounds"""
     neus_samples: int = 24
+    """NeuS samples per ray"""
     lr: float = 5e-3
+    """Adam learning rate of the fields"""
     warm_up_end: int = 40
+    """steps of the learning rate's linear warm-up"""
     views: int = 16
+    """training views of the rendered scene"""
     resolution: int = 48
+    """side in pixels of the renders"""
     mesh_resolution: int = 128
+    """marching-cubes grid points per axis of the final meshes"""
     inside_outside: bool = False
     """An object seen from outside (neus-facto's default, True, is its indoor setting; the 150-step
     run in RESULTS.md kept True and found no surface)."""

@@ -107,10 +107,15 @@ class GridFieldSize:
     """The size of a NeuS-family SDF field (hash grid and MLPs) at a CPU budget, shared by the SDF studies."""
 
     hidden_dim: int = 64
+    """width of the SDF and colour MLPs"""
     geo_feat_dim: int = 31
+    """geometry features handed from the SDF MLP to the colour MLP"""
     num_levels: int = 16
+    """hash levels"""
     max_res: int = 256
+    """the hash grid's finest resolution"""
     log2_hashmap_size: int = 16
+    """log2 of the hash table's rows per level"""
 
     def field_settings(self) -> dict:
         """The field config's settings (``shrink(config, field=...)``); the colour MLP as wide as the SDF's."""

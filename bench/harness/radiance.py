@@ -32,18 +32,31 @@ class MipBudget:
     step here even at a quarter of that, so the MLP is narrower and the batch smaller."""
 
     steps: int = 3000
+    """training steps of every run"""
     rays: int = 256
+    """rays per training batch"""
     coarse: int = 32
+    """samples per ray of the coarse pass"""
     fine: int = 32
+    """samples per ray of the fine pass"""
     mlp_num_layers: int = 4
+    """layers of MipNeRF's MLP (nerfstudio: 8)"""
     mlp_layer_width: int = 128
+    """width of MipNeRF's MLP (nerfstudio: 256)"""
     head_width: int = 64
+    """width of the colour head"""
     lr: float = 5e-4
+    """Adam learning rate of the fields"""
     views: int = 6
+    """training views of the white-background scene"""
     alpha0: float = 0.04
+    """the SP run's initial alpha (the preset of sp-mipnerf)"""
     end: int = 1000
+    """the step at which the SP run's alpha reaches 0"""
     image: int = 64
+    """side in pixels of the white-background scene's renders"""
     test_views: int = 8
+    """held-out views scored (white-background scene)"""
     dtu_like: bool = False
     """train on the DTU-like scene (``sp-scene --dtu-like``: ground, backdrop, a frontal cap of 49
     views of 96x72, no masks; ``image`` and ``test_views`` do not apply) and score PSNR inside the

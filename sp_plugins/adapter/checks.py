@@ -8,7 +8,8 @@ and what was expected:
   without noticing);
 - :func:`check_known_settings`: a saved config (``config.yml``) was written by this version: no
   setting this version does not know, none missing that has no default;
-- :func:`check_device`: the device a flag names exists on this machine.
+- :func:`check_device`: the device a flag names exists on this machine;
+- :func:`existing_outputs`: which of a command's result files an output folder already holds.
 
 Imports no host.
 """
@@ -19,7 +20,7 @@ import dataclasses
 import sys
 import zipfile
 from pathlib import Path
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Iterable, Iterator, List, Optional, Sequence, Tuple
 
 from sp_plugins.adapter.errors import InputError
 
@@ -132,6 +133,14 @@ def check_device(device_type: str, count: int = 1, flag: str = "--machine.device
     if device_type != "cuda" and count > 1:  # nerfstudio's launcher asserts CUDA for more than one device
         raise InputError(f"--machine.num-devices {count}: nerfstudio trains on more than one device only with "
                          f"{flag} cuda; pass --machine.num-devices 1 (README: Multi-process training)")
+
+
+def existing_outputs(out: Path, names: Iterable[str], flag: str) -> List[str]:
+    """The ``names`` already in the folder ``out`` (a caller refuses them or replaces them);
+    ``ValueError`` when ``out`` is a file (``flag`` names where it came from)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{flag} {out}: exists and is not a folder; choose another {flag}")
+    return [name for name in names if (out / name).exists()]
 
 
 def check_writable_dir(path: Path, flag: str) -> None:

@@ -73,9 +73,9 @@ def _check_counts(n_train: int, n_val: int, n_test: int) -> None:
 
 
 def _prepare(out_dir: Path, overwrite: bool) -> None:
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"output {out_dir} exists and is not a directory.")
-    existing = [name for name in PRODUCTS if (out_dir / name).exists()]
+    from sp_plugins.adapter.checks import existing_outputs
+
+    existing = existing_outputs(out_dir, PRODUCTS, "output")
     if existing and not overwrite:
         raise SceneExistsError(
             f"{out_dir} already holds a scene ({', '.join(existing)}): pass overwrite=True (sp-scene --overwrite) "

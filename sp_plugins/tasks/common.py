@@ -66,13 +66,11 @@ def counting_bar(fn: Callable, total: int, desc: str, enabled: bool = True):
 def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite: bool) -> Path:
     """Create ``out`` or check that it holds none of ``outputs`` (unless ``overwrite``), and that
     files can be written there (a read-only folder or a full disk is named before any training)."""
-    from sp_plugins.adapter.checks import check_writable_dir
+    from sp_plugins.adapter.checks import check_writable_dir, existing_outputs
     from sp_plugins.adapter.errors import write_failure
 
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder; choose another --out")
-    existing = [name for name in outputs if (out / name).exists()]
+    existing = existing_outputs(out, outputs, "--out")
     if existing and not overwrite:
         raise ValueError(
             f"--out {out}: already holds results ({', '.join(existing)}); pass --overwrite to replace "

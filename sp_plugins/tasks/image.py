@@ -59,12 +59,15 @@ class ImageFitConfig:
 
     _target: Type = field(default_factory=_trainer)
     steps: int = 2000
+    """Optimisation steps."""
     seed: int = 0
+    """Seeds the network initialisation, the pixel batches and (unless sp.seed is set) the SP noise."""
     batch: int = 16384
     """Pixels per step (all pixels when the image is smaller)."""
     lr: float = 1e-2
     """Adam learning rate of the field (hash grids like large ones)."""
     hidden: Tuple[int, ...] = (64, 64)
+    """Widths of the MLP's hidden layers."""
     adaptive_alpha: bool = False
     """Learn a spatially varying alpha map (AlphaGrid at 1/16 of the image size)."""
     alpha_map_downscale: int = 16

@@ -39,7 +39,9 @@ class SDFFitConfig:
 
     _target: Type = field(default_factory=_trainer)
     steps: int = 2000
+    """Optimisation steps."""
     seed: int = 0
+    """Seeds the network initialisation, the batches and (unless sp.seed is set) the SP noise."""
     batch: int = 8192
     """Samples per step (50% surface, 25% near, 25% uniform)."""
     pool: int = 100_000
@@ -47,7 +49,9 @@ class SDFFitConfig:
     near_sigma: float = 0.02
     """Standard deviation of the near-surface offsets, in the frame (diagonal 1.9)."""
     lr: float = 1e-3
+    """Adam learning rate."""
     hidden: Tuple[int, ...] = (64, 64)
+    """Widths of the MLP's hidden layers."""
     frame_diagonal: float = 1.9
     mesh_resolution: int = 192
     refine: int = 4

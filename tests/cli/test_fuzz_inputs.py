@@ -527,20 +527,15 @@ def _scene_case(harness, scene: Path, layout: str, kind: str, draw, edit_name: s
     harness.run(kind, "sp-train", sp_train, [METHOD, *TRAIN, "--output-dir", out, parser, "--data", data], out, inputs, [data])
 
 
-def test_transforms_json(harness, run, scene):
-    @_settings("transforms")
+@pytest.mark.parametrize("layout, kind, edit_name, path_key", [
+    ("blender", "transforms", "transforms_train.json", "file_path"),  # nerfstudio's Blender parser
+    ("sdfstudio", "meta", "meta_data.json", "rgb_path"),  # the sdfstudio-data parser
+])
+def test_scene_json(harness, run, scene, layout, kind, edit_name, path_key):
+    @_settings(kind)
     @given(data=st.data())
     def check(data):
-        _scene_case(harness, scene, "blender", "transforms", data.draw, "transforms_train.json", "file_path")
-
-    check()
-
-
-def test_meta_data_json(harness, run, scene):
-    @_settings("meta")
-    @given(data=st.data())
-    def check(data):
-        _scene_case(harness, scene, "sdfstudio", "meta", data.draw, "meta_data.json", "rgb_path")
+        _scene_case(harness, scene, layout, kind, data.draw, edit_name, path_key)
 
     check()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 
@@ -74,11 +75,17 @@ def test_mixed_image_sizes_are_named(layout, scene_copy, tiny_config, tmp_path):
         _setup(config)
 
 
-def test_scene_box_that_misses_the_cameras_look_at_points(scene_copy, tiny_config, tmp_path):
-    path = scene_copy / "sdfstudio" / "meta_data.json"
+@contextlib.contextmanager
+def _edited(path):
+    """A scene's JSON file, to change in place: written back when the block ends."""
     meta = json.loads(path.read_text())
-    meta["scene_box"]["aabb"] = [[5.0, 5.0, 5.0], [7.0, 7.0, 7.0]]  # wrong units / frame
+    yield meta
     path.write_text(json.dumps(meta))
+
+
+def test_scene_box_that_misses_the_cameras_look_at_points(scene_copy, tiny_config, tmp_path):
+    with _edited(scene_copy / "sdfstudio" / "meta_data.json") as meta:
+        meta["scene_box"]["aabb"] = [[5.0, 5.0, 5.0], [7.0, 7.0, 7.0]]  # wrong units / frame
     config = tiny_config("sp-neus", scene_copy, tmp_path, layout="sdfstudio")
     with pytest.raises(ValueError, match=r"rgb/.*: its camera .* looks past the scene box \(scene_box.aabb of .*meta_data.json\) .* cameras do"):
         _setup(config)
@@ -86,11 +93,9 @@ def test_scene_box_that_misses_the_cameras_look_at_points(scene_copy, tiny_confi
 
 def test_blender_cameras_outside_the_fixed_box_are_named(scene_copy, tiny_config, tmp_path):
     for split in ("train", "val"):
-        path = scene_copy / "blender" / f"transforms_{split}.json"
-        meta = json.loads(path.read_text())
-        for frame in meta["frames"]:
-            frame["transform_matrix"][0][3] += 10.0  # poses in other units / another origin
-        path.write_text(json.dumps(meta))
+        with _edited(scene_copy / "blender" / f"transforms_{split}.json") as meta:
+            for frame in meta["frames"]:
+                frame["transform_matrix"][0][3] += 10.0  # poses in other units / another origin
     config = tiny_config("sp-neus", scene_copy, tmp_path, layout="blender")
     with pytest.raises(ValueError, match=r"r_0.png: its camera .* looks past the Blender scene box .*--scale-factor"):
         _setup(config)
