@@ -37,6 +37,7 @@ from torch import Tensor
 from sp_plugins.core import AlphaGrid, SPConfig
 from sp_plugins.tasks.common import ResumableTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
+from sp_plugins.tasks.settings import FitSettings
 
 
 def _image_sp() -> SPConfig:
@@ -54,20 +55,14 @@ def _trainer():
 
 
 @dataclass
-class ImageFitConfig:
+class ImageFitConfig(FitSettings):
     """Settings of an image fit (``sp-fit image``)."""
 
     _target: Type = field(default_factory=_trainer)
-    steps: int = 2000
-    """Optimisation steps."""
-    seed: int = 0
-    """Seeds the network initialisation, the pixel batches and (unless sp.seed is set) the SP noise."""
     batch: int = 16384
     """Pixels per step (all pixels when the image is smaller)."""
     lr: float = 1e-2
     """Adam learning rate of the field (hash grids like large ones)."""
-    hidden: Tuple[int, ...] = (64, 64)
-    """Widths of the MLP's hidden layers."""
     adaptive_alpha: bool = False
     """Learn a spatially varying alpha map (AlphaGrid at 1/16 of the image size)."""
     alpha_map_downscale: int = 16

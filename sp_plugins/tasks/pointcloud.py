@@ -29,6 +29,7 @@ from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, OrientedPoints
 from sp_plugins.tasks.common import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
+from sp_plugins.tasks.settings import MeshedFitSettings
 
 
 def _pointcloud_sp() -> SPConfig:
@@ -42,28 +43,20 @@ def _trainer():
 
 
 @dataclass
-class PointCloudSDFConfig:
+class PointCloudSDFConfig(MeshedFitSettings):
     """Settings of a point cloud -> SDF fit (``sp-fit pointcloud``)."""
 
     _target: Type = field(default_factory=_trainer)
-    steps: int = 2000
-    """Optimisation steps."""
-    seed: int = 0
-    """Seeds the network initialisation, the batches and (unless sp.seed is set) the SP noise."""
     surface_batch: int = 2500
     """Surface points (with normals) per step."""
     space_batch: int = 2500
     """Uniform points in the domain box per step."""
     n_points: int = 200_000
     """Points sampled from an input mesh (a point-cloud input is used as it is)."""
-    lr: float = 1e-3
-    """Adam learning rate."""
     lr_final_ratio: float = 1.0
     """The learning rate decays exponentially to lr * this at the last step (1 = constant)."""
     grad_clip: float = 1.0
     """Clip the gradient norm (0 = off)."""
-    hidden: Tuple[int, ...] = (64, 64)
-    """MLP hidden widths."""
     geometric_init: bool = False
     """Start the MLP as the SDF of a sphere (SAL)."""
     include_input: Optional[bool] = None
@@ -84,16 +77,6 @@ class PointCloudSDFConfig:
     """Eikonal penalty on (|grad f| - 1): squared (the paper's code) or abs (SIREN's paper)."""
     offsurface_falloff: float = 100.0
     """The off-surface term is exp(-falloff * |f|)."""
-    frame_diagonal: float = 1.9
-    """Bounding-box diagonal of the object in the [-1, 1]^3 domain."""
-    mesh_resolution: int = 192
-    """Marching-cubes grid points per axis."""
-    refine: int = 4
-    """Bisection steps per marching-cubes vertex."""
-    metric_points: int = 200_000
-    """Samples per mesh for the metrics."""
-    fscore_threshold: float = 0.01
-    """F-score threshold, as a fraction of the ground truth's diagonal."""
     encoding: EncodingConfig = field(default_factory=EncodingConfig)
     sp: SPConfig = field(default_factory=_pointcloud_sp)
 

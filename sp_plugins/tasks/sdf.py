@@ -23,6 +23,7 @@ from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, sample_surface
 from sp_plugins.tasks.common import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
+from sp_plugins.tasks.settings import MeshedFitSettings
 
 
 def _sdf_sp() -> SPConfig:
@@ -34,29 +35,16 @@ def _trainer():
 
 
 @dataclass
-class SDFFitConfig:
+class SDFFitConfig(MeshedFitSettings):
     """Settings of a direct SDF fit (``sp-fit sdf``)."""
 
     _target: Type = field(default_factory=_trainer)
-    steps: int = 2000
-    """Optimisation steps."""
-    seed: int = 0
-    """Seeds the network initialisation, the batches and (unless sp.seed is set) the SP noise."""
     batch: int = 8192
     """Samples per step (50% surface, 25% near, 25% uniform)."""
     pool: int = 100_000
     """Samples with precomputed distances drawn once before training."""
     near_sigma: float = 0.02
     """Standard deviation of the near-surface offsets, in the frame (diagonal 1.9)."""
-    lr: float = 1e-3
-    """Adam learning rate."""
-    hidden: Tuple[int, ...] = (64, 64)
-    """Widths of the MLP's hidden layers."""
-    frame_diagonal: float = 1.9
-    mesh_resolution: int = 192
-    refine: int = 4
-    metric_points: int = 200_000
-    fscore_threshold: float = 0.01
     encoding: EncodingConfig = field(default_factory=EncodingConfig)
     sp: SPConfig = field(default_factory=_sdf_sp)
 

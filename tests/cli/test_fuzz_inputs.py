@@ -42,7 +42,6 @@ import hashlib
 import io
 import json
 import os
-import pickle
 import re
 import shutil
 import subprocess
@@ -132,6 +131,14 @@ class Harness:
         folder = self.root / "cases" / f"{self.count:04d}-{name}"
         folder.mkdir(parents=True)
         return folder
+
+    def input_file(self, name: str, file: tuple) -> tuple:
+        """A new case holding one drawn input file ``(suffix, bytes)``: its path and the case's ``out``."""
+        suffix, data = file
+        case = self.case(name)
+        path = case / f"input{suffix}"
+        path.write_bytes(data)
+        return path, case / "out"
 
     def run(self, kind: str, prog: str, fn, argv, out: Path, inputs, names) -> tuple:
         if not COLLECT:
@@ -262,7 +269,7 @@ HOSTILE_VALUES = [
     f'!!python/object/apply:nerfstudio.utils.scripts.run_command ["{TOUCH}"]',
     "!!python/name:os.system ''",
     "!!python/module:os ''",
-    f"!!python/object:builtins.type {{a: 1}}",
+    "!!python/object:builtins.type {a: 1}",
     f'!!python/object/apply:_operator.getitem [!!python/name:os.system "", "{TOUCH}"]',
     f"!local {TOUCH}",
 ]
@@ -613,11 +620,7 @@ def sp_scene(argv):
 @_settings("mesh")
 @given(file=mesh_files(), command=st.sampled_from(["pointcloud", "sdf", "scene"]))
 def test_meshes_and_point_clouds(harness, file, command):
-    suffix, data = file
-    case = harness.case("mesh")
-    path = case / f"input{suffix}"
-    path.write_bytes(data)
-    out = case / "out"
+    path, out = harness.input_file("mesh", file)
     if command == "scene":
         argv = [path, out, "--views", "2", "--val-views", "1", "--test-views", "1", "--resolution", "8", "--quiet"]
         harness.run("mesh", "sp-scene", sp_scene, argv, out, [path], [path])
@@ -675,11 +678,7 @@ def image_files(draw):
 @_settings("image")
 @given(file=image_files(), adaptive=st.booleans())
 def test_images(harness, file, adaptive):
-    suffix, data = file
-    case = harness.case("image")
-    path = case / f"input{suffix}"
-    path.write_bytes(data)
-    out = case / "out"
+    path, out = harness.input_file("image", file)
     argv = ["image", path, *FIT, "--batch", "64", "--out", out, *(["--adaptive-alpha", "--alpha-map-downscale", "4"] if adaptive else [])]
     harness.run("image", "sp-fit", sp_fit, argv, out, [path], [path])
 
