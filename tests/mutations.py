@@ -132,6 +132,10 @@ def environment(copy: Path) -> Dict[str, str]:
     env["PYTHONPATH"] = os.pathsep.join([str(copy), *filter(None, [os.environ.get("PYTHONPATH")])])
     env.update(OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", PYTHONDONTWRITEBYTECODE="1",
                SP_SLOW_TESTS="1")  # (the opt-in tests too: tests/bench/test_sparse_views_gap.py)
+    # the copy is not beside ../shared: the tests and benches look for the shared data here
+    shared = ROOT.parent / "shared" / "data"
+    if shared.is_dir():
+        env.setdefault("SP_SHARED_DATA", str(shared))
     return env
 
 

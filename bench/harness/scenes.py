@@ -1,18 +1,25 @@
 """Where the studies' scenes come from: meshes by file or name, scenes rendered once per setting, real captures.
 
 Shared data (test meshes, the fox capture) is looked for next to the checkout, in
-``../shared/data`` (``meshes/``, ``real/fox``); ``SP_FOX_CAPTURE`` names another fox folder, and
-the studies that train on a capture take it as an argument too. Nothing here names a machine path.
+``../shared/data`` (``meshes/``, ``real/fox``), or in ``SP_SHARED_DATA``; ``SP_FOX_CAPTURE`` names
+another fox folder, and the studies that train on a capture take it as an argument too. Nothing here
+names a machine path.
+
+A mesh name resolves to the shared file when there is one (:func:`mesh_source`): ``spot`` in the
+DTU-like studies is ``../shared/data/meshes/spot.ply`` (Y-up, stood on z: Spot sits on its haunches,
+nose up), not the bundled ``spot`` (the same mesh turned Z-up). A scene rendered once is reused only
+for the mesh it was rendered from (:func:`rendered`), so the two never mix.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from pathlib import Path
 from typing import Dict, Tuple
 
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("SP_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
 SHARED_MESHES = SHARED_DATA / "meshes"
 FOX = Path(os.environ.get("SP_FOX_CAPTURE", SHARED_DATA / "real" / "fox"))
 """The instant-ngp fox (``transforms.json``, COLMAP poses): ``SP_FOX_CAPTURE`` or ``../shared/data/real/fox``."""
@@ -57,9 +64,15 @@ def rendered(mesh: str, out: Path, *, up_axis: str = "z", dtu_like: bool = True,
 
     key = f"{Path(mesh).stem}_{'dtu' if dtu_like else 'white'}_{views}v_{resolution[0]}x{resolution[1]}"
     root = out / "scenes" / key
-    if not (root / "scene.json").is_file():
+    source = mesh_source(mesh)
+    if (root / "scene.json").is_file():
+        made_from = json.loads((root / "scene.json").read_text()).get("source")
+        if made_from != source:
+            raise SystemExit(f"{root}: rendered from {made_from}, not {source} (../shared present in one run and "
+                             f"not in the other? SP_SHARED_DATA names it); remove that folder to render it again")
+    else:
         logging.info("rendering scene %s", key)
-        make_scene(mesh_source(mesh), root, up_axis=up_axis, n_train=views, n_val=1, n_test=test_views,
+        make_scene(source, root, up_axis=up_axis, n_train=views, n_val=1, n_test=test_views,
                    resolution=resolution, layouts=(layout,), seed=0, dtu_like=dtu_like, overwrite=True)
     return root
 

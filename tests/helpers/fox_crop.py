@@ -13,7 +13,8 @@ import os
 from pathlib import Path
 from typing import Optional
 
-FOX = Path(os.environ.get("SP_FOX_CAPTURE", Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "fox"))
+SHARED_DATA = Path(os.environ.get("SP_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
+FOX = Path(os.environ.get("SP_FOX_CAPTURE", SHARED_DATA / "real" / "fox"))
 
 
 def fox_missing(source: Optional[Path] = None) -> Optional[str]:
