@@ -26,14 +26,12 @@ from dataclasses import dataclass
 from typing import Optional
 
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
-from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig, RAdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.tensorf import TensoRFModelConfig
 from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
@@ -44,7 +42,7 @@ from sp_plugins.nerfstudio.components.hash_encoding import NerfactoHashGridModel
 from sp_plugins.nerfstudio.mipnerf import SPMipNerfModelConfig
 from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
 from sp_plugins.nerfstudio.components.schedulers import FloatExponentialDecaySchedulerConfig
-from sp_plugins.nerfstudio.components.trainer import CheckedTrainerConfig
+from sp_plugins.nerfstudio.components.trainer import checked_trainer
 
 
 @dataclass
@@ -77,22 +75,14 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         eval_num_rays_per_chunk=4096,
         sp=dataclasses.replace(RELU_FIELD_SP, enabled=sp),
     )
-    config = CheckedTrainerConfig(
-        method_name=name,
-        steps_per_eval_batch=500,
-        steps_per_eval_image=500,
-        steps_per_save=2000,
-        max_num_iterations=RELU_FIELD_STEPS,
+    config = checked_trainer(
+        name,
+        CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=16384, eval_num_rays_per_batch=4096),
+        model,
+        {"fields": {"optimizer": FusedAdamOptimizerConfig(lr=0.03, eps=1e-15), "scheduler": None}},
+        viewer_rays=1 << 14,
+        steps_per_eval_batch=500, steps_per_eval_image=500, steps_per_save=2000, max_num_iterations=RELU_FIELD_STEPS,
         mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
-            datamanager=CheckedDataManagerConfig(
-                dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=16384, eval_num_rays_per_batch=4096
-            ),
-            model=model,
-        ),
-        optimizers={"fields": {"optimizer": FusedAdamOptimizerConfig(lr=0.03, eps=1e-15), "scheduler": None}},
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
-        vis="viewer",
     )
     return _with_sp_optimizer(config, description)
 
@@ -105,14 +95,12 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
         eval_num_rays_per_chunk=1024,
     )
     model.sp = dataclasses.replace(model.sp, enabled=sp)
-    config = CheckedTrainerConfig(
-        method_name=name,
+    config = checked_trainer(
+        name,
+        CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=1024),
+        model,
+        {"fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None}},
         max_num_iterations=MIPNERF_STEPS,
-        pipeline=VanillaPipelineConfig(
-            datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=1024),
-            model=model,
-        ),
-        optimizers={"fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None}},
     )
     return _with_sp_optimizer(config, description)
 
@@ -125,13 +113,11 @@ def _generic(config: TrainerConfig, sp: SPConfig, description: str) -> MethodSpe
 
 
 def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
-    config = CheckedTrainerConfig(
-        method_name=name,
-        pipeline=VanillaPipelineConfig(
-            datamanager=CheckedDataManagerConfig(dataparser=BlenderDataParserConfig()),
-            model=VanillaModelConfig(_target=NeRFModel),
-        ),
-        optimizers={
+    config = checked_trainer(
+        name,
+        CheckedDataManagerConfig(dataparser=BlenderDataParserConfig()),
+        VanillaModelConfig(_target=NeRFModel),
+        {
             "fields": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
             "temporal_distortion": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
         },
@@ -141,23 +127,13 @@ def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
     decay = FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=200000)
-    config = CheckedTrainerConfig(
-        method_name=name,
-        steps_per_eval_batch=500,
-        steps_per_save=2000,
-        max_num_iterations=30000,
-        mixed_precision=True,
-        pipeline=VanillaPipelineConfig(
-            datamanager=CheckedDataManagerConfig(
-                dataparser=NerfstudioDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
-            ),
-            model=NerfactoHashGridModelConfig(
-                eval_num_rays_per_chunk=1 << 15,
-                average_init_density=0.01,
-                camera_optimizer=CameraOptimizerConfig(mode="SO3xR3"),
-            ),
+    config = checked_trainer(
+        name,
+        CheckedDataManagerConfig(dataparser=NerfstudioDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096),
+        NerfactoHashGridModelConfig(
+            eval_num_rays_per_chunk=1 << 15, average_init_density=0.01, camera_optimizer=CameraOptimizerConfig(mode="SO3xR3")
         ),
-        optimizers={
+        {
             "proposal_networks": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
             "fields": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
             "camera_opt": {
@@ -165,26 +141,18 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
                 "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
-        vis="viewer",
+        viewer_rays=1 << 15,
+        steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=True,
     )
     return _generic(config, presets.POSITION_FIELD, description)
 
 
 def tensorf_method(name: str, description: str) -> MethodSpecification:
-    config = CheckedTrainerConfig(
-        method_name=name,
-        steps_per_eval_batch=500,
-        steps_per_save=2000,
-        max_num_iterations=30000,
-        mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
-            datamanager=CheckedDataManagerConfig(
-                dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096
-            ),
-            model=TensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
-        ),
-        optimizers={
+    config = checked_trainer(
+        name,
+        CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096),
+        TensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
+        {
             "fields": {
                 "optimizer": AdamOptimizerConfig(lr=0.001),
                 "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=30000),
@@ -198,7 +166,7 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
                 "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
-        vis="viewer",
+        viewer_rays=1 << 15,
+        steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=False,
     )
     return _generic(config, dataclasses.replace(presets.POSITION_FIELD, boundary="reflect"), description)

@@ -18,11 +18,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
-from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
@@ -32,7 +30,7 @@ from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataManagerConf
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
 from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig
-from sp_plugins.nerfstudio.components.trainer import CheckedTrainerConfig
+from sp_plugins.nerfstudio.components.trainer import checked_trainer
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
@@ -51,28 +49,19 @@ def sdf_trainer_config(method_name: str, model, steps: int, lr: float, warm_up_e
     """A NeuS-style trainer: vanilla (checked) data manager, SDFStudio data by default, and an
     optimizer entry for the SP alpha grid (used only when ``sp.alpha_grid`` is on)."""
     sp: SPConfig = model.sp
-    return CheckedTrainerConfig(
-        method_name=method_name,
-        steps_per_eval_image=500,
-        steps_per_eval_batch=5000,
-        steps_per_save=20000,
-        steps_per_eval_all_images=1000000,
-        max_num_iterations=steps,
-        mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
-            datamanager=SurfaceDataManagerConfig(
-                dataparser=SDFStudioDataParserConfig(), train_num_rays_per_batch=1024, eval_num_rays_per_batch=1024
-            ),
-            model=model,
-        ),
-        optimizers={
+    return checked_trainer(
+        method_name,
+        SurfaceDataManagerConfig(dataparser=SDFStudioDataParserConfig(), train_num_rays_per_batch=1024, eval_num_rays_per_batch=1024),
+        model,
+        {
             "fields": _optimizer(lr, steps, warm_up_end),
             GRID_GROUP: _optimizer(lr, steps, warm_up_end),  # the hash-grid tables: same settings unless swept
             "field_background": _optimizer(lr, steps, warm_up_end),
             ALPHA_GRID_GROUP: alpha_grid_optimizer(sp),
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 12),
-        vis="viewer",
+        viewer_rays=1 << 12,
+        steps_per_eval_image=500, steps_per_eval_batch=5000, steps_per_save=20000, steps_per_eval_all_images=1000000,
+        max_num_iterations=steps, mixed_precision=False,
     )
 
 

@@ -20,7 +20,11 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
+
+from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from sp_plugins.adapter.checks import check_checkpoint_file, check_device, check_known_settings
 from sp_plugins.adapter.errors import InputError, write_failure
@@ -117,3 +121,14 @@ def checked(config: TrainerConfig) -> TrainerConfig:
         return config
     values = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.init}
     return CheckedTrainerConfig(**values)
+
+
+def checked_trainer(method_name: str, datamanager, model, optimizers: dict, *, viewer_rays: Optional[int] = None,
+                    **settings) -> CheckedTrainerConfig:
+    """A method's trainer config, built as nerfstudio's ``method_configs`` build theirs: a vanilla
+    pipeline of ``datamanager`` and ``model``, the ``optimizers``, with ``viewer_rays`` the viewer's
+    rays per chunk and the viewer as the default ``--vis``; ``settings`` are the trainer's own."""
+    if viewer_rays is not None:
+        settings.update(viewer=ViewerConfig(num_rays_per_chunk=viewer_rays), vis="viewer")
+    return CheckedTrainerConfig(method_name=method_name, optimizers=optimizers,
+                                pipeline=VanillaPipelineConfig(datamanager=datamanager, model=model), **settings)
