@@ -11,7 +11,7 @@
   (Spot and cow, 3 seeds each), and at 6 views of Spot +4.5 dB inside the object, SSIM 0.14 -> 0.68
   (FreeNeRF-lite: +7.0 dB, 0.77; issue 31, ``bench/RESULTS.md``; guarded by the opt-in
   ``tests/bench/test_sparse_views_gap.py``, ``SP_SLOW_TESTS=1``). Not on a white background where
-  MipNeRF does not fail: there alpha0 1.0 leaves a white fog (-11 dB on the white 6-view Spot).
+  MipNeRF does not fail: there alpha0 1.0 does harm (-11 and -3 dB on the white 6-view Spot).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
   SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on
   :class:`~sp_plugins.nerfstudio.components.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
