@@ -54,10 +54,10 @@ def _paired_configs(args: argparse.Namespace):
     from sp_plugins.tasks import EncodingConfig, PointCloudSDFConfig
 
     steps, batch, resolution = BUDGETS[args.budget]
-    steps = args.steps or steps
+    steps = steps if args.steps is None else args.steps
     if steps < 10:
         raise ValueError(f"--steps {steps}: use at least 10")
-    resolution = args.mesh_resolution or resolution
+    resolution = resolution if args.mesh_resolution is None else args.mesh_resolution
     if resolution < 16:
         raise ValueError(f"--mesh-resolution {resolution}: use at least 16")
     # Hash grid without geometric initialisation and with a zero output bias: the setting in

@@ -61,6 +61,8 @@ def test_demo_refuses_to_overwrite_earlier_results(tmp_path, capsys):
 @pytest.mark.parametrize("args, word", [
     (["--steps", "3"], "--steps"),
     (["--mesh-resolution", "8"], "--mesh-resolution 8: use at least 16"),
+    (["--mesh-resolution", "0"], "--mesh-resolution 0: use at least 16"),
+    (["--steps", "0"], "--steps 0: use at least 10"),
     (["--mesh", "/nonexistent.ply"], "--mesh /nonexistent.ply: mesh '/nonexistent.ply' is neither an existing file"),
     (["--mesh", "EMPTY"], "has no triangle faces"),
     (["--threads", "0"], "--threads must be at least 1"),

@@ -13,8 +13,7 @@ import os
 from pathlib import Path
 from typing import Optional
 
-SHARED_DATA = Path(os.environ.get("SP_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
-FOX = Path(os.environ.get("SP_FOX_CAPTURE", SHARED_DATA / "real" / "fox"))
+from bench.harness.scenes import FOX  # one lookup for benches and tests: SP_FOX_CAPTURE, SP_SHARED_DATA, ../shared
 
 
 def fox_missing(source: Optional[Path] = None) -> Optional[str]:
