@@ -69,32 +69,51 @@ class ReLUBudget:
     """The CPU-sized ReLU-field setting shared by every run of a table."""
 
     steps: int = 1200
+    """training steps of every run"""
     rays: int = 1024
+    """rays per training batch"""
     num_samples: int = 96
+    """samples per ray inside the grid's box"""
     resolution: int = 129
+    """grid points per axis (cells per axis with ``align_corners`` False)"""
     color_mode: str = "rgb"
+    """what a grid point stores besides density: rgb, or sh (spherical harmonics of ``sh_degree``)"""
     sh_degree: int = 1
+    """degree of the spherical harmonics (``color_mode`` sh only)"""
     lr: float = 0.03
+    """Adam learning rate of the grid at the start"""
     lr_final: float = 0.003
+    """the learning rate at the last step (``lr_schedule`` exponential)"""
     density_init: Tuple[float, float] = (-1.0, 1.0)
+    """the grid's raw densities start uniform in this range"""
     density_scale: float = 1.0
+    """factor on the raw density before the ReLU"""
     views: int = 24
+    """training views of the white-background scene"""
     test_views: int = 8
+    """held-out views scored"""
     image: int = 64
+    """side in pixels of the renders"""
     background: str = "white"
     """Training background: white (the data's), or random (a random colour per ray; floaters
     cannot hide in front of it). Test renders are always composited on white."""
     align_corners: bool = True
     """False: thr3ed_atom's cell grid (resolution counts cells)."""
     density_units: str = "voxel"
+    """unit of ``density_scale``: per voxel of the full grid, or per world unit (thr3ed_atom's)"""
     loss: str = "mse"
+    """colour loss: mse, or l1 (thr3ed_atom's)"""
     diffuse_loss_weight: float = 0.0
+    """weight of thr3ed_atom's extra loss on the diffuse (SH degree-0) render; needs ``color_mode`` sh"""
     lr_schedule: str = "exponential"
     """exponential (lr -> lr_final over the run) or staged (thr3ed_atom: restart per stage, x0.1
     every decay_every of training; SP runs and relu-field-flat-sp-lr first decay at sp_first_decay)."""
     decay_every: float = 3 / 28
+    """staged: fraction of training between two x0.1 decays inside a stage"""
     stage_gamma: float = 1.0
+    """staged: the learning rate restarts at lr * stage_gamma^k at stage k"""
     sp_first_decay: float = 12 / 28
+    """staged: the SP runs' (one stage) first decay, as a fraction of training (the paper: step 12000 of 28000)"""
 
 
 PAPER_REGIME = dict(

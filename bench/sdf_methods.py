@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import List
 
 from bench.harness import nerfstudio as ns
-from bench.harness.common import OUT_DIR, GridFieldSize, done_or_run, machine_info, start
+from bench.harness.common import OUT_DIR, NeuSBudget, done_or_run, machine_info, start
 from bench.harness.metrics import loss_figure, table
 from bench.harness.scenes import mesh_source, synthetic
 
@@ -46,31 +46,17 @@ SCENES = {"spot": "spot", "bunny": mesh_source("bunny"), "torus": "torus"}
 
 
 @dataclasses.dataclass
-class Budget(GridFieldSize):
+class Budget(NeuSBudget):
     """The CPU-sized setting (shared by every run; stated in the results)."""
 
-    steps: int = 400
-    """training steps of every run"""
-    rays: int = 256
-    """rays per training batch"""
     num_samples: int = 32
     """NeuS samples per ray before up-sampling"""
     num_samples_importance: int = 16
     """samples added per up-sampling round"""
     num_up_sample_steps: int = 2
     """up-sampling rounds"""
-    lr: float = 5e-3
-    """Adam learning rate of the fields"""
-    warm_up_end: int = 100
-    """steps of the learning rate's linear warm-up"""
-    views: int = 24
-    """training views of the rendered scene"""
     test_views: int = 4
     """held-out views scored"""
-    resolution: int = 64
-    """side in pixels of the renders"""
-    mesh_resolution: int = 128
-    """marching-cubes grid points per axis of the final meshes"""
     c2f_init_levels: int = 4
     """hash levels open at the start (coarse-to-fine methods only)"""
 

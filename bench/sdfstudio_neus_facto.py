@@ -28,7 +28,7 @@ import json
 from pathlib import Path
 
 from bench.harness import sdfstudio as host
-from bench.harness.common import OUT_DIR, GridFieldSize, machine_info, start
+from bench.harness.common import OUT_DIR, NeuSBudget, machine_info, start
 from bench.harness.metrics import table
 from bench.harness.scenes import synthetic
 
@@ -36,27 +36,16 @@ PAIR = ("neus-facto", "sp-neus-facto")
 
 
 @dataclasses.dataclass
-class Budget(GridFieldSize):
+class Budget(NeuSBudget):
     """The CPU-sized setting shared by both runs (stated in the results)."""
 
-    steps: int = 400
-    """training steps of both runs"""
-    rays: int = 256
-    """rays per training batch"""
+    warm_up_end: int = 40
+    views: int = 16
+    resolution: int = 48
     proposal_samples: tuple = (64, 32)
     """samples per ray of the two proposal rounds"""
     neus_samples: int = 24
     """NeuS samples per ray"""
-    lr: float = 5e-3
-    """Adam learning rate of the fields"""
-    warm_up_end: int = 40
-    """steps of the learning rate's linear warm-up"""
-    views: int = 16
-    """training views of the rendered scene"""
-    resolution: int = 48
-    """side in pixels of the renders"""
-    mesh_resolution: int = 128
-    """marching-cubes grid points per axis of the final meshes"""
     inside_outside: bool = False
     """An object seen from outside (neus-facto's default, True, is its indoor setting; the 150-step
     run in RESULTS.md kept True and found no surface)."""

@@ -123,6 +123,27 @@ class GridFieldSize:
                     num_levels=self.num_levels, max_res=self.max_res, log2_hashmap_size=self.log2_hashmap_size)
 
 
+@dataclasses.dataclass
+class NeuSBudget(GridFieldSize):
+    """What a NeuS-family pair's CPU-sized setting states besides its field (``sdf_methods``,
+    ``sdfstudio_neus_facto``): each study extends it with its sampler and overrides the defaults."""
+
+    steps: int = 400
+    """training steps of every run"""
+    rays: int = 256
+    """rays per training batch"""
+    lr: float = 5e-3
+    """Adam learning rate of the fields"""
+    warm_up_end: int = 100
+    """steps of the learning rate's linear warm-up"""
+    views: int = 24
+    """training views of the rendered scene"""
+    resolution: int = 64
+    """side in pixels of the renders"""
+    mesh_resolution: int = 128
+    """marching-cubes grid points per axis of the final meshes"""
+
+
 def write_json(name: str, payload: dict) -> Path:
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     path = OUT_DIR / f"{name}.json"

@@ -48,7 +48,7 @@ class Run:
         self.times.append(time.perf_counter() - t0)
         for cb in trainer.callbacks:
             cb.run_callback_at_location(step, self.where.AFTER_TRAIN_ITERATION)
-        self.losses.append(float(loss))
+        self.losses.append(float(loss.detach()))
         sp = getattr(self.model, "sp", None)
         self.alphas.append(float(getattr(sp, "alpha", 0.0)))
 
