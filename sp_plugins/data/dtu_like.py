@@ -27,10 +27,17 @@ from typing import Optional, Tuple
 import numpy as np
 import trimesh
 from jaxtyping import Float
-from tqdm.auto import tqdm
 
-from sp_plugins.data.cameras import pixel_rays
-from sp_plugins.data.render import AMBIENT, LIGHT_DIRECTION, albedo, interpolated_normals, lambert_facing_viewer, ray_intersector
+from sp_plugins.data.render import (
+    AMBIENT,
+    LIGHT_DIRECTION,
+    albedo,
+    interpolated_normals,
+    lambert_facing_viewer,
+    per_pixel,
+    ray_intersector,
+    view_rays,
+)
 
 BACKDROP_RADIUS = 8.0
 """Radius of the textured sphere around everything (dataset units; the object fits radius 0.85)."""
@@ -119,6 +126,7 @@ def render_dtu_views(
     K: Float[np.ndarray, "3 3"],
     width: int,
     height: int,
+    *,
     supersample: int = 1,
     backend: str = "auto",
     progress: bool = False,
@@ -135,9 +143,7 @@ def render_dtu_views(
     occluder = ray_intersector(object_mesh, backend)  # shadows: only the object blocks the light
     images = np.zeros((len(c2w), height, width, 3), dtype=np.float32)
     masks = np.zeros((len(c2w), height, width), dtype=np.float32)
-    for index in tqdm(range(len(c2w)), desc=desc, unit="view", disable=not progress):
-        origins, dirs = pixel_rays(c2w[index], K, width, height, supersample)
-        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    for index, origins, dirs in view_rays(c2w, K, width, height, supersample, progress, desc):
         points, ray_ids, triangles = caster.intersects_location(origins, dirs, multiple_hits=False)
         if len(ray_ids) != len(dirs):
             raise RuntimeError(f"{len(dirs) - len(ray_ids)} camera rays escaped the backdrop sphere: a camera outside it?")
@@ -166,8 +172,8 @@ def render_dtu_views(
         shaded[ray_ids] = np.clip(colour * light[:, None], 0.0, 1.0)
         hit_object = np.zeros(len(dirs))
         hit_object[ray_ids] = on_object
-        images[index] = shaded.reshape(height, width, -1, 3).mean(axis=2)
-        masks[index] = hit_object.reshape(height, width, -1).mean(axis=2)
+        images[index] = per_pixel(shaded, height, width).mean(axis=2)
+        masks[index] = per_pixel(hit_object, height, width).mean(axis=2)
     return images, masks
 
 

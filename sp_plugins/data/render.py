@@ -9,7 +9,7 @@ otherwise its rtree-based triangle intersector.
 from __future__ import annotations
 
 import warnings
-from typing import Optional
+from typing import Iterator, Optional, Tuple
 
 import numpy as np
 import trimesh
@@ -76,6 +76,27 @@ def shade(
     return np.clip(albedo(points) * (AMBIENT + (1.0 - AMBIENT) * lambert[:, None]), 0.0, 1.0)
 
 
+def view_rays(
+    c2w: Float[np.ndarray, "n 4 4"],
+    K: Float[np.ndarray, "3 3"],
+    width: int,
+    height: int,
+    supersample: int = 1,
+    progress: bool = False,
+    desc: str = "rendering",
+) -> Iterator[Tuple[int, Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]]:
+    """``(index, origins, dirs)`` of each view, ``m = height * width * supersample**2`` rays with a
+    pixel's sub-rays adjacent (:func:`per_pixel` groups them again); a progress bar when asked."""
+    for index in tqdm(range(len(c2w)), desc=desc, unit="view", disable=not progress):
+        origins, dirs = pixel_rays(c2w[index], K, width, height, supersample)
+        yield index, origins.reshape(-1, 3), dirs.reshape(-1, 3)
+
+
+def per_pixel(values: Float[np.ndarray, "m *c"], height: int, width: int) -> Float[np.ndarray, "h w s *c"]:
+    """Per-ray values of :func:`view_rays` grouped by pixel: axis 2 holds a pixel's ``s`` sub-rays."""
+    return values.reshape(height, width, -1, *values.shape[1:])
+
+
 def render_views(
     mesh: trimesh.Trimesh,
     c2w: Float[np.ndarray, "n 4 4"],
@@ -95,17 +116,15 @@ def render_views(
     """
     caster = intersector if intersector is not None else ray_intersector(mesh, backend)
     images = np.zeros((len(c2w), height, width, 4), dtype=np.float32)
-    for index in tqdm(range(len(c2w)), desc=desc, unit="view", disable=not progress):
-        origins, dirs = pixel_rays(c2w[index], K, width, height, supersample)
-        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    for index, origins, dirs in view_rays(c2w, K, width, height, supersample, progress, desc):
         locations, ray_ids, triangles = caster.intersects_location(origins, dirs, multiple_hits=False)
         colour = np.zeros((len(dirs), 3))
         hit = np.zeros(len(dirs))
         if len(ray_ids):
             colour[ray_ids] = shade(mesh, locations, triangles, dirs[ray_ids])
             hit[ray_ids] = 1.0
-        colour = colour.reshape(height, width, -1, 3).sum(axis=2)
-        hit = hit.reshape(height, width, -1).sum(axis=2)
+        colour = per_pixel(colour, height, width).sum(axis=2)
+        hit = per_pixel(hit, height, width).sum(axis=2)
         images[index, ..., :3] = colour / np.maximum(hit, 1.0)[..., None]
         images[index, ..., 3] = hit / supersample**2
     return images

@@ -177,7 +177,8 @@ def make_scene(
         c2w = look_at_origin(camera_distance * dirs)
         if dtu_like:
             rgb, object_masks[split] = render_dtu_views(
-                normalised, c2w, K, width, height, supersample, backend, progress=progress, desc=f"rendering {split}"
+                normalised, c2w, K, width, height, supersample=supersample, backend=backend, progress=progress,
+                desc=f"rendering {split}",
             )
             images = np.concatenate([rgb, np.ones_like(rgb[..., :1])], axis=-1)  # opaque: nothing to mask out
         else:
