@@ -50,15 +50,11 @@ def _image_encoding() -> EncodingConfig:
     return EncodingConfig(kind="hashgrid", levels=16, log2_table_size=14, base_resolution=8, max_resolution=512)
 
 
-def _trainer():
-    return ImageFitTrainer
-
-
 @dataclass
 class ImageFitConfig(FitSettings):
     """Settings of an image fit (``sp-fit image``)."""
 
-    _target: Type = field(default_factory=_trainer)
+    _target: Type = field(default_factory=lambda: ImageFitTrainer)
     batch: int = 16384
     """Pixels per step (all pixels when the image is smaller)."""
     lr: float = 1e-2

@@ -38,15 +38,11 @@ def _pointcloud_sp() -> SPConfig:
     return SPConfig(alpha0=0.03, schedule="step", end=0.2)
 
 
-def _trainer():
-    return PointCloudSDFTrainer
-
-
 @dataclass
 class PointCloudSDFConfig(MeshedFitSettings):
     """Settings of a point cloud -> SDF fit (``sp-fit pointcloud``)."""
 
-    _target: Type = field(default_factory=_trainer)
+    _target: Type = field(default_factory=lambda: PointCloudSDFTrainer)
     surface_batch: int = 2500
     """Surface points (with normals) per step."""
     space_batch: int = 2500

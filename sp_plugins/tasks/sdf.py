@@ -30,15 +30,11 @@ def _sdf_sp() -> SPConfig:
     return SPConfig(alpha0=0.02, schedule="step", end=0.2)
 
 
-def _trainer():
-    return SDFFitTrainer
-
-
 @dataclass
 class SDFFitConfig(MeshedFitSettings):
     """Settings of a direct SDF fit (``sp-fit sdf``)."""
 
-    _target: Type = field(default_factory=_trainer)
+    _target: Type = field(default_factory=lambda: SDFFitTrainer)
     batch: int = 8192
     """Samples per step (50% surface, 25% near, 25% uniform)."""
     pool: int = 100_000
