@@ -192,6 +192,12 @@ def _enter(name: str, args: Tuple[Any, ...], kwargs: Dict[str, Any]) -> Tuple[An
             return entry[2], own
         patch = get(name)
         patch.guard()
+        entry = _active.get(name)
+        if entry is not None:
+            # the guard entered it meanwhile: sdfstudio_import_hook's guard looks sdfstudio up, which
+            # fires the opt-in import hook, which installs every sdfstudio patch, this one included
+            entry[0] += 1
+            return entry[2], None
         stack = contextlib.ExitStack()
         value = stack.enter_context(patch.enter(*args, **kwargs))
         _active[name] = [1, stack, value]

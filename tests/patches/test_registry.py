@@ -234,3 +234,47 @@ def test_what_a_command_keeps_for_its_process_ends_as_at_exit(monkeypatch):
     assert ("host_warnings" in registry.in_force()) is was_in_force
     if not was_in_force:
         assert changed(before, host_state(patch)) == []
+
+
+@pytest.mark.parametrize("outer", ["install_for_process", "scope"])
+def test_a_guard_that_enters_its_own_patch_counts_it_once_per_entry(outer, monkeypatch):
+    """sdfstudio's opt-in import hook: ``sdfstudio_import_hook``'s guard looks sdfstudio up, the lookup
+    fires the hook, and the hook installs every sdfstudio patch for the process, that one included,
+    before the outer entry has finished. The patch must be entered once and left once, and the process's
+    end must not find it gone (it raised ``KeyError`` in the atexit handler of every sp-sdfstudio-*
+    run and bench, and the nested entry's stack was dropped without being left)."""
+    import contextlib
+    import types
+
+    events = []
+
+    def check(patch):
+        if not events:  # the hook fires once, on the first lookup
+            events.append("guard")
+            registry.install_for_process("reentrant_test_patch", command="sp-fit")
+
+    @contextlib.contextmanager
+    def enter():
+        events.append("enter")
+        try:
+            yield "value"
+        finally:
+            events.append("exit")
+
+    module = types.ModuleType("reentrant_test_patch_module")
+    module.PATCH = registry.Patch(name="reentrant_test_patch", host="python", version="-", changes="-", scope_text="-",
+                                  check=check, enter=enter, owned_commands=("sp-fit",))
+    monkeypatch.setitem(sys.modules, module.__name__, module)
+    monkeypatch.setitem(registry.ENTRIES, "reentrant_test_patch", module.__name__)
+    try:
+        if outer == "scope":
+            with registry.scope("reentrant_test_patch") as value:
+                assert value == "value" and events == ["guard", "enter"]
+            assert "reentrant_test_patch" in registry.in_force()  # the process install still holds it
+        else:
+            assert registry.install_for_process("reentrant_test_patch", command="sp-fit") == "value"
+        assert events == ["guard", "enter"]
+    finally:
+        registry.end_for_process()
+    assert events == ["guard", "enter", "exit"]
+    assert "reentrant_test_patch" not in registry.in_force()

@@ -197,6 +197,19 @@ def test_opt_in_hook_waits_for_sdfstudio_and_can_be_switched_off():
     assert off.stdout.strip() == "[]", off.stdout + off.stderr[-500:]
 
 
+def test_our_install_beside_the_waiting_hook_enters_each_patch_once_and_exits_cleanly():
+    """sp-sdfstudio-* and the bench install every sdfstudio patch themselves while the .pth hook still
+    waits: the import hook's guard looks sdfstudio up, which fires the hook, which installs them all
+    again from inside the first install. Each patch must be in force once, and the process must end
+    without an error (it printed a KeyError from the registry's atexit handler)."""
+    code = ("from sp_plugins.patches import registry; from sp_plugins.patches.sdfstudio_import_hook import install_all; "
+            "install_all(); import nerfstudio; print(sorted(registry.installed_for_process()))")
+    proc = subprocess.run([sys.executable, "-c", code], env=env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "sdfstudio_import_hook" in proc.stdout, proc.stdout
+    assert "Exception ignored" not in proc.stderr and "KeyError" not in proc.stderr, proc.stderr[-2000:]
+
+
 def test_checkpoints_with_numpy_learning_rates_load_in_sdfstudio_and_nowhere_else(tmp_path):
     """Past its warm-up sdfstudio's NeuSScheduler (and MultiStepWarmupScheduler, and
     ExponentialDecaySchedule from the start) leaves numpy float64 learning rates in every checkpoint;
