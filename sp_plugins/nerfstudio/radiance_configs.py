@@ -13,7 +13,7 @@
   FreeNeRF-lite on every seed (issue 31, ``bench/RESULTS.md``; guarded by the opt-in
   ``tests/bench/test_sparse_views_gap.py``, ``SP_SLOW_TESTS=1``). Only where MipNeRF fails (held-out
   views of fog): on the cow at 9 views it costs 0.4 dB, and on a white background, where MipNeRF does
-  not fail, it does harm (-11 and -3 dB on the white 6-view Spot).
+  not fail, it does harm (-7.7 dB over three seeds of the white 6-view Spot).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
   SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on
   :class:`~sp_plugins.nerfstudio.components.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
