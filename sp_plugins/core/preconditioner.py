@@ -117,7 +117,17 @@ class StochasticPreconditioner(nn.Module):
 
     # -- schedule ---------------------------------------------------------------------------
     @property
-    def schedule(self) -> AlphaSchedule:
+    def schedule(self) -> Optional[AlphaSchedule]:
+        """The schedule in force, or ``None`` while it is not known yet (a fractional ``end``
+        before the step count is set). Never raises: hosts and tools read every attribute of the
+        objects they walk (nerfstudio's viewer ``getattr``\ s the whole pipeline before training)."""
+        try:
+            return self._resolved_schedule()
+        except ValueError:
+            return None
+
+    def _resolved_schedule(self) -> AlphaSchedule:
+        """The schedule for the current total; raises ``ValueError`` when it cannot be resolved."""
         total = self._total
         key = (total,)
         if self._schedule is None or self._schedule_key != key:
@@ -142,7 +152,7 @@ class StochasticPreconditioner(nn.Module):
         self._step = int(step)
         self.step.fill_(self._step)  # an asynchronous fill: no host sync on an accelerator
         c = self.config
-        self._alpha = self.schedule(self._step) if c.enabled else 0.0
+        self._alpha = self._resolved_schedule()(self._step) if c.enabled else 0.0
         decay = self._decay(self._step) if c.enabled else 0.0  # in [0, 1]; > 0 exactly before the end
         self._grid_scale = decay if c.alpha_grid_mode == "scaled" else (1.0 if decay > 0.0 else 0.0)
         return self.alpha

@@ -128,6 +128,20 @@ def test_alpha_grid_builds_before_the_total_is_known():
         SPConfig(alpha0=0.0, end=0.2, alpha_grid=True).setup(bounds=(-1.0, 1.0))
 
 
+def test_every_attribute_reads_before_the_total_is_known():
+    """nerfstudio's viewer getattr's every attribute of the pipeline before the trainer sets the step
+    count (issue 47: ``schedule`` raised "end=0.2 is a fraction of training" and stopped ns-train).
+    What is not known yet reads as unknown; once the total is set it resolves."""
+    sp = SPConfig(alpha0=0.02, end=0.2).setup(bounds=(-1.0, 1.0))
+    values = {name: getattr(sp, name) for name in dir(sp) if not name.startswith("__")}
+    assert values["schedule"] is None and values["alpha"] == 0.0 and not values["active"]
+    repr(sp)
+    sp.set_step(0, 100)
+    assert sp.schedule is not None and sp.schedule.end_step == 20 and sp.alpha == pytest.approx(0.02)
+    with pytest.raises(ValueError, match="fraction of training"):  # stepping without a total still says why
+        SPConfig(alpha0=0.02, end=0.2).setup(bounds=(-1.0, 1.0)).set_step(3)
+
+
 def test_training_step_never_reads_a_buffer(monkeypatch):
     """Reading a buffer's value (int(), float(), .item()) syncs a GPU: a step must use Python mirrors."""
     from sp_plugins.core.boundary import reflect
