@@ -19,11 +19,17 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Literal, Optional, Tuple
+from typing import List, Literal, Optional, Tuple, TypeVar
 
 import tyro
 
-from sp_plugins.sweeps.spec import SpecError, SweepSpec, expand, load_spec, spec_from_dict
+from sp_plugins.sweeps.spec import SpecError, SweepSpec, expand, flag_name, load_spec, spec_from_dict
+
+T = TypeVar("T")
+
+
+# a list flag given twice must add up, not keep its last value (tyro's default): --grid a=1 --grid b=2
+Repeatable = tyro.conf.UseAppendAction[List[T]]
 
 
 @dataclass
@@ -35,17 +41,18 @@ class SweepArgs:
     """Base command, e.g. 'sp-fit pointcloud mesh.ply --steps 300' or 'ns-train neus-hashgrid --max-num-iterations 300'."""
     data: Optional[str] = None
     """ns-train: the dataparser and its flags, e.g. 'blender-data --data scene/blender'."""
-    grid: Optional[List[str]] = None
-    """Axes as FLAG=V1,V2,... (flag without leading dashes), e.g. lr=1e-3,1e-2; replaces the spec's grid."""
+    grid: Repeatable[Tuple[str, ...]] = dataclasses.field(default_factory=list)
+    """Axes as FLAG=V1,V2,... (flag without leading dashes), e.g. lr=1e-3,1e-2; repeat --grid for more axes
+    (each flag once); replaces the spec's grid."""
     sp: Optional[Literal["both", "on", "off"]] = None
     """SP axis: both (each grid point with and without SP), on, off. Default: both."""
     sp_methods: Optional[Tuple[str, str]] = None
     """ns-train: a baseline and an SP method (e.g. neus-hashgrid sp-neus-hashgrid) instead of --pipeline.model.sp.enabled."""
-    seeds: Optional[List[int]] = None
+    seeds: Repeatable[Tuple[int, ...]] = dataclasses.field(default_factory=list)
     """Seeds (default: 0)."""
     sample: Optional[int] = None
     """Run only this many grid points, chosen at random (a fractional grid); SP pairs stay together."""
-    success: Optional[List[str]] = None
+    success: Repeatable[Tuple[str, ...]] = dataclasses.field(default_factory=list)
     """What counts as success, e.g. 'psnr >= 24' or 'sound == 1' 'fscore >= 0.9' (all must hold)."""
     metric: Optional[str] = None
     """Metric of the histogram and the medians (default: psnr for ns-train, chamfer for sp-fit)."""
@@ -73,13 +80,24 @@ class SweepArgs:
     """Local Ray's temporary folder (removed at the end; keep it short: Ray's socket paths are limited)."""
 
 
+def _flat(groups: List[Tuple]) -> list:
+    """Values of a repeatable flag, every occurrence in order (``--grid a=1 b=2 --grid c=3``)."""
+    return [v for group in groups for v in group]
+
+
 def _grid(entries: List[str]) -> dict:
-    grid = {}
+    grid, seen = {}, {}
     for e in entries:
         flag, sep, values = e.partition("=")
         if not sep or not flag.strip() or not values.strip():
             raise SpecError(f"--grid {e!r}: write FLAG=V1,V2 (e.g. lr=1e-3,1e-2)")
-        grid[flag.strip()] = [v.strip() for v in values.split(",")]
+        flag, values = flag.strip(), [v.strip() for v in values.split(",")]
+        name = flag_name(flag)
+        if name in seen:  # which values would win is a guess: ask for one list
+            both = ",".join(seen[name] + values)
+            raise SpecError(f"--grid {name.lstrip('-')} is given twice: give all its values in one --grid "
+                            f"{name.lstrip('-')}={both}")
+        seen[name] = grid[flag] = values
     return grid
 
 
@@ -92,8 +110,8 @@ def build_spec(args: SweepArgs) -> SweepSpec:
         raw = dataclasses.asdict(spec)
     overrides = {
         "command": args.command and shlex.split(args.command), "data": args.data and shlex.split(args.data),
-        "grid": args.grid and _grid(args.grid), "sp": args.sp, "sp_methods": args.sp_methods, "seeds": args.seeds,
-        "sample": args.sample, "success": args.success, "metric": args.metric,
+        "grid": _grid(_flat(args.grid)) or None, "sp": args.sp, "sp_methods": args.sp_methods,
+        "seeds": _flat(args.seeds) or None, "sample": args.sample, "success": _flat(args.success) or None, "metric": args.metric,
     }
     raw.update({k: v for k, v in overrides.items() if v is not None})
     if "command" not in raw:

@@ -101,3 +101,26 @@ def test_cli_bad_spec_is_one_line_and_exit_2(sp_sweep, tmp_path):
     proc = subprocess.run([sp_sweep, "--command", "sp-fit pointcloud m.ply", "--grid", "lr", "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "FLAG=V1,V2" in proc.stderr
+
+
+README_GRID = ["--command", "sp-fit pointcloud bunny.ply --steps 300", "--grid", "lr=3e-4,1e-3,3e-3",
+               "--grid", "encoding.max-resolution=256,1024,2048", "--success", "sound == 1"]
+
+
+def test_cli_grid_given_twice_merges_both_axes(sp_sweep, tmp_path):
+    """The README's two --grid flags: both axes (3 x 3 points, paired); tyro kept only the last one."""
+    proc = subprocess.run([sp_sweep, *README_GRID, "--out", str(tmp_path / "o"), "--dry-run"],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "18 trials: 0 finished already (skipped), 18 to run" in proc.stdout
+    listed = [ln for ln in proc.stdout.splitlines() if " pending " in ln]
+    assert len(listed) == 18 and all("lr=" in ln and "encoding.max-resolution=" in ln for ln in listed)
+
+
+def test_cli_same_grid_flag_twice_is_refused_in_one_line(sp_sweep, tmp_path):
+    proc = subprocess.run([sp_sweep, "--command", "sp-fit pointcloud m.ply", "--grid", "lr=1e-3", "--grid", "lr=1e-2",
+                           "--out", str(tmp_path / "o"), "--dry-run"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stdout + proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("sp-sweep: error: --grid lr is given twice") and "lr=1e-3,1e-2" in line
+    assert not (tmp_path / "o").exists()
