@@ -1,0 +1,208 @@
+"""Exact values of the nerfstudio seam (issue 44): for a fixed noise draw, what a field reads equals
+the paper's ``x + alpha * eps`` folded into the scene box, computed here from the raw draws with
+the reference of ``tests/core/test_properties.py`` (not with the library's ``perturb``).
+
+Each test names, in its docstring, the mutation of ``sp_plugins/nerfstudio/seam.py`` (or of the
+model wiring) it kills; the important ones are in ``tests/mutations.py``.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+from nerfstudio.cameras.rays import Frustums, RaySamples
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.fields.sdf_field import SDFField
+from tests.core.test_properties import fold_reference
+from torch import nn
+
+from sp_plugins.core import SPConfig, StochasticPreconditioner
+from sp_plugins.nerfstudio.seam import attach_seam, perturbed_samples
+
+LO = torch.tensor([-1.0, -2.0, -0.5])
+HI = torch.tensor([2.0, 1.0, 1.5])  # not a cube, not centred: a wrong box or axis shows
+BOX = torch.stack([LO, HI])
+SEED = 7
+TOL = dict(rtol=0, atol=2e-5)
+
+
+def samples(n_rays=6, n=12, seed=0) -> RaySamples:
+    """Rays through the box from outside it: some samples lie outside (they stay as drawn), many
+    near a wall (they are folded); bins of different lengths."""
+    g = torch.Generator().manual_seed(seed)
+    o = torch.tensor([0.5, -0.5, 3.0]).expand(n_rays, n, 3)
+    d = F.normalize(torch.tensor([0.0, 0.0, -1.0]) + 0.3 * torch.randn(n_rays, 1, 3, generator=g), dim=-1).expand(n_rays, n, 3)
+    t = torch.sort(torch.rand(n_rays, n + 1, generator=g), dim=-1).values * 5.0 + 0.5
+    starts, ends = t[:, :-1, None], t[:, 1:, None]
+    return RaySamples(Frustums(origins=o, directions=d, starts=starts, ends=ends, pixel_area=torch.full((n_rays, n, 1), 1e-3)),
+                      camera_indices=torch.zeros(n_rays, n, 1, dtype=torch.long))
+
+
+def preconditioner(alpha=0.4, boundary="reflect", **config) -> StochasticPreconditioner:
+    sp = StochasticPreconditioner(SPConfig(alpha0=alpha, schedule="constant", boundary=boundary, seed=SEED, **config), bounds=BOX)
+    sp.set_step(0, 10)
+    return sp.train()
+
+
+def draws(shape, k=1):
+    """The K raw Gaussian draws the seeded preconditioner makes, one ``shape`` draw after another."""
+    g = torch.Generator().manual_seed(SEED)
+    return [torch.randn(shape, generator=g).double() for _ in range(k)]
+
+
+def reference(x, alpha, eps, boundary="reflect"):
+    """The paper's query: ``x + alpha * eps``, folded into the box where ``x`` lies inside it."""
+    x = x.double()
+    raw = x + alpha * eps
+    if boundary == "none":
+        return raw
+    inside = ((x >= LO.double()) & (x <= HI.double()))
+    return torch.where(inside, fold_reference(raw, LO.double(), HI.double()), raw)
+
+
+def test_positions_are_x_plus_alpha_eps_reflected_into_the_scene_box():
+    """Kills: the offset not applied (``origins + (q - x)`` -> ``origins``), its sign flipped, or the
+    draw taken at the start for a field that reads midpoints (``at_start`` ignored)."""
+    rs = samples()
+    x = rs.frustums.get_positions()
+    moved = perturbed_samples(rs, preconditioner())
+    (eps,) = draws(x.reshape(-1, 3).shape)
+    ref = reference(x.reshape(-1, 3), 0.4, eps).view(x.shape)
+    inside = ((x >= LO) & (x <= HI)).all(-1)
+    assert inside.any() and (~inside).any() and (ref != x.double() + 0.4 * eps.view(x.shape)).any()  # some folded
+    torch.testing.assert_close(moved.frustums.get_positions().double(), ref, **TOL)
+
+
+def test_sdf_fields_read_starts_moved_by_the_offset_computed_at_the_start():
+    """SDF fields read ``get_start_positions()``: the start of every bin with a length is exactly the
+    reflected ``start + alpha * eps`` and the midpoint moves by that same offset. Kills: ``at_start``
+    dropped (the offset then computed at the midpoint: starts near a wall leave the box)."""
+    rs = samples()
+    start, mid = rs.frustums.get_start_positions(), rs.frustums.get_positions()
+    assert ((rs.frustums.ends - rs.frustums.starts) > 0).all()
+    moved = perturbed_samples(rs, preconditioner(), at_start=True)
+    (eps,) = draws(start.reshape(-1, 3).shape)
+    ref = reference(start.reshape(-1, 3), 0.4, eps).view(start.shape)
+    torch.testing.assert_close(moved.frustums.get_start_positions().double(), ref, **TOL)
+    torch.testing.assert_close(moved.frustums.get_positions().double(), mid.double() + (ref - start.double()), **TOL)
+
+
+def test_gaussian_means_move_by_the_offset_and_the_covariance_stays():
+    """MipNeRF reads ``get_gaussian_blob()``: its mean is the plain mean plus the exact offset of the
+    midpoint, its covariance the plain one, bit for bit. Kills: MipNeRF's means not moved (issue 31)."""
+    rs = samples()
+    x, blob = rs.frustums.get_positions(), rs.frustums.get_gaussian_blob()
+    moved = perturbed_samples(rs, preconditioner()).frustums.get_gaussian_blob()
+    (eps,) = draws(x.reshape(-1, 3).shape)
+    offset = reference(x.reshape(-1, 3), 0.4, eps).view(x.shape) - x.double()
+    torch.testing.assert_close(moved.mean.double(), blob.mean.double() + offset, **TOL)
+    assert torch.equal(moved.cov, blob.cov)
+
+
+class Probe(nn.Module):
+    """A radiance field that reads midpoints: a fixed nonlinear function of them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.w = nn.Parameter(torch.tensor([[0.3, -1.1, 0.7], [1.3, 0.2, -0.4]]))
+
+    def forward(self, ray_samples, compute_normals=False):
+        p = ray_samples.frustums.get_positions()
+        return {FieldHeadNames.RGB: torch.sin(p @ self.w.T), "count": torch.ones(1, dtype=torch.long)}
+
+
+def probe_reference(p):
+    return torch.sin(p @ Probe().w.detach().double().T)
+
+
+class Holder(nn.Module):
+    def __init__(self, field) -> None:
+        super().__init__()
+        self.field = field
+
+
+def test_k_draws_average_the_field_at_k_exact_offsets():
+    """``num_samples`` K = 3: the field's output is the mean of its K outputs at the K consecutive
+    draws, each reflected. Kills: the K-draw average dropped (only the first draw kept, or the sum)."""
+    model = Holder(Probe())
+    attach_seam(model, preconditioner(num_samples=3))
+    rs = samples()
+    x = rs.frustums.get_positions().reshape(-1, 3)
+    out = model.field.forward(rs)
+    refs = [probe_reference(reference(x, 0.4, eps)) for eps in draws(x.shape, 3)]
+    torch.testing.assert_close(out[FieldHeadNames.RGB].reshape(-1, 2).double(), torch.stack(refs).mean(0), **TOL)
+    assert int(out["count"]) == 1  # integer outputs are taken from the first draw, not summed
+
+
+class SDFProbe(SDFField):
+    """An SDF field (the seam moves its starts) with an analytic SDF ``|p| - 0.8``: gradient, normals
+    and a NeuS-like alpha computed from them, as nerfstudio's ``SDFField.get_outputs`` does."""
+
+    def __init__(self) -> None:
+        nn.Module.__init__(self)
+        self.scale = nn.Parameter(torch.tensor(5.0))
+
+    def forward(self, ray_samples, compute_normals=False, return_alphas=False):
+        p = ray_samples.frustums.get_start_positions()
+        sdf = p.norm(dim=-1, keepdim=True) - 0.8
+        grad = p / p.norm(dim=-1, keepdim=True)
+        return {FieldHeadNames.SDF: sdf, FieldHeadNames.GRADIENT: grad, FieldHeadNames.NORMALS: F.normalize(grad, dim=-1),
+                FieldHeadNames.ALPHA: self.get_alpha(ray_samples, sdf, grad)}
+
+    def get_alpha(self, ray_samples, sdf=None, gradients=None):
+        return torch.sigmoid(self.scale * sdf) * gradients.norm(dim=-1, keepdim=True)
+
+
+def test_k_draws_of_an_sdf_field_recompute_normals_and_alpha_from_the_mean():
+    """An SDF field's K = 4 draws: SDF and gradient are the means over the K exact offsets taken at
+    the starts; normals are the unit mean gradient and alpha is ``get_alpha(mean SDF, mean gradient)``,
+    not the means of the per-draw normals and alphas. Kills: the normals (or alpha) not recomputed
+    after averaging, and ``at_start`` dropped for SDF fields."""
+    model = Holder(SDFProbe())
+    attach_seam(model, preconditioner(alpha=0.3, num_samples=4))
+    rs = samples()
+    s = rs.frustums.get_start_positions().reshape(-1, 3)
+    out = model.field.forward(rs)
+    qs = [reference(s, 0.3, eps) for eps in draws(s.shape, 4)]
+    sdf = torch.stack([q.norm(dim=-1, keepdim=True) - 0.8 for q in qs]).mean(0)
+    grad = torch.stack([q / q.norm(dim=-1, keepdim=True) for q in qs]).mean(0)
+    torch.testing.assert_close(out[FieldHeadNames.SDF].reshape(-1, 1).double(), sdf, **TOL)
+    torch.testing.assert_close(out[FieldHeadNames.GRADIENT].reshape(-1, 3).double(), grad, **TOL)
+    torch.testing.assert_close(out[FieldHeadNames.NORMALS].reshape(-1, 3).double(), F.normalize(grad, dim=-1), **TOL)
+    alpha = torch.sigmoid(5.0 * sdf) * grad.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(out[FieldHeadNames.ALPHA].reshape(-1, 1).double(), alpha, **TOL)
+    assert (grad.norm(dim=-1) < 0.999).any()  # the mean gradient is not a unit vector: a mean of normals differs
+
+
+def test_gradients_reach_the_input_with_the_folds_sign_and_a_learnable_alpha_grid_exactly():
+    """d(w . q)/d origins is ``w`` times +-1 (-1 where the fold mirrored the coordinate), and
+    d(w . q)/d (alpha grid) equals the reparameterised ``sum_i w_i * fold'_i * eps_i * d alpha_i / d grid``,
+    computed here by autograd through the reference formula on a copy of the grid. Kills: the
+    offset detached from the alpha grid (``sp(x)`` under ``no_grad`` or ``(q - x).detach()``) and a
+    fold whose derivative is +1 everywhere."""
+    sp = preconditioner(alpha=0.0, alpha_grid=True, alpha_grid_init=0.35, alpha_grid_resolution=4)
+    with torch.no_grad():
+        sp.alpha_grid.set_values(0.1 + 0.5 * torch.rand(4, 4, 4, generator=torch.Generator().manual_seed(3)))
+    grid_copy = copy.deepcopy(sp.alpha_grid).double()
+    rs = samples()
+    origins = rs.frustums.origins.clone().requires_grad_(True)
+    rs.frustums.origins = origins
+    x = rs.frustums.get_positions().detach().reshape(-1, 3)
+    w = torch.randn(x.shape, generator=torch.Generator().manual_seed(4))
+    q = perturbed_samples(rs, sp).frustums.get_positions().reshape(-1, 3)
+    (w * q).sum().backward()
+
+    (eps,) = draws(x.shape)
+    ref = reference(x, grid_copy(x.double()), eps)
+    torch.testing.assert_close(q.detach().double(), ref, **TOL)
+    (w.double() * ref).sum().backward()
+    torch.testing.assert_close(sp.alpha_grid.param.grad.double(), grid_copy.param.grad, rtol=1e-4, atol=1e-5)
+    raw = x.double() + grid_copy(x.double()).detach() * eps
+    u = torch.remainder((raw - LO.double()) / (HI - LO).double(), 2.0)
+    inside = (x >= LO) & (x <= HI)
+    sign = torch.where(inside & (u > 1.0), -1.0, 1.0)
+    assert (sign < 0).any()
+    torch.testing.assert_close(origins.grad.reshape(-1, 3).double(), w.double() * sign, **TOL)
