@@ -50,6 +50,14 @@ class SDFFieldSPModel(SPModel):
                 f"{type(self).__name__}: SP needs the SDF field built from an SPSDFFieldConfig, got "
                 f"{type(field).__name__} (the model config's sdf_field must be SPSDFFieldConfig)"
             )
+        k = self.sp.config.num_samples
+        if k > 1:  # the contraction moves each query once: K draws would silently train one (issue 44)
+            from sp_plugins.adapter.errors import InputError
+
+            raise InputError(
+                f"--pipeline.model.sp.num-samples {k} cannot apply to sdfstudio's SDF methods: their seam (the scene "
+                "contraction) perturbs each query once and does not average draws; pass --pipeline.model.sp.num-samples 1"
+            )
         field.use_preconditioner(self.sp)
 
     def sp_host_name(self) -> str:
