@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import copy
 
+import pytest
+
 import torch
 import torch.nn.functional as F
 from nerfstudio.cameras.rays import Frustums, RaySamples
@@ -206,3 +208,42 @@ def test_gradients_reach_the_input_with_the_folds_sign_and_a_learnable_alpha_gri
     sign = torch.where(inside & (u > 1.0), -1.0, 1.0)
     assert (sign < 0).any()
     torch.testing.assert_close(origins.grad.reshape(-1, 3).double(), w.double() * sign, **TOL)
+
+
+def model_of(name: str, **sp):
+    """``name`` as its method config builds it (tiny), over the off-centre, non-cubic ``BOX``."""
+    from nerfstudio.data.scene_box import SceneBox
+    from tests.helpers.ns_configs import shrink_radiance_model
+
+    from sp_plugins.nerfstudio.runs import method_config
+
+    config = method_config(name)
+    shrink_radiance_model(name, config)
+    for key, value in dict(dict(seed=SEED, schedule="constant", boundary="reflect"), **sp).items():
+        setattr(config.pipeline.model.sp, key, value)
+    model = config.pipeline.model.setup(scene_box=SceneBox(aabb=BOX.clone()), num_train_data=4, metadata={}, device="cpu",
+                                        grad_scaler=None)
+    model.sp.set_step(0, 10)
+    return model.train()
+
+
+@pytest.mark.parametrize("name", ["sp-vanilla-nerf", "sp-mipnerf"])
+def test_a_models_field_reads_x_plus_alpha0_times_the_box_diagonal_eps_folded_into_its_scene_box(name):
+    """The model wiring: with ``relative_to_diagonal`` the field's encoding reads (positions, or
+    MipNeRF's Gaussian means) ``x + alpha0 * |diagonal of the scene box| * eps`` folded into that
+    scene box. Kills: the preconditioner built over another box (``sp_bounds``), the diagonal not
+    applied (``scene_diagonal=box_diagonal(aabb)`` dropped) and MipNeRF's means not moved."""
+    from sp_plugins.nerfstudio.seam import seam_fields
+
+    model = model_of(name, alpha0=0.05, relative_to_diagonal=True)
+    (_, field), *_ = seam_fields(model)
+    read = []
+    field.position_encoding.register_forward_pre_hook(lambda module, args: read.append(args[0].detach().clone()))
+    rs = samples()
+    x = rs.frustums.get_positions().reshape(-1, 3)
+    field.forward(rs)
+    (eps,) = draws(x.shape)
+    diagonal = float((HI - LO).norm())
+    offset = reference(x, 0.05 * diagonal, eps) - x.double()
+    plain = rs.frustums.get_gaussian_blob().mean.reshape(-1, 3) if name == "sp-mipnerf" else x
+    torch.testing.assert_close(read[0].reshape(-1, 3).double(), plain.double() + offset, **TOL)
