@@ -1,0 +1,47 @@
+"""Shared by the exact-value tests of the ``sp-fit`` tasks (issue 44): a field wrapper that records
+what the trainer queried, and the paper's perturbed query from raw seeded draws."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from tests.core.test_properties import fold_reference
+
+
+class Recorder(nn.Module):
+    """``inner``, recording every input it is queried at and every output it gives (the trainer's
+    optimizer keeps ``inner``'s parameters: the wrapper has none of its own)."""
+
+    def __init__(self, inner: nn.Module) -> None:
+        super().__init__()
+        self.inner = inner
+        self.inputs: list = []
+        self.outputs: list = []
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.inner(x)
+        self.inputs.append(x.detach().clone())
+        self.outputs.append(out.detach().clone())
+        return out
+
+
+def gaussian_draws(shape, seed: int) -> torch.Tensor:
+    """The Gaussian draw of a preconditioner seeded ``seed`` (rank 0), in float64."""
+    return torch.randn(shape, generator=torch.Generator().manual_seed(seed)).double()
+
+
+def folded_query(x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """``x + alpha * eps`` folded into ``[lo, hi]`` where ``x`` lies inside it (float64, differentiable)."""
+    x = x.double()
+    lo_t, hi_t = torch.tensor(lo, dtype=torch.float64), torch.tensor(hi, dtype=torch.float64)
+    raw = x + alpha * eps
+    inside = (x >= lo) & (x <= hi)
+    return torch.where(inside, fold_reference(raw, lo_t, hi_t), raw)
+
+
+def fold_sign(x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """d(folded query)/dx per coordinate: -1 where the mirror flipped it an odd number of times."""
+    u = torch.remainder((x.double() + alpha * eps - lo) / (hi - lo), 2.0)
+    inside = (x >= lo) & (x <= hi)
+    return torch.where(inside & (u > 1.0), -1.0, 1.0).double()
