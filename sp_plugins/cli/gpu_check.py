@@ -52,6 +52,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 PARTS = ("grid", "runs", "checkpoint", "fit")
 DEADLINE_S = 480.0
 GRID_SETTING = dict(num_levels=16, features_per_level=2, log2_hashmap_size=19, base_resolution=16, max_resolution=2048)
+CPU_COMMAND = "sp-gpu-check --device cpu --quick"  # what a machine without a GPU can run: named by every no-GPU error
 QUICK_GRID = dict(num_levels=4, features_per_level=2, log2_hashmap_size=10, base_resolution=4, max_resolution=64)
 
 
@@ -128,14 +129,14 @@ def cuda_problem(device: str) -> Optional[str]:
     import torch
 
     if torch.version.cuda is None:
-        return (f"torch {torch.__version__} is a CPU-only build: no GPU can be checked; install a CUDA build of torch "
-                "(or run --device cpu for the CPU paths)")
+        return (f"torch {torch.__version__} is a CPU-only build: no GPU can be checked; install a CUDA build of torch, "
+                f"or check the CPU paths only: {CPU_COMMAND}")
     driver = nvidia_driver()
     seen = f"NVIDIA driver: {driver}" if driver else "nvidia-smi not found (no NVIDIA driver installed?)"
     if not torch.cuda.is_available():
         return (f"torch {torch.__version__} is a CUDA {torch.version.cuda} build but sees no CUDA device ({seen}); an NVIDIA "
                 f"driver too old for CUDA {torch.version.cuda} hides the GPU from it: update the driver, or install a torch "
-                "build for the driver's CUDA version")
+                f"build for the driver's CUDA version; on a machine without a GPU, check the CPU paths: {CPU_COMMAND}")
     dev = torch.device(device)
     if dev.index is not None and dev.index >= torch.cuda.device_count():
         return f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s) ({seen})"

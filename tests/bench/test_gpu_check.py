@@ -25,8 +25,14 @@ def run(args, tmp_path, timeout=600):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA: the check would run")
-def test_without_a_gpu_the_cuda_check_fails_in_one_line_naming_the_build_and_driver(tmp_path):
-    proc = run([str(SCRIPT), "--out", str(tmp_path / "report")], tmp_path)  # the checkout's thin caller
+@pytest.mark.parametrize("how", ["sp-gpu-check", "bench/gpu_check.py"])
+def test_without_a_gpu_the_cuda_check_fails_in_one_line_naming_the_build_and_driver(tmp_path, how):
+    """... and pointing at what a machine without a GPU can run (the console command as the README writes
+    it, and the checkout's thin caller)."""
+    command = [str(Path(sys.executable).parent / "sp-gpu-check")] if how == "sp-gpu-check" else [sys.executable, str(SCRIPT)]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run([*command, "--out", str(tmp_path / "report")], capture_output=True, text=True, env=env,
+                          cwd=tmp_path, timeout=600)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     (line,) = proc.stdout.strip().splitlines()
     if torch.version.cuda is not None:
@@ -34,6 +40,7 @@ def test_without_a_gpu_the_cuda_check_fails_in_one_line_naming_the_build_and_dri
     else:
         assert "CPU-only build" in line
     assert line.startswith("sp-gpu-check: error: ") and "Traceback" not in proc.stderr and not (tmp_path / "report").exists()
+    assert line.endswith(": sp-gpu-check --device cpu --quick"), line
 
 
 @pytest.fixture(scope="module")
