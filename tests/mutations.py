@@ -51,6 +51,12 @@ SDF_TRAINS: TestSet = ("sdfstudio", (_ANY + "test_sp_method_trains_two_steps_wit
                                      _ANY + "test_sp_method_trains_two_steps_with_sp_active[neuralangelo]"))
 SDF_MOVES: TestSet = ("sdfstudio", (_ANY + "test_the_fields_queries_move_against_the_plain_positions",))
 SPARSE_GAP: TestSet = ("main", ("tests/bench/test_sparse_views_gap.py",))
+# issue 44's exact-value tests: what a field reads equals the paper's formula for a fixed draw
+NS_EXACT: TestSet = ("main", ("tests/nerfstudio/test_seam_exact.py",))
+SDF_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam_exact.py",))
+POINTCLOUD_EXACT: TestSet = ("main", ("tests/tasks/test_pointcloud_exact.py",))
+IMAGE_EXACT: TestSet = ("main", ("tests/tasks/test_image_exact.py",))
+SDF_TASK_EXACT: TestSet = ("main", ("tests/tasks/test_sdf_exact.py",))
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,30 @@ MUTATIONS: List[Mutation] = [
              "moved = handle.sp(plain)", "moved = plain", (SDF_TRAINS, SDF_MOVES)),
     Mutation("sdfstudio seam: contraction returns its input", "sp_plugins/sdfstudio/seam.py",
              "        return moved\n", "        return plain\n", (SDF_TRAINS, SDF_MOVES)),
+    # -- where SP moved a query, not only that it moved (issue 44: the exact-value tests) -----------
+    Mutation("nerfstudio seam: SDF fields' offset taken at the midpoint", "sp_plugins/nerfstudio/seam.py",
+             "at_start = isinstance(self, SDFField)", "at_start = False", (NS_EXACT,)),
+    Mutation("nerfstudio seam: K-draw normals not recomputed", "sp_plugins/nerfstudio/seam.py",
+             "outputs[FieldHeadNames.NORMALS] = F.normalize(outputs[FieldHeadNames.GRADIENT], p=2, dim=-1)",
+             "outputs[FieldHeadNames.NORMALS] = outputs[FieldHeadNames.NORMALS]", (NS_EXACT,)),
+    Mutation("nerfstudio seam: offset detached (alpha grid)", "sp_plugins/nerfstudio/seam.py",
+             'values["origins"] = frustums.origins + (q - x)', 'values["origins"] = frustums.origins + (q - x).detach()',
+             (NS_EXACT,)),
+    Mutation("host wiring: alpha0 not scaled by the diagonal", "sp_plugins/adapter/model.py",
+             "scene_diagonal=box_diagonal(aabb)", "scene_diagonal=1.0", (NS_EXACT, SDF_EXACT)),
+    Mutation("sdfstudio model: folds into the scene box", "sp_plugins/sdfstudio/model.py",
+             "return CONTRACTED_BOUNDS", "return aabb.detach().float().cpu()", (SDF_EXACT,)),
+    Mutation("sdfstudio model: K > 1 trains one draw", "sp_plugins/sdfstudio/model.py",
+             "if k > 1:", "if False:", (SDF_EXACT,)),
+    Mutation("point cloud task: field queried plain", "sp_plugins/tasks/pointcloud.py",
+             "f = self.sp.blurred(self.field, x).squeeze(-1)", "f = self.field(x).squeeze(-1)", (POINTCLOUD_EXACT,)),
+    Mutation("point cloud task: SP box not the frame", "sp_plugins/tasks/pointcloud.py",
+             "sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)", "sp_config = self._setup_sp(bounds=(-2.0, 2.0), dim=3)",
+             (POINTCLOUD_EXACT,)),
+    Mutation("image task: field queried plain", "sp_plugins/tasks/image.py",
+             "pred = self.sp.blurred(self.rgb, self.positions[idx])", "pred = self.rgb(self.positions[idx])", (IMAGE_EXACT,)),
+    Mutation("sdf task: field queried plain", "sp_plugins/tasks/sdf.py",
+             "pred = self.sp.blurred(self.field, x).squeeze(-1)", "pred = self.field(x).squeeze(-1)", (SDF_TASK_EXACT,)),
     # -- the core --------------------------------------------------------------------------------
     Mutation("noise kind ignored (preconditioner)", "sp_plugins/core/preconditioner.py",
              "noise=self.config.noise,", 'noise="gaussian",', (CORE, NS_MATRIX)),
