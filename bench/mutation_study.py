@@ -1,0 +1,270 @@
+"""Mutation study (issue 44): every mutant a mutation tool makes of SP's modules, each module run
+against the test files that cover it, resumable, one torch thread. Outside the suite.
+
+The tool is cosmic-ray (the ``dev`` extra), chosen over mutmut because:
+
+- its test command is any shell command, set per session: each module gets its own covering test
+  files (not the whole suite per mutant) and its own interpreter, so the sdfstudio modules run in
+  ``.venv-sdfstudio`` while cosmic-ray itself lives in ``.venv`` (mutmut 3 runs pytest in-process in
+  its own environment, over a ``mutants/`` copy of the whole project, with one test selection);
+- a session is a SQLite file of work items: ``cosmic-ray exec`` runs only the items without a
+  result, so a study stopped at any point (the machine is shared; sessions end) resumes where it
+  stopped;
+- it mutates one source file on disk and restores it: it runs here in a scratch copy of the checkout
+  (``git ls-files``, ``PYTHONPATH`` first), never in the shared work tree; the copied module file
+  is refreshed from the checkout before each run, so a run killed mid-mutant leaves nothing behind.
+
+Usage (the full study is long: run it when the CPU is free)::
+
+    python bench/mutation_study.py --list                       # modules and their covering tests
+    python bench/mutation_study.py sp_plugins/core/schedule.py  # one module (the pilot)
+    nohup python bench/mutation_study.py --all > /tmp/mutation_study.log 2>&1 &   # every module, resumable
+    python bench/mutation_study.py --report                     # the table from what has run
+
+Per module it writes ``bench/results/mutation_study/<module>.json`` (generated, killed, survived,
+timeout, equivalent, pending, wall time, the survivors' diffs) and the table
+``bench/results/mutation_study/summary.md``. A surviving mutant that cannot change behaviour is
+listed with its reason in ``bench/results/mutation_study/equivalent.json`` (module -> list of
+``{"operator", "line", "reason"}``, ``line`` the original source line, stripped); it is then counted
+as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
+``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh (after the
+code changed, the study does so itself: the session records the source's hash).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from tests.mutations import MAIN_PYTHON, SDF_PYTHON, copy_checkout, environment  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results" / "mutation_study"
+WORK = Path(os.environ.get("SP_MUTATION_DIR", Path.home() / ".cache" / "sp-mutation-study"))
+COSMIC_RAY = MAIN_PYTHON.parent / "cosmic-ray"
+
+_TASKS_EXACT = ["tests/tasks/test_pointcloud_exact.py", "tests/tasks/test_image_exact.py", "tests/tasks/test_sdf_exact.py"]
+_NS_SEAM = ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_seam.py"]
+_SDF_SEAM = ["tests/sdfstudio/test_seam_exact.py", "tests/sdfstudio/test_seam.py"]
+COVERING: Dict[str, Tuple[str, List[str]]] = {
+    # module -> (environment, covering test files), cheapest first (pytest -x stops at the first failure)
+    "sp_plugins/core/schedule.py": ("main", ["tests/core/test_schedule.py",
+                                             "tests/core/test_properties.py::test_schedule_equals_its_formula_and_is_zero_at_and_after_the_end",
+                                             "tests/core/test_properties.py::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
+    "sp_plugins/core/boundary.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
+    "sp_plugins/core/perturb.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
+    "sp_plugins/core/noise.py": ("main", ["tests/core/test_perturb.py",
+                                          "tests/core/test_properties.py::test_perturb_equals_the_reference",
+                                          "tests/core/test_properties.py::test_preconditioner_draws_the_configured_noise_kind"]),
+    "sp_plugins/core/stencil.py": ("main", ["tests/core/test_stencil.py"]),
+    "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid.py", "tests/core/test_properties.py"]),
+    "sp_plugins/core/config.py": ("main", ["tests/core/test_preconditioner.py", "tests/core/test_properties.py"]),
+    "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner.py", "tests/core/test_properties.py"]),
+    "sp_plugins/nerfstudio/seam.py": ("main", _NS_SEAM),
+    "sp_plugins/nerfstudio/model.py": ("main", ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_with_sp.py",
+                                               "tests/nerfstudio/test_sp_option_matrix.py"]),
+    "sp_plugins/sdfstudio/seam.py": ("sdfstudio", _SDF_SEAM),
+    "sp_plugins/sdfstudio/model.py": ("sdfstudio", ["tests/sdfstudio/test_seam_exact.py", "tests/sdfstudio/test_methods.py"]),
+    "sp_plugins/adapter/field.py": ("main", _NS_SEAM),
+    "sp_plugins/adapter/model.py": ("main", ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_seam.py"]),
+    "sp_plugins/adapter/callbacks.py": ("main", ["tests/nerfstudio/test_seam.py", "tests/nerfstudio/test_neuralangelo_schedule.py"]),
+    "sp_plugins/adapter/presets.py": ("main", ["tests/test_defaults_table.py", "tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/tasks/pointcloud.py": ("main", ["tests/tasks/test_pointcloud_exact.py", "tests/tasks/test_pointcloud.py"]),
+    "sp_plugins/tasks/image.py": ("main", ["tests/tasks/test_image_exact.py", "tests/tasks/test_image.py", "tests/tasks/test_image_modes.py"]),
+    "sp_plugins/tasks/sdf.py": ("main", ["tests/tasks/test_sdf_exact.py", "tests/tasks/test_sdf.py"]),
+    "sp_plugins/tasks/common.py": ("main", _TASKS_EXACT + ["tests/tasks/test_fit_resume.py"]),
+    "sp_plugins/tasks/fields.py": ("main", ["tests/tasks/test_fields.py"] + _TASKS_EXACT),
+    "sp_plugins/tasks/checkpoint.py": ("main", ["tests/tasks/test_fit_resume.py"]),
+    "sp_plugins/tasks/settings.py": ("main", ["tests/tasks/test_cli_fit.py"]),
+}
+"""The issue's modules (the seams, the adapter, the nerfstudio model wiring, the tasks, the core),
+each with its covering test files or test ids. An adapter module not listed here (errors, checks,
+safe_config, ...) gets the test files that name it (:func:`covering`)."""
+ISSUE_FOLDERS = ["sp_plugins/core", "sp_plugins/adapter", "sp_plugins/tasks"]
+
+
+def covering(module: str) -> Tuple[str, List[str]]:
+    """The environment and covering test files of ``module``: :data:`COVERING`, else the test files
+    whose source imports it by its dotted name."""
+    if module in COVERING:
+        return COVERING[module]
+    dotted = module[:-3].replace("/", ".")
+    env = "sdfstudio" if module.startswith("sp_plugins/sdfstudio/") else "main"
+    found = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "tests").rglob("test_*.py")
+                   if dotted in p.read_text() and (env == "sdfstudio") == ("tests/sdfstudio" in str(p)))
+    return env, found
+
+
+def modules_of(args: List[str]) -> List[str]:
+    out = []
+    for a in args:
+        p = ROOT / a
+        out += sorted(str(f.relative_to(ROOT)) for f in p.rglob("*.py") if f.name != "__init__.py") if p.is_dir() else [a]
+    return out
+
+
+def slug(module: str) -> str:
+    return module[:-3].replace("/", ".")
+
+
+def python_of(kind: str) -> Path:
+    return MAIN_PYTHON if kind == "main" else SDF_PYTHON
+
+
+def test_command(module: str) -> str:
+    kind, tests = covering(module)
+    return f"{python_of(kind)} -m pytest -q -x -p no:cacheprovider -p no:randomly " + " ".join(tests)
+
+
+def prepare_copy() -> Path:
+    """The scratch checkout the tool mutates: copied once, its sources refreshed on every call."""
+    copy = WORK / "checkout"
+    copy.mkdir(parents=True, exist_ok=True)
+    copy_checkout(copy)
+    return copy
+
+
+def run_module(module: str, timeout_floor: float) -> Optional[dict]:
+    """Init (unless a session of this source exists), baseline once, exec the pending mutants;
+    None (and a line saying so) for a module no test file covers."""
+    kind, tests = covering(module)
+    if not tests:
+        print(f"mutation_study: no test file covers {module}: skipped (add it to COVERING)", flush=True)
+        return None
+    copy = prepare_copy()
+    env = environment(copy)
+    source_hash = hashlib.sha256((ROOT / module).read_bytes()).hexdigest()[:16]
+    session, config, meta_path = (WORK / f"{slug(module)}{ext}" for ext in (".sqlite", ".toml", ".meta.json"))
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    cmd = test_command(module)
+    if meta.get("source") != source_hash or meta.get("command") != cmd or not session.exists():
+        start = time.perf_counter()
+        base = subprocess.run(cmd.split(), cwd=copy, env=env, capture_output=True, text=True)
+        baseline_s = time.perf_counter() - start
+        if base.returncode != 0:
+            tail = (base.stdout + base.stderr).strip().splitlines()[-3:]
+            raise SystemExit(f"mutation_study: the covering tests of {module} fail unmutated: {' | '.join(tail)}")
+        timeout = max(timeout_floor, 4.0 * baseline_s)
+        config.write_text(
+            "[cosmic-ray]\n"
+            f'module-path = "{module}"\ntimeout = {timeout:.0f}\nexcluded-modules = []\n'
+            f"test-command = {json.dumps(cmd)}\n\n[cosmic-ray.distributor]\nname = \"local\"\n"
+        )
+        session.unlink(missing_ok=True)
+        subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
+        meta = {"source": source_hash, "command": cmd, "baseline_s": round(baseline_s, 1), "timeout_s": round(timeout),
+                "exec_s": 0.0}
+        meta_path.write_text(json.dumps(meta))
+    start = time.perf_counter()
+    try:
+        subprocess.run([str(COSMIC_RAY), "exec", str(config), str(session)], cwd=copy, env=env, check=True)
+    finally:
+        meta["exec_s"] = round(meta.get("exec_s", 0.0) + time.perf_counter() - start, 1)
+        meta_path.write_text(json.dumps(meta))
+        shutil.copy2(ROOT / module, copy / module)  # whatever the tool left, the copy is the checkout's again
+    return summarise(module)
+
+
+def _equivalents() -> dict:
+    path = RESULTS / "equivalent.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def summarise(module: str) -> dict:
+    """Figures of the module's session, written to its JSON file."""
+    session, meta_path = WORK / f"{slug(module)}.sqlite", WORK / f"{slug(module)}.meta.json"
+    meta = json.loads(meta_path.read_text())
+    dump = subprocess.run([str(COSMIC_RAY), "dump", str(session)], capture_output=True, text=True, check=True).stdout
+    source = (ROOT / module).read_text().splitlines()
+    known = {(e["operator"], e["line"]): e["reason"] for e in _equivalents().get(module, [])}
+    counts = dict(generated=0, killed=0, survived=0, timeout=0, equivalent=0, incompetent=0, pending=0)
+    survivors, equivalent = [], []
+    for row in filter(None, dump.splitlines()):
+        item, result = json.loads(row)
+        counts["generated"] += 1
+        if result is None:
+            counts["pending"] += 1
+            continue
+        mutation = item["mutations"][0]
+        line_no = mutation["start_pos"][0]
+        entry = {"operator": mutation["operator_name"], "occurrence": mutation["occurrence"], "line_no": line_no,
+                 "line": source[line_no - 1].strip() if line_no <= len(source) else "", "diff": result.get("diff")}
+        outcome, output = result.get("test_outcome"), result.get("output") or ""
+        if result.get("worker_outcome") not in ("normal", None) or outcome == "incompetent":
+            counts["incompetent"] += 1
+        elif outcome == "killed":
+            counts["timeout" if output == "timeout" else "killed"] += 1
+        elif (entry["operator"], entry["line"]) in known:
+            counts["equivalent"] += 1
+            equivalent.append(dict(entry, reason=known[(entry["operator"], entry["line"])]))
+        else:
+            counts["survived"] += 1
+            survivors.append(entry)
+    kind, tests = covering(module)
+    figures = dict(module=module, environment=kind, tests=tests, command=f"python bench/mutation_study.py {module}",
+                   **counts, baseline_s=meta["baseline_s"], timeout_s=meta["timeout_s"], wall_s=meta["exec_s"],
+                   survivors=survivors, equivalent_mutants=equivalent)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{slug(module)}.json").write_text(json.dumps(figures, indent=1) + "\n")
+    return figures
+
+
+def write_table() -> str:
+    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("sp_plugins.*.json"))]
+    lines = ["| module | env | covering tests | generated | killed | timeout | equivalent | survived | pending | wall (s) |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        tests = ", ".join(re.sub(r"^tests/", "", t) for t in r["tests"])
+        lines.append(f"| `{r['module']}` | {r['environment']} | {tests} | {r['generated']} | {r['killed']} | {r['timeout']} | "
+                     f"{r['equivalent']} | {r['survived']} | {r['pending']} | {r['wall_s']:.0f} |")
+    table = "\n".join(lines) + "\n"
+    (RESULTS / "summary.md").write_text("# Mutation study (bench/mutation_study.py)\n\n" + table)
+    return table
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("modules", nargs="*", help="module files or folders (default with --all: every module of COVERING)")
+    ap.add_argument("--all", action="store_true", help="every module of the issue (COVERING), one after another")
+    ap.add_argument("--list", action="store_true", help="print each module's environment and covering tests")
+    ap.add_argument("--report", action="store_true", help="rewrite the JSON figures and the table from the sessions")
+    ap.add_argument("--timeout-floor", type=float, default=60.0, help="least seconds per mutant (else 4x the baseline)")
+    args = ap.parse_args(argv)
+    modules = list(dict.fromkeys(list(COVERING) + modules_of(ISSUE_FOLDERS))) if args.all else modules_of(args.modules)
+    if args.list:
+        for m in modules or list(COVERING):
+            kind, tests = covering(m)
+            print(f"{m} [{kind}]: {' '.join(tests) or 'NO COVERING TEST'}")
+        return 0
+    os.environ.update(OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
+    if args.report:
+        for m in modules or list(COVERING):
+            if (WORK / f"{slug(m)}.meta.json").exists():
+                summarise(m)
+        print(write_table())
+        return 0
+    if not modules:
+        ap.error("name modules, or --all")
+    for m in modules:
+        f = run_module(m, args.timeout_floor)
+        if f is None:
+            continue
+        print(f"{m}: generated {f['generated']}, killed {f['killed']}, timeout {f['timeout']}, equivalent {f['equivalent']}, "
+              f"survived {f['survived']}, pending {f['pending']} ({f['wall_s']:.0f} s)", flush=True)
+        write_table()
+    print(write_table())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
