@@ -1,0 +1,100 @@
+"""The README is executable (issue 47): every fenced block of README.md and docs/*.md runs here as a
+user types it, in order, in one working folder, through ``tests/helpers/readme_runner.py`` (Sybil,
+with a shell evaluator of ours; why Sybil: see that module). The blocks under the sdfstudio
+heading run in sdfstudio's environment (tests/sdfstudio/test_readme_sdfstudio.py). What the runner
+may change is declared there (budget flags, placeholders, fixtures, Python preludes); a block that
+cannot run here carries ``<!-- readme-runner: skip (reason) -->``.
+
+The fast tests below check the runner itself: it fails on a failing command or a traceback,
+honours and requires reasons, lowers only the declared flags and fills ``outputs/...``.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import readme_runner as rr
+
+
+def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property):
+    start = time.monotonic()
+    runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION)
+    for document in rr.documents():
+        runner.run(document)
+    text = f"{rr.summary(runner.outcomes)}\nwall time {time.monotonic() - start:.0f} s"
+    record_property("readme_runner", text)
+    print(text)
+    statuses = [o.status for o in runner.outcomes]
+    assert all(o.detail for o in runner.outcomes if o.status == "skipped"), text
+    assert statuses.count("as written") + statuses.count("lowered") >= 8, text
+    assert "elsewhere" in statuses, "the sdfstudio section's blocks were not found: " + text
+
+
+def _doc(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "DOC.md"
+    path.write_text(body)
+    (tmp_path / "work").mkdir(exist_ok=True)
+    return path
+
+
+def _run(path: Path):
+    return rr.Runner(path.parent / "work", mine=lambda block: True).run(path)
+
+
+def test_a_failing_command_fails_the_run(tmp_path):
+    doc = _doc(tmp_path, "# x\n\n```bash\necho ok\nfalse   # a command that fails\necho never\n```\n")
+    with pytest.raises(AssertionError, match=r"DOC.md:3 .*exit status 1"):
+        _run(doc)
+
+
+def test_a_traceback_fails_the_run_even_with_exit_status_0(tmp_path):
+    doc = _doc(tmp_path, "```python\nimport traceback\ntry:\n    1 / 0\nexcept ZeroDivisionError:\n"
+                         "    traceback.print_exc()\n```\n")
+    with pytest.raises(AssertionError, match="printed a traceback"):
+        _run(doc)
+
+
+def test_skip_needs_a_reason_and_a_bare_fence_is_not_a_command(tmp_path):
+    doc = _doc(tmp_path, "<!-- readme-runner: skip (needs a GPU) -->\n```bash\nexit 1\n```\n\n```\ntree/\n```\n")
+    outcomes = _run(doc)
+    assert [(o.status, o.detail) for o in outcomes] == [("skipped", "needs a GPU"), ("not a command", "a ``` block")]
+    with pytest.raises(AssertionError, match="marker without a reason"):
+        _run(_doc(tmp_path, "<!-- readme-runner: skip -->\n```bash\nexit 1\n```\n"))
+
+
+def test_outputs_placeholder_is_the_newest_run_of_the_blocks_before(tmp_path):
+    doc = _doc(tmp_path, "```bash\nmkdir -p outputs/s/m/old outputs/s/m/new && echo a > outputs/s/m/old/config.yml\n"
+                         "sleep 0.05; echo b > outputs/s/m/new/config.yml\n```\n\n"
+                         "```bash\ntest \"$(cat outputs/.../m/.../config.yml)\" = b\n```\n")
+    assert [o.status for o in _run(doc)] == ["as written", "as written"]
+
+
+def test_only_the_declared_budget_flags_change():
+    line = ("ns-train sp-neus-hashgrid --machine.device-type cpu --max-num-iterations 2000 "
+            "--pipeline.model.sp.alpha0 0.013 sdfstudio-data --data my-scene/sdfstudio   # a comment")
+    lowered, changes = rr.lower(line)
+    assert lowered == ("ns-train sp-neus-hashgrid --machine.device-type cpu --max-num-iterations 2 "
+                       "--pipeline.model.sp.alpha0 0.013 --pipeline.datamanager.train-num-rays-per-batch 64 "
+                       "sdfstudio-data --data my-scene/sdfstudio # a comment")
+    assert sorted(changes) == ["ns-train --max-num-iterations 2", "ns-train --pipeline.datamanager.train-num-rays-per-batch 64"]
+    assert rr.lower("sp-train --help   # every method")[0] == "sp-train --help   # every method"
+    inner, _ = rr.lower('sp-sweep --command "sp-fit pointcloud $spot --steps 300" --grid lr=1,2 --out runs/pc')
+    assert inner == ('sp-sweep --sample 1 --command "sp-fit pointcloud $spot --steps 2 --mesh-resolution 32 '
+                     '--n-points 5000 --metric-points 2000" --grid lr=1,2 --out runs/pc')
+    declared = {flag for _, flag, _ in rr.BUDGET}
+    assert all(re.search(r"(steps|iterations|rays|resolution|points|sample)", flag) for flag in declared), declared
+
+
+def test_readme_chamfer_claims_match_bench_results():
+    """The demo section's per-mesh Chamfer ratios are the raw-Chamfer table's of bench/RESULTS.md."""
+    results = (rr.REPO / "bench" / "RESULTS.md").read_text()
+    table = results[results.index("**Chamfer (raw mesh)**"):results.index("**Chamfer after keeping the largest component**")]
+    ratio = {m.group(1): m.group(2) for m in re.finditer(r"^\| (\w+) \|(?: [^|]+ \|){4} \**([\d.]+)\** \|", table, flags=re.M)}
+    readme = (rr.REPO / "README.md").read_text()
+    assert f"on Spot\nSP's raw Chamfer is {ratio['spot']}x" in readme and f"on the bunny {ratio['bunny']}x" in readme
+    least = max(ratio, key=lambda mesh: float(ratio[mesh]))  # the largest ratio: the smallest gain
+    assert least == "bunny" and "Spot is the mesh where SP's raw Chamfer gain is" not in readme, ratio
