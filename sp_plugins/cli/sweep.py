@@ -133,24 +133,41 @@ def _local_cpus(args: SweepArgs, log) -> int:
     return free
 
 
+def _mixed_devices(out: Path, found: dict, trials, args: SweepArgs) -> str:
+    """The refusal when ``out`` holds results of this sweep from another device."""
+    theirs = ", ".join(f"{n} on {d}" for d, n in sorted(found.items()))
+    mine = "/".join(sorted({t.device for t in trials}))
+    back = "--gpus-per-trial 0" if "cpu" in found else "--gpus-per-trial 1 (on a local Ray with --num-gpus)"
+    return (f"{out} holds finished trials of this sweep run elsewhere ({theirs}); with --gpus-per-trial "
+            f"{args.gpus_per_trial:g} they run on {mine}, and one table of both would compare devices, not settings: "
+            f"give the {mine} sweep another --out (or pass {back} to go on with the trials there)")
+
+
 def run(args: SweepArgs, log=print) -> int:
-    from sp_plugins.sweeps.report import load_results, write_report
+    from sp_plugins.sweeps.report import load_results, other_devices, write_report
     from sp_plugins.sweeps.trial import RESULT, TRIAL, _write_result
 
     spec = build_spec(args)
-    trials = expand(spec)
+    trials = expand(spec, gpus=args.gpus_per_trial)
     out = args.out.resolve()
     folder = out / "trials"
-    folder.mkdir(parents=True, exist_ok=True)
-    (out / "spec.json").write_text(json.dumps(dataclasses.asdict(spec), indent=1) + "\n")
+    elsewhere = other_devices(folder, trials)
+    if elsewhere:
+        raise SpecError(_mixed_devices(out, elsewhere, trials, args))
+
+    def start_folder() -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        (out / "spec.json").write_text(json.dumps(dataclasses.asdict(spec), indent=1) + "\n")
+
     results = load_results(folder, trials)
     if args.retry_failed:
         results = {k: r for k, r in results.items() if r.get("status") == "ok"}
     pending = [t for t in trials if t.key not in results]
     log(f"[sp-sweep] {len(trials)} trials: {len(trials) - len(pending)} finished already (skipped), {len(pending)} to run")
     if args.dry_run:
+        start_folder()
         for t in trials:
-            log(f"  {t.key}  {'done   ' if t.key in results else 'pending'}  {t.label()}")
+            log(f"  {t.key}  {'done   ' if t.key in results else 'pending'}  {t.device:<4}  {t.label()}")
         return 0
     if pending and not args.summarize_only:
         if args.cpus_per_trial <= 0 or args.gpus_per_trial < 0:
@@ -161,15 +178,22 @@ def run(args: SweepArgs, log=print) -> int:
                             "(--num-cpus): no trial could start")
         if not args.address and args.gpus_per_trial > (args.num_gpus or 0):
             raise SpecError(f"--gpus-per-trial {args.gpus_per_trial:g} needs --num-gpus of at least that on a local Ray")
-        payload = []
-        for t in pending:
-            d = folder / t.key
-            d.mkdir(exist_ok=True)
-            info = {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "argv": t.argv, "label": t.label(),
-                    "folder": str(d), "cwd": os.getcwd(), "data_args": len(spec.data), "timeout": args.timeout,
-                    "eval": spec.eval}
-            (d / TRIAL).write_text(json.dumps(info, indent=1) + "\n")
-            payload.append(info)
+
+        def payload() -> list:
+            """The pending trials' folders and ``trial.json``, written once Ray is up (a cluster that
+            does not answer leaves nothing behind)."""
+            start_folder()
+            items = []
+            for t in pending:
+                d = folder / t.key
+                d.mkdir(exist_ok=True)
+                info = {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "argv": t.argv, "label": t.label(),
+                        "device": t.device, "folder": str(d), "cwd": os.getcwd(), "data_args": len(spec.data),
+                        "timeout": args.timeout, "eval": spec.eval}
+                (d / TRIAL).write_text(json.dumps(info, indent=1) + "\n")
+                items.append(info)
+            return items
+
         from sp_plugins.sweeps.ray_runner import run_on_ray
 
         lost = run_on_ray(payload, storage=out / "ray", address=args.address, num_cpus=num_cpus, num_gpus=args.num_gpus,
@@ -179,9 +203,10 @@ def run(args: SweepArgs, log=print) -> int:
             d = folder / item["key"]
             if not (d / RESULT).is_file():
                 t = next(t for t in pending if t.key == item["key"])
-                _write_result(d, {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "status": "failed",
-                                  "error": item["error"], "metrics": {}})
+                _write_result(d, {"key": t.key, "params": t.params, "sp": t.sp, "seed": t.seed, "device": t.device,
+                                  "status": "failed", "error": item["error"], "metrics": {}})
         results = load_results(folder, trials)
+    start_folder()
     report = write_report(spec, trials, results, out)
     log(f"[sp-sweep] {report['summary']}")
     log(f"[sp-sweep] wrote {out / 'results.md'}, {out / 'results.csv'}"

@@ -86,7 +86,7 @@ def _init_local(ray, num_cpus: Optional[int], num_gpus: Optional[int], temp_dir:
 
 
 def run_on_ray(
-    trials: List[dict],
+    trials: Callable[[], List[dict]],
     *,
     storage: Path,
     address: Optional[str] = None,
@@ -97,8 +97,9 @@ def run_on_ray(
     temp_dir: Optional[Path] = None,
     log: Callable[[str], None] = print,
 ) -> List[dict]:
-    """Run ``trials`` (dicts for :func:`sp_plugins.sweeps.trial.run_trial`); returns, for trials
-    that Ray itself lost (worker crash), ``{"key", "error"}`` so the caller can record them."""
+    """Run the trials ``trials()`` gives once Ray is up (dicts for :func:`sp_plugins.sweeps.trial.run_trial`);
+    returns, for trials that Ray itself lost (worker crash), ``{"key", "error"}`` so the caller can
+    record them. A cluster that does not answer is a :class:`SpecError` (one line)."""
     for k, v in QUIET_RAY_ENV.items():
         os.environ.setdefault(k, v)
     import logging
@@ -111,7 +112,13 @@ def run_on_ray(
     logging.getLogger("ray._private.services").setLevel(logging.CRITICAL)
     own_temp = None
     if address:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+        except ConnectionError as err:
+            from sp_plugins.sweeps.spec import SpecError
+
+            raise SpecError(f"--address {address}: no Ray cluster answered ({str(err).split('. ')[0]}); start one "
+                            "(ray start --head) or leave --address out to run on a local Ray") from None
     else:
         # a short path: Ray's socket paths must fit in 107 characters
         own_temp = Path(tempfile.mkdtemp(prefix="spray-", dir="/tmp" if os.path.isdir("/tmp") else None)) \
@@ -125,18 +132,19 @@ def run_on_ray(
             raise
     lost = []
     try:
+        items = trials()
         # a local sweep's trials run at this command's niceness, not Ray's worker niceness (15)
         niceness = None if address or not hasattr(os, "getpriority") else os.getpriority(os.PRIO_PROCESS, 0)
-        for t in trials:
+        for t in items:
             t["cpus"], t["gpus"], t["niceness"] = cpus_per_trial, gpus_per_trial, niceness
         tuner = tune.Tuner(
             tune.with_resources(_trainable, {"cpu": cpus_per_trial, "gpu": gpus_per_trial}),
-            param_space={"trial": tune.grid_search(trials)},
+            param_space={"trial": tune.grid_search(items)},
             tune_config=tune.TuneConfig(trial_dirname_creator=lambda tr: tr.config["trial"]["key"],
                                         trial_name_creator=lambda tr: tr.config["trial"]["key"]),
             run_config=tune.RunConfig(
                 name=time.strftime("run-%Y%m%d-%H%M%S"), storage_path=str(Path(storage).resolve()), verbose=0,
-                failure_config=tune.FailureConfig(max_failures=0), callbacks=[_progress_callback(len(trials), log)],
+                failure_config=tune.FailureConfig(max_failures=0), callbacks=[_progress_callback(len(items), log)],
             ),
         )
         grid = tuner.fit()

@@ -18,17 +18,30 @@ _OPS = {">=": operator.ge, "<=": operator.le, ">": operator.gt, "<": operator.lt
 SIDES = {False: "baseline", True: "SP", None: "-"}
 
 
-def load_results(folder: Path, trials: Sequence[Trial]) -> Dict[str, dict]:
-    """Finished trials (those with a ``result.json``), by key."""
-    out = {}
+def _read(folder: Path, trials: Sequence[Trial]):
     for t in trials:
         path = Path(folder) / t.key / RESULT
         if path.is_file():
             try:
-                out[t.key] = json.loads(path.read_text())
+                yield t, json.loads(path.read_text())
             except json.JSONDecodeError:  # a half-written file from a killed run: rerun it
                 continue
-    return out
+
+
+def load_results(folder: Path, trials: Sequence[Trial]) -> Dict[str, dict]:
+    """Finished trials (those with a ``result.json`` from the trial's own device), by key. A result
+    that records no device was written before results did, when sweeps here ran on CPUs: cpu."""
+    return {t.key: r for t, r in _read(folder, trials) if r.get("device", "cpu") == t.device}
+
+
+def other_devices(folder: Path, trials: Sequence[Trial]) -> Dict[str, int]:
+    """Trials of ``trials`` that have a result from another device: device -> how many."""
+    found: Dict[str, int] = {}
+    for t, r in _read(folder, trials):
+        device = r.get("device", "cpu")
+        if device != t.device:
+            found[device] = found.get(device, 0) + 1
+    return found
 
 
 def succeeded(result: Optional[dict], criteria: Sequence[str]) -> Optional[bool]:

@@ -14,7 +14,9 @@ A spec is a small YAML (or JSON) file, or the same fields as ``sp-sweep`` flags:
     metric: fscore                                      # the histogram's metric
 
 :func:`expand` turns a spec into trials; a trial's key hashes its command line (without output
-paths), so a restarted or grown sweep recognises the trials it has already run.
+paths), so a restarted or grown sweep recognises the trials it has already run. A trial's device
+(``cpu`` / ``cuda``: what ``--gpus-per-trial`` or a device flag in the command gives it) is part of
+what it is: its result records it, and a result from another device is not this trial's.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ PROGRAMS = ("ns-train", "sp-fit")
 SP_FLAGS = {"ns-train": (["--pipeline.model.sp.enabled", "False"], ["--pipeline.model.sp.enabled", "True"]),
             "sp-fit": (["--no-sp"], [])}
 SEED_FLAG = {"ns-train": "--machine.seed", "sp-fit": "--seed"}
+DEVICE_FLAG = {"ns-train": "--machine.device-type", "sp-fit": "--device"}
 DEFAULT_METRIC = {"ns-train": "psnr", "sp-fit": "chamfer"}
 _CRITERION = re.compile(r"^\s*([A-Za-z_][\w.]*)\s*(>=|<=|==|!=|>|<)\s*(\S+)\s*$")
 
@@ -215,10 +218,27 @@ class Trial:
     sp: Optional[bool]
     seed: int
     argv: List[str]
+    device: str = "cpu"
+    """Where it runs: ``cpu`` or ``cuda`` (a result from another device is not this trial's)."""
 
     def label(self) -> str:
         sp = {None: "", True: "SP ", False: "base "}[self.sp]
         return sp + " ".join(f"{k.lstrip('-')}={v}" for k, v in self.params.items()) + f" seed={self.seed}"
+
+
+def trial_device(argv: Sequence[str], gpus: float) -> str:
+    """``cuda`` or ``cpu``: a device flag in the command wins, else GPUs reserved for the trial mean
+    CUDA (``ns-train`` gets ``--machine.device-type cuda``; ``sp-fit --device auto`` finds the GPU)."""
+    flag = DEVICE_FLAG.get(argv[0] if argv else "")
+    named = None
+    for i, a in enumerate(argv):
+        if flag and a == flag and i + 1 < len(argv):
+            named = argv[i + 1]
+        elif flag and a.startswith(flag + "="):
+            named = a.partition("=")[2]
+    if named and named != "auto":
+        return "cuda" if named.startswith("cuda") else named
+    return "cuda" if gpus > 0 else "cpu"
 
 
 def trial_key(argv: Sequence[str]) -> str:
@@ -247,8 +267,9 @@ def build_argv(spec: SweepSpec, params: Dict[str, str], sp: Optional[bool], seed
     return [program, target, *shared, *grid_args, *sp_args, SEED_FLAG[program], str(seed), *spec.data]
 
 
-def expand(spec: SweepSpec) -> List[Trial]:
-    """Every trial of the sweep, SP pairs next to each other (so partial results stay paired)."""
+def expand(spec: SweepSpec, gpus: float = 0.0) -> List[Trial]:
+    """Every trial of the sweep, SP pairs next to each other (so partial results stay paired);
+    ``gpus``: what each trial reserves (``--gpus-per-trial``), which decides its device."""
     spec.validate()
     sides = {"both": [False, True], "on": [True], "off": [False]}[spec.sp]
     sp_only = {flag_name(f) for f in spec.sp_only}
@@ -263,7 +284,7 @@ def expand(spec: SweepSpec) -> List[Trial]:
                     continue
                 seen.add(key)
                 shown = {k: (v if k in used else "-") for k, v in point.items()}
-                trials.append(Trial(key, shown, sp, seed, argv))
+                trials.append(Trial(key, shown, sp, seed, argv, trial_device(argv, gpus)))
     for flag, values in spec.grid.items():
         if len(set(values)) != len(values):
             raise SpecError(f"grid: {flag} repeats a value")

@@ -2,7 +2,7 @@
 
 Each trial owns a folder named by its key: ``trial.json`` (grid point, SP side, seed, command),
 ``stdout.log`` / ``stderr.log`` and, once it has ended, ``result.json`` with ``status`` ("ok" or
-"failed"), the error line of a failure, and the metrics:
+"failed"), the error line of a failure, the ``device`` it ran on (cpu / cuda) and the metrics:
 
 - ns-train: ``psnr``, ``ssim`` (and ``lpips`` when available) on the test split from ns-eval's
   JSON, ``train_seconds``, ``eval_seconds``;
@@ -150,7 +150,7 @@ def run_trial(trial: dict) -> dict:
     env = _env(int(math.ceil(trial.get("cpus", 1))))
     timeout = trial.get("timeout")
     result: Dict = {"key": trial["key"], "params": trial["params"], "sp": trial["sp"], "seed": trial["seed"],
-                    "status": "failed", "error": None, "metrics": {}}
+                    "device": trial.get("device", "cpu"), "status": "failed", "error": None, "metrics": {}}
     try:
         if argv[0] == "ns-train":
             _ns_train(trial, argv, folder, env, timeout, result)

@@ -124,3 +124,23 @@ def test_cli_same_grid_flag_twice_is_refused_in_one_line(sp_sweep, tmp_path):
     (line,) = proc.stderr.strip().splitlines()
     assert line.startswith("sp-sweep: error: --grid lr is given twice") and "lr=1e-3,1e-2" in line
     assert not (tmp_path / "o").exists()
+
+
+def test_a_trials_device_is_part_of_what_it_is(tmp_path):
+    """--gpus-per-trial decides the device unless the command names one; a result from another device
+    is not a finished trial of this sweep (a CPU folder resumed on GPUs would have skipped every trial)."""
+    from sp_plugins.sweeps.report import load_results, other_devices
+
+    cpu, gpu = expand(spec_from_dict(FIT)), expand(spec_from_dict(FIT), gpus=1)
+    assert {t.device for t in cpu} == {"cpu"} and {t.device for t in gpu} == {"cuda"}
+    assert [t.key for t in cpu] == [t.key for t in gpu]  # the command line is the same: the device tells them apart
+    pinned = expand(spec_from_dict(dict(FIT, command=FIT["command"] + " --device cpu")), gpus=1)
+    assert {t.device for t in pinned} == {"cpu"}
+    ns = spec_from_dict({"command": "ns-train neus-hashgrid --machine.device-type=cuda", "data": "blender-data --data d"})
+    assert {t.device for t in expand(ns)} == {"cuda"}
+    for t in cpu[:3]:  # results as a CPU sweep leaves them: one of them from before results named their device
+        (tmp_path / t.key).mkdir()
+        result = {"key": t.key, "status": "ok", "metrics": {}, **({"device": "cpu"} if t is not cpu[0] else {})}
+        (tmp_path / t.key / "result.json").write_text(json.dumps(result))
+    assert set(load_results(tmp_path, cpu)) == {t.key for t in cpu[:3]} and other_devices(tmp_path, cpu) == {}
+    assert load_results(tmp_path, gpu) == {} and other_devices(tmp_path, gpu) == {"cpu": 3}

@@ -1,10 +1,13 @@
 """``sp-sweep`` of a tiny ``sp-fit`` task as a user runs it: a local Ray with 2 CPUs, a sweep that
 finishes, then a restart that grows the grid by a failing point, runs only the new trials and
-records their failure; no Ray processes or temporary files left behind (see ``run_sweep``)."""
+records their failure; no Ray processes or temporary files left behind (see ``run_sweep``). The
+README's cluster line (``--address auto --gpus-per-trial 1``) on that folder of CPU trials is refused
+in one line before any Ray is reached: they are not its finished trials."""
 
 from __future__ import annotations
 
 import math
+import subprocess
 
 import pytest
 
@@ -15,7 +18,8 @@ NC_RULE, CHAMFER_RULE = "normal_consistency >= 0.6", "chamfer < 0.3"
 
 
 @pytest.mark.timeout(1800)  # about a minute and a half on 2 idle cores; Ray's start alone took a minute at load 10
-def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials(run_sweep, rows, sweep_mesh, tmp_path):
+def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials(run_sweep, rows, sweep_mesh, tmp_path,
+                                                                                 sp_sweep):
     out = tmp_path / "sweep"
     # With --geometric-init the 8 steps leave a sphere (normal consistency about 0.84-0.96, Chamfer
     # 0.03-0.09 for seeds 0 and 1); without a mesh the rule fails (consistency 0, Chamfer null)
@@ -47,3 +51,13 @@ def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials
     assert all(md.count(r["trial"]) == 1 for r in table)  # one row per trial
     assert f"success ({NC_RULE} and {CHAMFER_RULE}): baseline 1/2 (50%), SP 1/2 (50%)" in md
     assert (out / "histogram.png").stat().st_size > 1000
+
+    # the same study on GPUs into this folder of CPU trials (it used to skip all four as finished)
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    proc = subprocess.run([sp_sweep, str(tmp_path / "spec.yaml"), "--out", str(out), "--address", "auto",
+                           "--gpus-per-trial", "1"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stdout + proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith(f"sp-sweep: error: {out.resolve()} holds finished trials of this sweep run elsewhere (4 on cpu)")
+    assert "they run on cuda" in line and "another --out" in line and "--gpus-per-trial 0" in line
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before, "the CPU sweep's folder was touched"
