@@ -1,7 +1,7 @@
 """The SP settings each registered method and ``sp-fit`` task actually uses, as a markdown table.
 
     python -m sp_plugins.defaults_table            # print it
-    python -m sp_plugins.defaults_table --write    # refresh docs/sp_defaults.md
+    python -m sp_plugins.defaults_table --write    # from a checkout's root: refresh README.md's table and docs/sp_defaults.md
 
 The table is read from the registered configs (nerfstudio entry points, the task config classes),
 and a test compares it with ``docs/sp_defaults.md`` (and the README's copy, when it has one), so
@@ -12,6 +12,7 @@ where a method or task does not set its own.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import List, Tuple
 
@@ -77,16 +78,47 @@ def document() -> str:
     )
 
 
+def _with_table(readme: str) -> str:
+    """``readme`` with the text between the markers replaced by today's table."""
+    head, _, rest = readme.partition(BEGIN)
+    return head + table() + rest.partition(END)[2]
+
+
+def write(root: Path) -> list:
+    """Refresh ``root``'s README table (between the markers) and ``docs/sp_defaults.md``; returns what
+    was written. Raises ``ValueError`` (one line) when ``root`` is not a checkout's root."""
+    readme, doc = root / "README.md", root / "docs" / DOC.name
+    text = readme.read_text() if readme.is_file() else ""
+    has_table = BEGIN in text and END in text.partition(BEGIN)[2]
+    if BEGIN in text and not has_table:
+        raise ValueError(f"{readme}: {BEGIN} has no {END} after it: put the end marker back, then run --write again")
+    if not has_table and not doc.is_file():
+        raise ValueError(f"{root} is not the root of a sp-plugins checkout (no README.md with the {BEGIN} table, no "
+                         f"docs/{DOC.name}): run --write from the root of the checkout")
+    written = []
+    if has_table:
+        readme.write_text(_with_table(text))
+        written.append(readme)
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(document())
+    return written + [doc]
+
+
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Print (or --write) the per-method SP defaults table.")
-    parser.add_argument("--write", action="store_true", help=f"write {DOC}")
+    parser = argparse.ArgumentParser(prog="python -m sp_plugins.defaults_table",
+                                     description="Print (or --write) the per-method SP defaults table.")
+    parser.add_argument("--write", action="store_true",
+                        help="in the current folder (a checkout's root): refresh README.md's table and docs/sp_defaults.md")
     args = parser.parse_args(argv)
-    if args.write:
-        DOC.parent.mkdir(parents=True, exist_ok=True)
-        DOC.write_text(document())
-        print(f"wrote {DOC}")
-    else:
+    if not args.write:
         print(table())
+        return
+    try:
+        written = write(Path.cwd())
+    except ValueError as err:
+        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print("wrote " + ", ".join(str(p) for p in written))
 
 
 if __name__ == "__main__":

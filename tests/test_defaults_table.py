@@ -34,3 +34,36 @@ def test_rows_are_read_from_the_configs(monkeypatch):
 
     monkeypatch.setattr(pointcloud, "PointCloudSDFConfig", Changed)
     assert "| 0.5 | linear | 0.5 (1,000 of 2,000 steps) |" in dict(defaults_table.rows())["sp-fit pointcloud"]
+
+
+def _run(cwd):
+    import os
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "sp_plugins.defaults_table", "--write"], cwd=cwd, capture_output=True,
+                          text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+
+def test_write_restores_a_drifted_readme_table(tmp_path):
+    """The README says --write regenerates its table: run as written, from the root of a copy whose table drifted."""
+    readme = defaults_table.DOC.parent.parent / "README.md"
+    text = readme.read_text()
+    head, _, rest = text.partition(defaults_table.BEGIN)
+    old_table, _, tail = rest.partition(defaults_table.END)
+    rows = old_table.strip("\n").splitlines()
+    drifted = rows[:2] + ["| `sp-gone` | on | 9 | linear | 1 | uniform | clamp |"] + rows[3:-1]  # one changed, one lost
+    (tmp_path / "README.md").write_text(head + defaults_table.BEGIN + "\n".join(drifted) + "\n" + defaults_table.END + tail)
+    proc = _run(tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "README.md").read_text() == head + defaults_table.table() + tail
+    assert (tmp_path / "docs" / "sp_defaults.md").read_text() == defaults_table.document()
+    assert f"wrote {tmp_path / 'README.md'}, {tmp_path / 'docs' / 'sp_defaults.md'}" in proc.stdout
+
+
+def test_write_outside_a_checkout_is_one_line_and_writes_nothing(tmp_path):
+    proc = _run(tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("python -m sp_plugins.defaults_table: error: ") and "root of" in line
+    assert list(tmp_path.iterdir()) == []
