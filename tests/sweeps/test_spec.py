@@ -144,3 +144,16 @@ def test_a_trials_device_is_part_of_what_it_is(tmp_path):
         (tmp_path / t.key / "result.json").write_text(json.dumps(result))
     assert set(load_results(tmp_path, cpu)) == {t.key for t in cpu[:3]} and other_devices(tmp_path, cpu) == {}
     assert load_results(tmp_path, gpu) == {} and other_devices(tmp_path, gpu) == {"cpu": 3}
+
+
+def test_cli_address_auto_without_a_cluster_is_one_line_and_leaves_nothing(sp_sweep, tmp_path):
+    import psutil
+
+    if any(p.info["name"] == "raylet" for p in psutil.process_iter(["name"])):
+        pytest.skip("a Ray instance runs on this machine (another sweep?): --address auto would join it")
+    proc = subprocess.run([sp_sweep, "--command", "sp-fit pointcloud m.ply", "--out", str(tmp_path / "o"), "--address", "auto"],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stdout + proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("sp-sweep: error: --address auto: no Ray cluster answered") and "ray start --head" in line
+    assert not (tmp_path / "o").exists()
