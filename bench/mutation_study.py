@@ -19,6 +19,7 @@ Usage (the full study is long: run it when the CPU is free)::
     python bench/mutation_study.py --list                       # modules and their covering tests
     python bench/mutation_study.py sp_plugins/core/schedule.py  # one module (the pilot)
     nohup python bench/mutation_study.py --all > /tmp/mutation_study.log 2>&1 &   # every module, resumable
+    python bench/mutation_study.py --before --all               # the same without the *_exact.py tests (before)
     python bench/mutation_study.py --report                     # the table from what has run
 
 Per module it writes ``bench/results/mutation_study/<module>.json`` (generated, killed, survived,
@@ -93,9 +94,19 @@ safe_config, ...) gets the test files that name it (:func:`covering`)."""
 ISSUE_FOLDERS = ["sp_plugins/core", "sp_plugins/adapter", "sp_plugins/tasks"]
 
 
+BEFORE = os.environ.get("SP_MUTATION_BEFORE") == "1"
+"""``--before``: the covering tests without issue 44's exact-value modules (``*_exact.py``), in
+sessions and results of their own (``*.before.*``): the figures before those tests existed."""
+
+
 def covering(module: str) -> Tuple[str, List[str]]:
     """The environment and covering test files of ``module``: :data:`COVERING`, else the test files
-    whose source imports it by its dotted name."""
+    whose source imports it by its dotted name (without the exact-value tests under ``--before``)."""
+    kind, tests = _covering(module)
+    return kind, [t for t in tests if not (BEFORE and t.split("::")[0].endswith("_exact.py"))]
+
+
+def _covering(module: str) -> Tuple[str, List[str]]:
     if module in COVERING:
         return COVERING[module]
     dotted = module[:-3].replace("/", ".")
@@ -114,7 +125,7 @@ def modules_of(args: List[str]) -> List[str]:
 
 
 def slug(module: str) -> str:
-    return module[:-3].replace("/", ".")
+    return module[:-3].replace("/", ".") + (".before" if BEFORE else "")
 
 
 def python_of(kind: str) -> Path:
@@ -211,7 +222,8 @@ def summarise(module: str) -> dict:
             counts["survived"] += 1
             survivors.append(entry)
     kind, tests = covering(module)
-    figures = dict(module=module, environment=kind, tests=tests, command=f"python bench/mutation_study.py {module}",
+    command = f"python bench/mutation_study.py {'--before ' if BEFORE else ''}{module}"
+    figures = dict(module=module, variant="before" if BEFORE else "after", environment=kind, tests=tests, command=command,
                    **counts, baseline_s=meta["baseline_s"], timeout_s=meta["timeout_s"], wall_s=meta["exec_s"],
                    survivors=survivors, equivalent_mutants=equivalent)
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -221,11 +233,11 @@ def summarise(module: str) -> dict:
 
 def write_table() -> str:
     rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("sp_plugins.*.json"))]
-    lines = ["| module | env | covering tests | generated | killed | timeout | equivalent | survived | pending | wall (s) |",
-             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines = ["| module | tests | env | covering tests | generated | killed | timeout | equivalent | survived | pending | wall (s) |",
+             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         tests = ", ".join(re.sub(r"^tests/", "", t) for t in r["tests"])
-        lines.append(f"| `{r['module']}` | {r['environment']} | {tests} | {r['generated']} | {r['killed']} | {r['timeout']} | "
+        lines.append(f"| `{r['module']}` | {r.get('variant', 'after')} | {r['environment']} | {tests} | {r['generated']} | {r['killed']} | {r['timeout']} | "
                      f"{r['equivalent']} | {r['survived']} | {r['pending']} | {r['wall_s']:.0f} |")
     table = "\n".join(lines) + "\n"
     (RESULTS / "summary.md").write_text("# Mutation study (bench/mutation_study.py)\n\n" + table)
@@ -238,8 +250,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--all", action="store_true", help="every module of the issue (COVERING), one after another")
     ap.add_argument("--list", action="store_true", help="print each module's environment and covering tests")
     ap.add_argument("--report", action="store_true", help="rewrite the JSON figures and the table from the sessions")
+    ap.add_argument("--before", action="store_true", help="without the exact-value tests (*_exact.py): the 'before' figures")
     ap.add_argument("--timeout-floor", type=float, default=60.0, help="least seconds per mutant (else 4x the baseline)")
     args = ap.parse_args(argv)
+    if args.before:
+        global BEFORE
+        BEFORE = True
     modules = list(dict.fromkeys(list(COVERING) + modules_of(ISSUE_FOLDERS))) if args.all else modules_of(args.modules)
     if args.list:
         for m in modules or list(COVERING):
