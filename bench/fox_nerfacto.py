@@ -5,7 +5,9 @@ PSNR / SSIM and seconds per step.
     python -m bench.fox_nerfacto --steps 1500          # writes bench/out/fox_nerfacto.json
     python -m bench.fox_nerfacto --data PATH/TO/fox   # the capture (default: SP_FOX_CAPTURE, or ../shared/data/real/fox)
 
-The recipe (``RECIPE``) is what the README gives as ``ns-train`` flags; ``--print-flags`` prints them.
+The recipe is the package's ``nerfacto-cpu`` (:mod:`sp_plugins.nerfstudio.recipes`), which the README
+gives as ``ns-train`` flags (``python -m sp_plugins.nerfstudio.recipes nerfacto-cpu``; ``--print-flags``
+here prints the same).
 """
 
 from __future__ import annotations
@@ -15,28 +17,19 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import List
 
 from bench.harness import nerfstudio as ns
 from bench.harness.common import OUT_DIR, machine_info, start, write_json
 from bench.harness.scenes import FOX, capture
+from sp_plugins.nerfstudio.recipes import RECIPES
 
-RECIPE: Dict[str, object] = {
-    "pipeline.datamanager.train-num-rays-per-batch": 256,
-    "pipeline.model.log2-hashmap-size": 17,
-    "pipeline.model.num-nerf-samples-per-ray": 32,
-    "pipeline.model.num-proposal-samples-per-ray": (64, 32),
-    "pipeline.model.eval-num-rays-per-chunk": 4096,
-}
+RECIPE = RECIPES["nerfacto-cpu"].flags
 """CPU recipe for sp-nerfacto on a real capture (the rest are nerfacto's settings)."""
 
 
 def recipe_flags() -> List[str]:
-    flags = []
-    for key, value in RECIPE.items():
-        flags.append(f"--{key}")
-        flags.extend(str(v) for v in (value if isinstance(value, tuple) else (value,)))
-    return flags
+    return RECIPES["nerfacto-cpu"].argv()
 
 
 def fox_config(sp: bool, steps: int, out: Path, data: Path):
