@@ -155,10 +155,11 @@ def test_the_model_folds_into_the_contracted_range_with_alpha_relative_to_the_sc
     torch.testing.assert_close(spy.calls[0].double(), ref, **TOL)
 
 
-def test_more_than_one_draw_is_refused_in_one_line():
+def test_more_than_one_draw_is_refused_naming_the_flag():
     """sdfstudio's seam perturbs each query once (sdfstudio's ``get_outputs`` is not wrapped), so
-    ``num_samples`` K > 1 cannot average K draws there: it is refused, naming the flag, instead of
-    training a single draw silently (found by this test: it used to build and train K = 1)."""
+    ``num_samples`` K > 1 cannot average K draws there: the model refuses it (``InputError``), naming
+    the flag, instead of training a single draw silently (found by this test: it used to build and
+    train K = 1). Kills: the refusal dropped."""
     from sp_plugins.adapter.errors import InputError
 
     with pytest.raises(InputError, match=r"--pipeline\.model\.sp\.num-samples 3 .*sdfstudio"):
