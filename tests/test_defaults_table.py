@@ -53,7 +53,7 @@ def test_write_restores_a_drifted_readme_table(tmp_path):
     old_table, _, tail = rest.partition(defaults_table.END)
     rows = old_table.strip("\n").splitlines()
     drifted = rows[:2] + ["| `sp-gone` | on | 9 | linear | 1 | uniform | clamp |"] + rows[3:-1]  # one changed, one lost
-    (tmp_path / "README.md").write_text(head + defaults_table.BEGIN + "\n".join(drifted) + "\n" + defaults_table.END + tail)
+    (tmp_path / "README.md").write_text(head + "\n".join([defaults_table.BEGIN, *drifted, defaults_table.END]) + tail)
     proc = _run(tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert (tmp_path / "README.md").read_text() == head + defaults_table.table() + tail
