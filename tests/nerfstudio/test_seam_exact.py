@@ -247,3 +247,37 @@ def test_a_models_field_reads_x_plus_alpha0_times_the_box_diagonal_eps_folded_in
     offset = reference(x, 0.05 * diagonal, eps) - x.double()
     plain = rs.frustums.get_gaussian_blob().mean.reshape(-1, 3) if name == "sp-mipnerf" else x
     torch.testing.assert_close(read[0].reshape(-1, 3).double(), plain.double() + offset, **TOL)
+
+
+def test_a_numerical_gradient_stencil_sits_around_the_moved_start_with_one_offset():
+    """``sp-neuralangelo-lite`` (numerical gradients): the SDF network is queried at the moved start
+    ``fold(start + alpha eps)`` in the scene box, then at that point +- step e_i for every sample:
+    all six stencil points share the one offset. Kills: a stencil around the plain start, a draw per
+    stencil point, and the SDF field's offset taken at the midpoint."""
+    from nerfstudio.data.scene_box import SceneBox
+    from tests.helpers.ns_configs import shrink_sdf_model
+
+    from sp_plugins.nerfstudio.runs import method_config
+
+    config = method_config("sp-neuralangelo-lite")
+    shrink_sdf_model(config)
+    for key, value in dict(seed=SEED, schedule="constant", boundary="reflect", alpha0=0.3, relative_to_diagonal=False).items():
+        setattr(config.pipeline.model.sp, key, value)
+    model = config.pipeline.model.setup(scene_box=SceneBox(aabb=BOX.clone()), num_train_data=4, metadata={}, device="cpu",
+                                        grad_scaler=None)
+    model.sp.set_step(0, 10)
+    model.train()
+    field = model.field
+    assert field.config.numerical_gradients and field.config.stencil == "6pt"
+    calls = []
+    real = field.forward_geonetwork
+    field.forward_geonetwork = lambda x: (calls.append(x.detach().clone()), real(x))[1]
+    rs = samples()
+    field.forward(rs)
+    s = rs.frustums.get_start_positions().reshape(-1, 3)
+    (eps,) = draws(s.shape)
+    centre = reference(s, 0.3, eps)
+    torch.testing.assert_close(calls[0].double(), centre, **TOL)
+    eye = torch.eye(3, dtype=torch.float64)
+    stencil = centre[:, None, :] + field._fd_step * torch.cat([eye, -eye])[None]
+    torch.testing.assert_close(calls[1].reshape(-1, 6, 3).double(), stencil, **TOL)
