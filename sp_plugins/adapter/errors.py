@@ -107,11 +107,17 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
     - raised inside ``torch.load``: the checkpoint (named) is truncated, damaged or not a checkpoint;
     - raised inside ``torch.save``: the checkpoint could not be written (its partial file is
       deleted, so a later resume does not pick it up as the latest);
-    - an ``OSError`` of :data:`WRITE_ERRNOS` with a file name: that file could not be written.
+    - an ``OSError`` of :data:`WRITE_ERRNOS` with a file name: that file could not be written;
+    - an error of ``wandb`` (``--vis wandb``, the host's default for mipnerf and vanilla-nerf, without
+      an account): how to log in, or the front ends that need none.
     """
     tb = tb if tb is not None else exc.__traceback__
     if isinstance(exc, InputError):
         return str(exc)
+    if type(exc).__module__.split(".")[0] == "wandb":  # --vis wandb without an account (the host's mipnerf default)
+        return (f"--vis wandb: wandb could not start ({type(exc).__name__}: {first_line(exc, 120)}); it needs an account: "
+                "log in with `wandb login` (or set WANDB_MODE=offline), or pass --vis viewer (nerfstudio's web viewer) "
+                "or --vis tensorboard")
     load = _torch_frame(tb, "load")
     if load is not None:
         path = _path_of(load.f_locals.get("f")) or "the checkpoint"
@@ -138,3 +144,49 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
     if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename:
         return write_failure(exc)
     return None
+
+
+NETWORK_MODULES = ("requests", "urllib3", "httpx", "aiohttp", "huggingface_hub")
+"""Download libraries whose errors (``OSError`` subclasses) mean the network was not reached."""
+
+
+def is_network_error(exc: BaseException) -> bool:
+    """``exc`` says a download could not reach the network (``urllib``, ``socket``, ``requests``...)."""
+    import socket
+    import urllib.error
+
+    if isinstance(exc, (urllib.error.URLError, socket.gaierror, socket.herror, ConnectionError, TimeoutError)):
+        return True
+    return isinstance(exc, OSError) and type(exc).__module__.split(".")[0] in NETWORK_MODULES
+
+
+def provider(cls: type) -> str:
+    """Who ships class ``cls``: ``the plugin <distribution> <version>`` (or its top-level module
+    when no installed distribution declares it), or ``nerfstudio`` for the host's own classes."""
+    from importlib.metadata import packages_distributions, version
+
+    top = cls.__module__.split(".")[0]
+    if top == "nerfstudio":
+        return "nerfstudio"
+    dists = packages_distributions().get(top, [])
+    if not dists:
+        return f"the plugin {top}"
+    try:
+        return f"the plugin {dists[0]} {version(dists[0])}"
+    except Exception:  # noqa: BLE001  (metadata without a version)
+        return f"the plugin {dists[0]}"
+
+
+def build_failure(exc: BaseException, cls: type, step: str) -> Optional[str]:
+    """One line for a host model that failed while ``step`` ran for a reason of its environment a
+    user can fix (no network for a download, a file it needs), naming who ships ``cls``, the step
+    and the cause; None for any other exception (a bug keeps its traceback for the plugin's author)."""
+    if not isinstance(exc, OSError):
+        return None
+    cause = f"{type(exc).__name__}: {first_line(exc, 160)}"
+    if is_network_error(exc):
+        hint = ("it downloads files while the model is built and could not reach the network: connect to the network, "
+                "or fetch the files it needs beforehand (see its documentation)")
+    else:
+        hint = "a file or folder it needs is missing or unreadable: see its documentation for what it needs"
+    return f"{cls.__name__} of {provider(cls)} failed while {step} ({cause}); {hint}"

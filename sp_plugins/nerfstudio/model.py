@@ -28,10 +28,11 @@ from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.checks import check_known_settings
-from sp_plugins.adapter.errors import InputError
+from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 
-__all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options"]
+__all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
+           "refuse_unreachable_settings"]
 
 
 def refuse_inert_options(config: SPConfig) -> None:
@@ -140,6 +141,54 @@ ALPHA_GRID_UNREACHABLE = {
 }
 """Host models whose fields detach the positions they read: a learnable alpha grid cannot learn."""
 
+CONTRACTED_MODELS: Dict[str, Optional[str]] = {
+    "nerfstudio.models.nerfacto.NerfactoModel": "disable_scene_contraction",
+    "nerfstudio.models.instant_ngp.NGPModel": "disable_scene_contraction",
+    "nerfstudio.models.semantic_nerfw.SemanticNerfWModel": None,
+}
+"""Host models whose radiance field contracts space, and the config flag that turns that off
+(None: always on). A box boundary cannot apply there; known from the config, so it is refused
+before the run writes anything (other fields are checked after their first step)."""
+
+
+def _host_paths(model_config: object) -> List[str]:
+    from sp_plugins.adapter.variants import target_class
+
+    target = target_class(model_config)
+    return [class_path(c) for c in target.__mro__] if target is not None else []
+
+
+def refuse_unreachable_settings(model_config: object) -> None:
+    """SP settings that cannot act on this model, as far as its config tells: an option that acts
+    only through SP on a baseline, an alpha grid on a field that detaches positions, a box
+    boundary on a field that contracts space. Run before ``ns-train`` writes the run folder
+    (:func:`sp_plugins.nerfstudio.components.trainer.preflight`) and again when the model is built."""
+    sp = getattr(model_config, "sp", None)
+    if not isinstance(sp, SPConfig):
+        return
+    refuse_inert_options(sp)
+    if not sp.enabled:
+        return
+    paths = _host_paths(model_config)
+    if sp.alpha_grid:
+        for path in paths:
+            unreachable = ALPHA_GRID_UNREACHABLE.get(path)
+            if unreachable:
+                raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
+                                 "use a global alpha (the default)")
+    if sp.boundary != "none":
+        for path in paths:
+            if path not in CONTRACTED_MODELS:
+                continue
+            flag = CONTRACTED_MODELS[path]
+            if flag is not None and getattr(model_config, flag, False):
+                break
+            way_out = f" (or --pipeline.model.{flag.replace('_', '-')} True)" if flag else ""
+            raise InputError(
+                f"--pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but {path.rsplit('.', 1)[-1]} contracts "
+                f"space (scene contraction is on); pass --pipeline.model.sp.boundary none{way_out}"
+            )
+
 
 class SPModel(adapter_model.SPModelBase):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
@@ -153,12 +202,19 @@ class SPModel(adapter_model.SPModelBase):
     def populate_host_modules(self) -> None:
         from sp_plugins.patches import registry
 
-        with offline_lpips(), registry.scope("nerfstudio_sdf_field"):  # for this build only
-            super().populate_host_modules()
+        try:
+            with offline_lpips(), registry.scope("nerfstudio_sdf_field"):  # for this build only
+                super().populate_host_modules()
+        except OSError as exc:  # a plugin that downloads weights while it builds, run offline: one line
+            host = next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins."))
+            line = build_failure(exc, host, "its model was built (populate_modules), before any training step")
+            if line is None:
+                raise
+            raise InputError(line) from exc
         detach_lpips(self)  # type: ignore[arg-type]
 
     def build_preconditioner(self) -> StochasticPreconditioner:
-        refuse_inert_options(self.config.sp)  # type: ignore[attr-defined]
+        refuse_unreachable_settings(self.config)  # type: ignore[attr-defined]  (runs not started by ns-train)
         return super().build_preconditioner()
 
     # -- the seam --------------------------------------------------------------------------------
@@ -180,13 +236,7 @@ class SPModel(adapter_model.SPModelBase):
     def attach_sp(self) -> None:
         from sp_plugins.nerfstudio.seam import attach_seam
 
-        host, sp = self.sp_host_name(), self.config.sp  # type: ignore[attr-defined]
-        if sp.enabled and sp.alpha_grid:
-            for cls in type(self).__mro__:
-                unreachable = ALPHA_GRID_UNREACHABLE.get(class_path(cls))
-                if unreachable:
-                    raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
-                                     "use a global alpha (the default)")
+        host = self.sp_host_name()
         if not attach_seam(self, self.sp, self.sp_plain_fields()):  # type: ignore[arg-type]
             raise InputError(
                 f"SP cannot reach {host}: none of its modules is a nerfstudio Field or takes ray_samples in forward, so "

@@ -13,7 +13,9 @@ in tests/nerfstudio and tests/cli each run one case that way).
 
 Protocol (one JSON document per line): the test writes ``{"cases": [...], "parallel": N}``, the
 server answers ``{"results": [...]}``, one ``{"name", "rc", "stdout", "stderr", "seconds"}`` per
-case, in order. A case is ``{"name", "script", "args", "cwd"?, "fsize"?}``.
+case, in order. A case is ``{"name", "script", "args", "cwd"?, "env"?, "fsize"?, "timeout"?}`` (seconds, after
+which the child and what it started are killed). Each child runs in its own process group, and what
+it leaves running there is stopped when it ends, as the interpreter's exit stops daemon processes.
 """
 
 from __future__ import annotations
@@ -45,9 +47,35 @@ def _exit_code(exc: SystemExit) -> int:
     return 1
 
 
+def _end_group() -> None:
+    """Stop what the command left in its process group (a data manager's worker processes), as the
+    interpreter's exit does (multiprocessing's exit function: daemon workers stopped, queues and
+    semaphores released); what still runs holds the output pipes open, so the batch would wait forever."""
+    for name in ("multiprocess.util", "multiprocessing.util"):  # the atexit handler os._exit skips
+        module = sys.modules.get(name)
+        if module is not None:
+            try:
+                module._exit_function()
+            except Exception:  # noqa: BLE001  (best effort, as at exit)
+                pass
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.killpg(0, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def _kill_group(pid: int) -> None:
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except OSError:
+        pass
+
+
 def _child(case: dict, out: int, err: int) -> None:
     os.dup2(out, 1)
     os.dup2(err, 2)
+    os.setpgid(0, 0)  # its own process group: what it starts ends with it
     code = 1
     try:
         if case.get("cwd"):
@@ -73,6 +101,7 @@ def _child(case: dict, out: int, err: int) -> None:
         try:
             sys.stdout.flush()
             sys.stderr.flush()
+            _end_group()
         finally:
             os._exit(code)
 
@@ -103,15 +132,26 @@ def run_cases(cases: List[dict], parallel: int = 1) -> List[dict]:
                 _child(case, out_w, err_w)
             os.close(out_w)
             os.close(err_w)
+            try:
+                os.setpgid(pid, pid)  # also here: no race with the child's own call
+            except OSError:
+                pass
+            timer = None
+            if case.get("timeout"):  # a command that hangs is killed (exit status -9) with what it started, not the batch
+                timer = threading.Timer(float(case["timeout"]), _kill_group, (pid,))
+                timer.daemon = True
+                timer.start()
             sinks: tuple = ([], [])
             readers = [threading.Thread(target=_drain, args=(fd, sink), daemon=True) for fd, sink in zip((out_r, err_r), sinks)]
             for reader in readers:
                 reader.start()
-            running[pid] = (i, case, sinks, readers, time.perf_counter())
+            running[pid] = (i, case, sinks, readers, time.perf_counter(), timer)
         pid, status = os.wait()
         if pid not in running:
             continue
-        i, case, sinks, readers, start = running.pop(pid)
+        i, case, sinks, readers, start, timer = running.pop(pid)
+        if timer is not None:
+            timer.cancel()
         for reader in readers:
             reader.join()
         results[i] = {

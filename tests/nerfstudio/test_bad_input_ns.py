@@ -107,7 +107,34 @@ def cases(tiny_scene, ns_server, tmp_path_factory):
         return case, out
 
     blender = ["blender-data", "--data", str(scene)]
+
+    def typed(name, script, *args, timeout=None, env=None):
+        """A command as a user types it (the host's defaults: no --output-dir, so it runs in a folder
+        of its own and writes ./outputs there), with a time limit where the old code hung."""
+        cwd = root / f"typed-{name}"
+        cwd.mkdir()
+        case = {"script": script, "args": list(args), "cwd": str(cwd), "env": env or {}}
+        if timeout is not None:
+            case["timeout"] = timeout
+        return case, cwd
+
+    cpu = ["--machine.device-type", "cpu"]
     plan = {
+        # issue 47: the commands users reach for first
+        "typed-neus-no-device": typed("neus-no-device", "ns-train", "sp-neus", "--data", str(tiny_scene / "sdfstudio")),
+        "typed-sp-train-no-device": typed("sp-train-no-device", "sp-train", "nerfacto", "--data", str(scene)),
+        "typed-nerfacto-no-dataparser": typed("nerfacto-no-dataparser", "ns-train", "sp-nerfacto", *cpu, "--data", str(scene)),
+        "typed-tensorf-alpha-grid": typed("tensorf-alpha-grid", "ns-train", "sp-tensorf", *cpu,
+                                          "--pipeline.model.sp.alpha-grid", "True", *blender),
+        "typed-nerfacto-reflect": typed("nerfacto-reflect", "ns-train", "sp-nerfacto", *cpu, "--pipeline.model.sp.boundary",
+                                        "reflect", *blender, timeout=300),
+        "typed-num-samples-sp-off": typed("num-samples-sp-off", "ns-train", "sp-nerfacto", *cpu, "--pipeline.model.sp.enabled",
+                                          "False", "--pipeline.model.sp.num-samples", "2", *blender),
+        "typed-sp-train-damaged-image": typed("sp-train-damaged", "sp-train", "nerfacto", *cpu, "blender-data", "--data",
+                                              str(damaged), timeout=180),
+        # the host's mipnerf defaults to --vis wandb: a user without a wandb account (no key, no netrc)
+        "typed-sp-train-mipnerf-wandb": typed("mipnerf-wandb", "sp-train", "mipnerf", *cpu, *blender, timeout=300, env={
+            "WANDB_MODE": "online", "WANDB_API_KEY": "", "HOME": str(root / "typed-mipnerf-wandb")}),
         "eval-other-version": ({"script": "ns-eval", "args": ["--load-config", str(other_version), "--output-path", str(root / "eval-o" / "e.json")]}, root / "eval-o"),
         "mesh-truncated": ({"script": "sp-export-mesh", "args": ["--load-config", str(truncated), "--output-dir", str(root / "mesh-t"), "--resolution", "16"]}, root / "mesh-t"),
         "mesh-missing-class": ({"script": "sp-export-mesh", "args": ["--load-config", str(missing_class), "--output-dir", str(root / "mesh-m")]}, root / "mesh-m"),
@@ -152,6 +179,65 @@ def check(cases, name, *says, prog) -> str:
     line = one_line_error(result, *says, prog=prog)
     assert after == before, f"[{name}] wrote into {sorted(set(after) ^ set(before)) or 'existing files'}"
     return line
+
+
+def typed_refusal(cases, name, *says, prog="ns-train") -> str:
+    """A command typed as a user types it was refused in one line with nothing written: no ./outputs."""
+    line = check(cases, name, *says, prog=prog)
+    assert cases[name][2] == {}, f"[{name}] left {sorted(cases[name][2])}"
+    return line
+
+
+@pytest.mark.parametrize("name, prog", [("typed-neus-no-device", "ns-train"), ("typed-sp-train-no-device", "sp-train")])
+def test_no_device_flag_on_a_machine_without_cuda_names_the_cpu_flag(cases, name, prog):
+    """nerfstudio's default device is cuda: a CPU-only user who types no device flag gets the flag to add."""
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    typed_refusal(cases, name, "CUDA is not available", "--machine.device-type cpu", prog=prog)
+
+
+def test_nerfstudio_data_default_on_a_blender_scene_names_blender_data(cases):
+    """No dataparser named: nerfstudio-data, the default, reads transforms.json (it was a FileNotFoundError
+    traceback after config.yml was written)."""
+    typed_refusal(cases, "typed-nerfacto-no-dataparser", "transforms.json: file not found", "transforms_train.json",
+                  "blender-data --data")
+
+
+@pytest.mark.parametrize("name, says", [
+    ("typed-tensorf-alpha-grid", ("--pipeline.model.sp.alpha-grid True cannot learn on TensoRF",)),
+    ("typed-nerfacto-reflect", ("--pipeline.model.sp.boundary reflect needs a bounded scene", "NerfactoModel",
+                                "--pipeline.model.sp.boundary none")),
+    ("typed-num-samples-sp-off", ("--pipeline.model.sp.num-samples 2 has no effect with SP off",)),
+])
+def test_sp_settings_that_cannot_act_are_refused_before_the_run_folder_is_written(cases, name, says):
+    typed_refusal(cases, name, *says)
+
+
+def test_sp_train_on_a_host_method_names_a_damaged_image_instead_of_hanging(cases):
+    """nerfacto's own data manager caches images in worker processes: a damaged one stopped a worker and
+    the run hung behind its traceback."""
+    result = cases["typed-sp-train-damaged-image"][0]
+    assert result["rc"] != -9, f"killed after {result['seconds']} s: it hung\n{result['stderr'][-3000:]}"
+    typed_refusal(cases, "typed-sp-train-damaged-image", "r_2.png: cannot be read as an image", "frame 2 of transforms_train.json",
+                  prog="sp-train")
+
+
+def test_our_methods_default_to_the_viewer_not_wandb():
+    """nerfstudio's TrainerConfig defaults to --vis wandb, which stops a user without an account: every
+    method of ours (sp-mipnerf, sp-vanilla-nerf and freenerf-lite inherited it) defaults to the viewer."""
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, _ = discover_methods()
+    ours = {name: config.vis for name, config in methods.items() if hasattr(config.pipeline.model, "sp")}
+    assert {"sp-mipnerf", "sp-vanilla-nerf", "freenerf-lite", "sp-nerfacto", "sp-neus"} <= set(ours), sorted(ours)
+    assert {name: vis for name, vis in ours.items() if vis != "viewer"} == {}
+
+
+def test_sp_train_on_a_host_method_defaulting_to_wandb_without_an_account_is_one_line(cases):
+    """sp-train keeps the host method's own --vis default (mipnerf: wandb); without an account wandb's
+    UsageError was a traceback."""
+    result = cases["typed-sp-train-mipnerf-wandb"][0]
+    one_line_error(result, "--vis wandb: wandb could not start", "wandb login", "--vis viewer", prog="sp-train")
 
 
 def test_ns_eval_truncated_checkpoint(cases):

@@ -114,3 +114,32 @@ def test_ray_box_slab_test():
     origins = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 4.0], [0.0, 3.0, 4.0], [0.0, 0.0, 0.0]])
     dirs = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
     assert ray_hits_box(origins, dirs, box).tolist() == [True, False, False, True]
+
+
+def test_nerfstudio_data_capture_passes_and_a_damaged_image_is_named(tmp_path):
+    """nerfstudio-data (ns-train's default dataparser) is checked before the run folder is written:
+    a capture folder or its transforms.json passes; a damaged image it names is refused by name (under
+    a worker-process data manager it hung the run); a missing one is left to the host (it may read it
+    from images_N)."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from sp_plugins.adapter.errors import InputError
+    from sp_plugins.nerfstudio.components.datamanagers import check_data_layout
+
+    (tmp_path / "images").mkdir()
+    for name in ("a", "b"):
+        Image.new("RGB", (8, 8)).save(tmp_path / "images" / f"{name}.png")
+    frames = [{"file_path": f"images/{n}.png", "transform_matrix": torch.eye(4).tolist()} for n in ("a", "b", "gone")]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    parser = NerfstudioDataParserConfig()
+    check_data_layout(parser, tmp_path)
+    check_data_layout(parser, tmp_path / "transforms.json")
+    (tmp_path / "blender").mkdir()  # a Blender scene given to nerfstudio-data
+    (tmp_path / "blender" / "transforms_train.json").write_text("{}")
+    data = (tmp_path / "images" / "b.png").read_bytes()
+    (tmp_path / "images" / "b.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=r"images/b.png: cannot be read as an image .*frame 1 of transforms.json"):
+        check_data_layout(parser, tmp_path)
+    with pytest.raises(InputError, match=r"transforms.json: file not found; expected a nerfstudio capture.*so it reads with "
+                       r"blender-data --data"):
+        check_data_layout(parser, tmp_path / "blender")

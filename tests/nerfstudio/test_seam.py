@@ -193,12 +193,19 @@ def _attributes():
     return TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)  # type: ignore[arg-type]
 
 
-def test_nerfacto_box_boundary_must_match_contraction(tiny_scene, tmp_path):
-    """Refused after the first step, when the contracting field has read the moved samples (its
-    proposal networks contract too, but are never handed samples)."""
+def test_nerfacto_box_boundary_must_match_contraction(tiny_scene, tmp_path, monkeypatch):
+    """Refused from the config, before the model is built (``ns-train`` checks it before it writes
+    config.yml); a contracting field no table knows (a plugin's) is refused after the first step, when
+    it has read the moved samples (nerfacto's proposal networks contract too, but are never handed samples)."""
+    from sp_plugins.nerfstudio import model as ns_model
+
     config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path / "a", steps=3, boundary="reflect")
+    with pytest.raises(InputError, match=r"boundary reflect needs a bounded scene, but NerfactoModel contracts space"):
+        run_recording(config)
+    monkeypatch.setattr(ns_model, "CONTRACTED_MODELS", {})  # as for a model the table does not name
     with pytest.raises(InputError, match=r"NerfactoField \(model.field\) contracts space \(scene contraction is on\)"):
         run_recording(config)
+    monkeypatch.undo()
     config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path / "b", steps=2, boundary="reflect")
     config.pipeline.model.disable_scene_contraction = True  # a bounded nerfacto: reflecting is right
     trainer, record = run_recording(config)

@@ -43,6 +43,7 @@ def install_toy_plugin(root: Path) -> Path:
     (dist / "entry_points.txt").write_text(
         "[nerfstudio.method_configs]\ntoy-method = toyplugin.config:toy_method\nsp-toy-method = toyplugin.config:sp_toy_method\n"
         "toy-sdf = toyplugin.config:toy_sdf\ntoy-blob = toyplugin.config:toy_blob\ntoy-bypass = toyplugin.config:toy_bypass\n"
+        "toy-download = toyplugin.config:toy_download\ntoy-nofield = toyplugin.config:toy_nofield\n"
     )
     return root
 
@@ -137,6 +138,22 @@ def test_a_plugin_field_that_reads_positions_around_the_seam_is_refused_in_one_l
     assert len(lines) == 1 and "toyplugin.bypass.BypassField (model.field)" in lines[0], proc.stderr
     assert "read nothing of their frustums, never a position" in lines[0]
     assert not list(tmp_path.glob("**/*.ckpt"))
+
+
+@pytest.mark.parametrize("method, says", [
+    ("toy-download", ("DownloadModel of the plugin toyplugin", "failed while its model was built (populate_modules)",
+                      "URLError", "Temporary failure in name resolution", "could not reach the network")),
+    ("toy-nofield", ("SP cannot reach toyplugin.nofield.NoFieldModel", "no query would be perturbed")),
+])
+def test_a_plugin_model_that_cannot_be_built_or_reached_is_one_line_before_any_step(method, says, toy, toy_server, tiny_scene,
+                                                                                   tmp_path):
+    """A plugin that downloads weights while its model is built, run offline (its URLError was a
+    traceback), and one with no field: each names the plugin, the step and the cause; no checkpoint."""
+    from tests.helpers.errors import refused
+
+    proc = sp_train_toy(method, None, tmp_path, tiny_scene, tmp_path / "log.jsonl", expect=2, server=toy_server)
+    refused(proc, "sp-train", *says)
+    assert not list(tmp_path.glob("**/*.ckpt")) and not log_lines(tmp_path / "log.jsonl")
 
 
 def test_a_plugin_registers_its_sp_variant_with_one_with_sp_call(toy, tmp_path):

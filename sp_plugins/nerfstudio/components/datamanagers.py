@@ -31,6 +31,7 @@ import torch
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.blender_dataparser import BlenderDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudioDataParserConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.datasets.sdf_dataset import SDFDataset
@@ -210,6 +211,25 @@ def _check_blender(data: Path, splits: Sequence[str]) -> None:
             check_image_readable(image, f"frame {i} of {name}")
 
 
+def _check_nerfstudio(data: Path) -> None:
+    """nerfstudio-data (``ns-train``'s default dataparser): ``transforms.json`` in the folder (or
+    ``--data`` naming that file), and every image it names that is there readable (a damaged one
+    would stop a data-loader worker, and the run would hang behind its traceback)."""
+    source = data if data.suffix == ".json" else data / "transforms.json"
+    expected = "a nerfstudio capture: transforms.json with frames (nerfstudio-data, the default dataparser)"
+    meta = _load_json(source, expected)
+    for i, frame in enumerate(meta.get("frames", [])):
+        name = frame.get("file_path") if isinstance(frame, dict) else None
+        image = source.parent / name if isinstance(name, str) and name.strip() and "\0" not in name else None
+        if image is not None and image.is_file():  # the host may read a missing one from images_N, or name it itself
+            check_image_readable(image, f"frame {i} of {source.name}")
+
+
+LAYOUT_CHECKED = (SDFStudioDataParserConfig, BlenderDataParserConfig, NerfstudioDataParserConfig)
+"""Dataparsers whose files :func:`check_data_layout` knows: checked before a run writes anything,
+also under a host's data manager (``sp-train`` on a host method)."""
+
+
 def check_data_layout(dataparser: object, data: Optional[Path], test_split: str = "val") -> None:
     """The folder exists and holds the files the chosen dataparser will read."""
     if data is None:
@@ -219,14 +239,21 @@ def check_data_layout(dataparser: object, data: Optional[Path], test_split: str 
         layout = "SDFStudio layout (meta_data.json + images)"
     elif isinstance(dataparser, BlenderDataParserConfig):
         layout = "Blender layout (transforms_train.json + images)"
+    elif isinstance(dataparser, NerfstudioDataParserConfig):
+        layout = "nerfstudio layout (transforms.json + images)"
     else:
         layout = f"layout read by {type(dataparser).__name__}"
+    if isinstance(dataparser, NerfstudioDataParserConfig) and data.suffix == ".json" and data.is_file():
+        _check_nerfstudio(data)
+        return
     if not data.is_dir():
         raise InputError(f"{data}: data folder not found; pass --data DIR pointing at a scene in the {layout}")
     if isinstance(dataparser, SDFStudioDataParserConfig):
         _check_sdfstudio(data)
     elif isinstance(dataparser, BlenderDataParserConfig):
         _check_blender(data, ["train", test_split])
+    elif isinstance(dataparser, NerfstudioDataParserConfig):
+        _check_nerfstudio(data)
 
 
 # -- images and cameras ---------------------------------------------------------------------

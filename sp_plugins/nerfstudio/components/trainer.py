@@ -2,9 +2,10 @@
 
 nerfstudio's ``ns-train`` writes ``<output-dir>/<experiment>/<method>/<timestamp>/config.yml``
 (``TrainerConfig.save_config``) before it builds the data manager or the model, so a run refused
-there (a wrong data folder, a damaged ``--load-dir`` checkpoint, CUDA on a CPU machine) would
-leave a run folder behind, or overwrite the config of an earlier run with the same timestamp.
-:class:`CheckedTrainerConfig` is nerfstudio's ``TrainerConfig`` whose ``save_config`` first runs
+there (a wrong data folder or a damaged image, a damaged ``--load-dir`` checkpoint, CUDA on a CPU
+machine, an SP option that cannot act on the model) would leave a run folder behind, or overwrite
+the config of an earlier run with the same timestamp. :class:`CheckedTrainerConfig` (our methods
+and every ``sp-train`` run) is nerfstudio's ``TrainerConfig`` whose ``save_config`` first runs
 :func:`preflight`: every check that needs no data loaded, each an
 :class:`~sp_plugins.adapter.errors.InputError` printed as one line (exit status 2) with nothing
 written. The same checks run again where they always ran (data manager, model), for runs that
@@ -60,19 +61,23 @@ def checkpoint_to_load(config: TrainerConfig, dir_flag: str = "--load-dir"):
 
 def preflight(config: TrainerConfig) -> None:
     """Everything that can be checked before the run writes its folder."""
-    from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig, check_data_layout
-    from sp_plugins.nerfstudio.model import install_process_settings
+    from sp_plugins.nerfstudio.components.datamanagers import LAYOUT_CHECKED, CheckedDataManagerConfig, check_data_layout
+    from sp_plugins.nerfstudio.model import install_process_settings, refuse_unreachable_settings
 
     install_process_settings(config)  # while our run config exists: its input errors print as one line
     pipeline = config.pipeline
     model = getattr(pipeline, "model", None)
     if model is not None and hasattr(model, "sp"):
         check_known_settings(model, "pipeline.model")  # a --load-config written by another version
+        refuse_unreachable_settings(model)
     check_device(config.machine.device_type, config.machine.num_devices)
     dm = getattr(pipeline, "datamanager", None)
-    if isinstance(dm, CheckedDataManagerConfig) and dm.check_data:
-        data = dm.data if dm.data is not None else getattr(dm.dataparser, "data", None)
-        check_data_layout(dm.dataparser, data)
+    # also a host's data manager on a dataparser we know (sp-train on a host method): its workers would
+    # hang behind a damaged image's traceback
+    ours = isinstance(dm, CheckedDataManagerConfig)
+    if (ours and dm.check_data) or (not ours and isinstance(getattr(dm, "dataparser", None), LAYOUT_CHECKED)):
+        data = getattr(dm, "data", None)
+        check_data_layout(dm.dataparser, data if data is not None else getattr(dm.dataparser, "data", None))
     target = checkpoint_to_load(config)
     if target is not None:
         path, flag = target
@@ -127,8 +132,10 @@ def checked_trainer(method_name: str, datamanager, model, optimizers: dict, *, v
                     **settings) -> CheckedTrainerConfig:
     """A method's trainer config, built as nerfstudio's ``method_configs`` build theirs: a vanilla
     pipeline of ``datamanager`` and ``model``, the ``optimizers``, with ``viewer_rays`` the viewer's
-    rays per chunk and the viewer as the default ``--vis``; ``settings`` are the trainer's own."""
+    rays per chunk; ``settings`` are the trainer's own. ``--vis`` defaults to the viewer for every
+    method of ours (``TrainerConfig``'s own default, ``wandb``, stops a user without a wandb account)."""
+    settings.setdefault("vis", "viewer")
     if viewer_rays is not None:
-        settings.update(viewer=ViewerConfig(num_rays_per_chunk=viewer_rays), vis="viewer")
+        settings.update(viewer=ViewerConfig(num_rays_per_chunk=viewer_rays))
     return CheckedTrainerConfig(method_name=method_name, optimizers=optimizers,
                                 pipeline=VanillaPipelineConfig(datamanager=datamanager, model=model), **settings)

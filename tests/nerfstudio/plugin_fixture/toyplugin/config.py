@@ -12,6 +12,8 @@ from nerfstudio.plugins.types import MethodSpecification
 from sp_plugins.nerfstudio import with_sp
 from toyplugin.blob import ToyBlobModelConfig
 from toyplugin.bypass import BypassModelConfig
+from toyplugin.download import DownloadModelConfig
+from toyplugin.nofield import NoFieldModelConfig
 from toyplugin.model import ToyModelConfig
 from toyplugin.sdf import ToySDFModelConfig
 
@@ -63,3 +65,5 @@ sp_toy_method = with_sp(toy_method, name="sp-toy-method")
 toy_sdf = _method("toy-sdf", ToySDFModelConfig(eval_num_rays_per_chunk=512), "A toy SDF method (start positions, eikonal).")
 toy_blob = _method("toy-blob", ToyBlobModelConfig(eval_num_rays_per_chunk=512), "A toy Gaussian-blob method.")
 toy_bypass = _method("toy-bypass", BypassModelConfig(eval_num_rays_per_chunk=512), "A toy method whose field reads metadata positions.")
+toy_download = _method("toy-download", DownloadModelConfig(eval_num_rays_per_chunk=512), "A toy method that downloads weights while its model is built.")
+toy_nofield = _method("toy-nofield", NoFieldModelConfig(eval_num_rays_per_chunk=512), "A toy method with no field.")
