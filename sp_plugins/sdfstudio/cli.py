@@ -8,7 +8,8 @@
 - ``sp-sdfstudio-extract-mesh``: mesh of a trained checkpoint at any resolution (sdfstudio's
   ``ns-extract-mesh`` accepts only multiples of 512 for SDFs: minutes and GBs on a CPU). It loads
   the checkpoint with sdfstudio's ``eval_setup`` (the same loading as ns-eval) and runs our marching
-  cubes on the plain field's SDF.
+  cubes on the plain field's SDF, saying on stderr what it does and how far (at 256, minutes of SDF
+  queries on a CPU).
 
 Both read a saved ``config.yml`` (``--load-config``, ``--trainer.load-config``) with the restricted
 loader of :mod:`sp_plugins.adapter.safe_config`, first on their own (a refusal is one line naming the
@@ -27,6 +28,36 @@ from typing import Optional, Tuple
 def _error(prog: str, message: str) -> "NoReturn":  # noqa: F821
     print(f"{prog}: error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def _say(prog: str, stage: str) -> None:
+    """A stage line on stderr (stdout keeps the result line)."""
+    print(f"{prog}: {stage} ...", file=sys.stderr, flush=True)
+
+
+class _Lines:
+    """tqdm's redraws (``\\r``-separated) as one line each, for a stderr that is a log, not a terminal."""
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> None:
+        text = text.replace("\r", "").strip("\n")
+        if text.strip():
+            self.stream.write(text + "\n")
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def _bar(prog: str, stage: str, total: int):
+    """A progress bar of ``total`` SDF points on stderr: redrawn each second on a terminal, a line
+    every 30 s into a log (so a log file does not fill with redraws)."""
+    from tqdm import tqdm
+
+    tty = sys.stderr.isatty()
+    return tqdm(total=total, desc=f"{prog}: {stage}", unit="pt", unit_scale=True, file=sys.stderr if tty else _Lines(sys.stderr),
+                mininterval=1.0 if tty else 30.0, ascii=not tty, dynamic_ncols=tty)
 
 
 def _prepare(prog: str) -> None:
@@ -124,7 +155,7 @@ def extract_mesh(argv: Optional[list] = None) -> None:
     import torch
     import tyro
 
-    from sp_plugins.geometry.marching_cubes import extract_mesh as marching_cubes
+    from sp_plugins.geometry.marching_cubes import evaluate_grid, mesh_from_grid
 
     args = tyro.cli(ExtractMesh, args=argv, prog=prog)
     if not args.load_config.is_file():
@@ -137,6 +168,7 @@ def extract_mesh(argv: Optional[list] = None) -> None:
     from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
 
     where = _check_saved_config(prog, args.load_config, "--load-config")
+    _say(prog, f"loading {args.load_config}")
     try:  # eval_setup reads the config.yml again: through the restricted loader too; its checkpoint weights-only
         with reading_configs_safely(eval_utils, where), weights_only_checkpoints():
             _, pipeline, _ = eval_utils.eval_setup(args.load_config)
@@ -152,10 +184,19 @@ def extract_mesh(argv: Optional[list] = None) -> None:
     def sdf(x: torch.Tensor) -> torch.Tensor:
         return field.forward_geonetwork(x)[:, 0]
 
+    box = (args.bounding_box_min, args.bounding_box_max)
     with torch.no_grad():
-        mesh = marching_cubes(
-            sdf, (args.bounding_box_min, args.bounding_box_max), args.resolution, refine=args.refine, device=device
-        )
+        with _bar(prog, f"SDF on a {args.resolution}^3 grid", args.resolution**3) as bar:
+
+            def counted(x: torch.Tensor) -> torch.Tensor:
+                values = sdf(x)
+                bar.update(len(x))
+                return values
+
+            volume = evaluate_grid(counted, box, args.resolution, device=device)
+        refine = f", then {args.refine} bisection steps per vertex" if args.refine else ""
+        _say(prog, f"marching cubes{refine}")
+        mesh = mesh_from_grid(volume, box, sdf, refine=args.refine, device=device)
     if len(mesh.faces) == 0:
         _error(prog, "the SDF has no zero crossing inside the box; check --bounding-box-min/max or train longer")
     args.output_path.parent.mkdir(parents=True, exist_ok=True)

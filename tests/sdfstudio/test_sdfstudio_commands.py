@@ -89,7 +89,12 @@ def test_sdfstudio_ns_extract_mesh_and_ours(sp_runs, tmp_path):
     # meshes sigmoid(10 * sdf) at level 0.5, the same zero level set, at any resolution.
     run(["ns-extract-mesh", "--load-config", config, "--resolution", "40", "--is-occupancy", "True",
          "--output-path", theirs], cwd=tmp_path)
-    run(["sp-sdfstudio-extract-mesh", "--load-config", config, "--resolution", "40", "--output-path", ours], cwd=tmp_path)
+    proc = run(["sp-sdfstudio-extract-mesh", "--load-config", config, "--resolution", "40", "--output-path", ours],
+               cwd=tmp_path)
+    # at 256 it used to print nothing for minutes: it says what it does, and how far (stderr; the result on stdout)
+    assert "sp-sdfstudio-extract-mesh: SDF on a 40^3 grid" in proc.stderr and "100%" in proc.stderr, proc.stderr
+    assert proc.stderr.index("100%") < proc.stderr.index("sp-sdfstudio-extract-mesh: marching cubes"), proc.stderr
+    assert f"faces -> {ours}" in proc.stdout
     for path in (theirs, ours):
         mesh = trimesh.load(path, force="mesh")
         radii = np.linalg.norm(mesh.vertices, axis=1)
