@@ -228,3 +228,13 @@ def test_console_scripts_run_from_the_wheel(fresh_env):
     assert "| metric | baseline | SP | SP / baseline |" in proc.stdout
     assert (out_dir / "results.json").is_file()
     assert (out_dir / "meshes" / "sp.ply").stat().st_size > 0
+
+
+def test_the_readme_cpu_recipe_prints_from_the_wheel(fresh_env):
+    """The README's fox line runs ``$(python -m sp_plugins.nerfstudio.recipes nerfacto-cpu)``: an installed
+    user has no ``bench/``, so the recipe must come from the wheel."""
+    python, _, purelib, env, work = fresh_env
+    out = _run([str(python), "-m", "sp_plugins.nerfstudio.recipes", "nerfacto-cpu"], cwd=work, env=env).stdout
+    assert out.split()[:2] == ["--pipeline.datamanager.train-num-rays-per-batch", "256"], out
+    code = "import sp_plugins.nerfstudio.recipes as r; print('FILE', r.__file__)"
+    _assert_wheel_copy(_run([str(python), "-c", code], cwd=work, env=env).stdout, purelib)
