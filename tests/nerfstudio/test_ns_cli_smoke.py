@@ -16,7 +16,8 @@ from tests.helpers.errors import refused
 NS_TRAIN = shutil.which("ns-train") or str(Path(sys.executable).parent / "ns-train")
 
 TINY = [
-    "--machine.device-type", "cpu", "--max-num-iterations", "2", "--vis", "tensorboard", "--timestamp", "t",
+    # nerfstudio's default --vis viewer, as a user runs it; the trainer exits after its last step
+    "--machine.device-type", "cpu", "--max-num-iterations", "2", "--viewer.quit-on-train-completion", "True", "--timestamp", "t",
     "--steps-per-save", "2", "--logging.local-writer.enable", "False",
     "--pipeline.datamanager.train-num-rays-per-batch", "32",
     "--pipeline.model.num-samples", "16", "--pipeline.model.num-samples-importance", "8",
@@ -33,6 +34,9 @@ def test_ns_train_cli_trains_sp_neus_hashgrid_on_blender_data(tiny_scene, tmp_pa
     cmd = [NS_TRAIN, "sp-neus-hashgrid", *TINY, "--output-dir", str(tmp_path), "blender-data", "--data", str(tiny_scene / "blender")]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    from tests.helpers.viewer import PORT_LINE
+
+    assert PORT_LINE.search(proc.stdout), "the run did not start nerfstudio's viewer"
     ckpts = list(tmp_path.glob("**/nerfstudio_models/step-*.ckpt"))
     assert len(ckpts) == 1
     state = torch.load(ckpts[0], map_location="cpu", weights_only=False)["pipeline"]
@@ -49,8 +53,7 @@ def test_ns_train_cli_trains_sp_neus_hashgrid_on_blender_data(tiny_scene, tmp_pa
 def test_ns_train_reports_a_missing_data_folder_in_one_line(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     missing = tmp_path / "no-such-scene"
-    cmd = [NS_TRAIN, "sp-relu-field", "--machine.device-type", "cpu", "--vis", "tensorboard",
-           "--output-dir", str(tmp_path / "out"), "blender-data", "--data", str(missing)]
+    cmd = [NS_TRAIN, "sp-relu-field", "--machine.device-type", "cpu", "--output-dir", str(tmp_path / "out"), "blender-data", "--data", str(missing)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     refused(proc, "ns-train", str(missing), "--data", others=True)
 
