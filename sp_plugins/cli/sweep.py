@@ -7,7 +7,8 @@ methods (through ``ns-train`` + ``ns-eval``) or any ``sp-fit`` task, on Ray Tune
         --grid encoding.max-resolution=256,1024 --success "sound == 1" --out runs/pc
 
 Restarting the same command skips finished trials (also after a crash or Ctrl-C); a failed trial
-is recorded with its error and the sweep goes on. Results: ``results.csv``, ``results.md``
+is recorded with its error and the sweep goes on. A trial's device (cpu, or cuda with
+--gpus-per-trial) is part of it: a folder of finished trials from another device is refused. Results: ``results.csv``, ``results.md``
 (table, success rates, per-axis medians) and ``histogram.png`` in --out.
 """
 
