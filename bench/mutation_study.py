@@ -29,7 +29,7 @@ listed with its reason in ``bench/results/mutation_study/equivalent.json`` (modu
 ``{"operator", "line", "reason"}``, ``line`` the original source line, stripped); it is then counted
 as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
 ``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh (after the
-code changed, the study does so itself: the session records the source's hash).
+module or its covering tests changed, the study does so itself: the session records their hash).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
                                              "tests/core/test_properties.py::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
     "sp_plugins/core/boundary.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
     "sp_plugins/core/perturb.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
-    "sp_plugins/core/noise.py": ("main", ["tests/core/test_perturb.py",
+    "sp_plugins/core/noise.py": ("main", ["tests/core/test_noise_exact.py", "tests/core/test_perturb.py",
                                           "tests/core/test_properties.py::test_perturb_equals_the_reference",
                                           "tests/core/test_properties.py::test_preconditioner_draws_the_configured_noise_kind"]),
     "sp_plugins/core/stencil.py": ("main", ["tests/core/test_stencil.py"]),
@@ -137,6 +137,14 @@ def test_command(module: str) -> str:
     return f"{python_of(kind)} -m pytest -q -x -p no:cacheprovider -p no:randomly " + " ".join(tests)
 
 
+def fingerprint(module: str) -> str:
+    """Hash of the module and its covering test files: a session is redone when either changed."""
+    h = hashlib.sha256((ROOT / module).read_bytes())
+    for test in dict.fromkeys(t.split("::")[0] for t in covering(module)[1]):
+        h.update((ROOT / test).read_bytes())
+    return h.hexdigest()[:16]
+
+
 def prepare_copy() -> Path:
     """The scratch checkout the tool mutates: copied once, its sources refreshed on every call."""
     copy = WORK / "checkout"
@@ -154,7 +162,7 @@ def run_module(module: str, timeout_floor: float) -> Optional[dict]:
         return None
     copy = prepare_copy()
     env = environment(copy)
-    source_hash = hashlib.sha256((ROOT / module).read_bytes()).hexdigest()[:16]
+    source_hash = fingerprint(module)
     session, config, meta_path = (WORK / f"{slug(module)}{ext}" for ext in (".sqlite", ".toml", ".meta.json"))
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
     cmd = test_command(module)

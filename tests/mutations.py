@@ -57,6 +57,7 @@ SDF_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam_exact.py",))
 POINTCLOUD_EXACT: TestSet = ("main", ("tests/tasks/test_pointcloud_exact.py",))
 IMAGE_EXACT: TestSet = ("main", ("tests/tasks/test_image_exact.py",))
 SDF_TASK_EXACT: TestSet = ("main", ("tests/tasks/test_sdf_exact.py",))
+NOISE_EXACT: TestSet = ("main", ("tests/core/test_noise_exact.py",))
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,8 @@ MUTATIONS: List[Mutation] = [
     # -- the core --------------------------------------------------------------------------------
     Mutation("noise kind ignored (preconditioner)", "sp_plugins/core/preconditioner.py",
              "noise=self.config.noise,", 'noise="gaussian",', (CORE, NS_MATRIX)),
+    Mutation("noise kind compared by identity", "sp_plugins/core/noise.py",
+             'if kind == "gaussian":', 'if kind is "gaussian":', (CORE, NOISE_EXACT)),
     Mutation("noise kind ignored (perturb)", "sp_plugins/core/perturb.py",
              "eps = sample_noise(shape, noise,", 'eps = sample_noise(shape, "gaussian",', (CORE,)),
     Mutation("eval perturbed", "sp_plugins/core/preconditioner.py",
