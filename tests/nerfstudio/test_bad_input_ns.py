@@ -11,6 +11,12 @@ real interpreter's top level (our exception hook ends with ``SystemExit(2)``). T
 commands load are written as ``ns-train`` leaves them (config.yml, nerfstudio_models/) without
 training: every case fails before a model's weights would be read.
 
+The ``typed-*`` cases (issue 47) are commands as a new user types them, with the host's defaults
+(no ``--output-dir``: each runs in a folder of its own, which must stay empty; no ``--vis``): no
+device flag on a CPU-only machine, no dataparser named, SP options that cannot act, ``sp-train`` on
+a host method whose worker-process data manager hung on a damaged image, and the host's ``wandb``
+default without an account.
+
 Out of reach for ``ns-eval`` (nerfstudio reads the file before any of our code runs; see the README's
 troubleshooting table): a missing ``--load-config`` and a ``config.yml`` naming a class this
 installation lacks; ``sp-export-mesh`` answers both, tested here.

@@ -35,6 +35,7 @@ def _method(name, model_config, description):
                 }
             },
             viewer=ViewerConfig(num_rays_per_chunk=512),
+            vis="viewer",  # as nerfstudio's own method configs (TrainerConfig's default is wandb)
         ),
         description=description,
     )
@@ -56,6 +57,7 @@ toy_method = MethodSpecification(
             }
         },
         viewer=ViewerConfig(num_rays_per_chunk=512),
+        vis="viewer",
     ),
     description="A toy third-party method.",
 )
