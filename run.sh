@@ -31,6 +31,21 @@ system_libs() {
   fi
 }
 
+system_browser() {
+  # tests/nerfstudio/test_viewer_browser.py opens nerfstudio's web viewer in the system's chromium (driven by
+  # Playwright from the dev extra, which never downloads a browser of its own); without it that test is
+  # skipped with the reason, and with CI=true it fails. Not for `demo`: about 300 MB that sp-demo never uses.
+  if command -v chromium >/dev/null; then return; fi
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "[sp-plugins] installing chromium (the browser test opens nerfstudio's viewer in it; about 300 MB)"
+    { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+      || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }; } >/dev/null 2>&1 \
+      || echo "[sp-plugins] warning: could not install chromium; the browser test will be skipped (with CI=true it fails)" >&2
+  else
+    echo "[sp-plugins] note: chromium is missing; the browser test is skipped without it: sudo apt-get install chromium" >&2
+  fi
+}
+
 setup() {
   system_libs
   if [ ! -x "$venv/bin/python" ]; then
@@ -158,6 +173,7 @@ run_tests() {
     # a failed install ends this script (set -e): the sdfstudio run beside it ends with it
     [ -n "$sdf_pid" ] && trap "kill $sdf_pid 2>/dev/null || true" EXIT
     setup
+    system_browser
     trap - EXIT
     # the main suite is spread over SP_TEST_WORKERS processes (default: the cores, at most 8; 1 = one
     # process), a test file per worker at a time so its module fixtures are built once
@@ -186,7 +202,7 @@ run_tests() {
 cmd="${1:-demo}"
 [ $# -gt 0 ] && shift
 case "$cmd" in
-  setup) setup; setup_sdfstudio ;;
+  setup) setup; system_browser; setup_sdfstudio ;;
   setup-sdfstudio) setup_sdfstudio ;;
   demo)  setup; exec "$venv/bin/sp-demo" "$@" ;;
   test)  run_tests "$@" ;;
