@@ -23,7 +23,8 @@ import pytest
 from tests.helpers.ns_commands import command
 from tests.helpers.viewer import QUIT_ON_COMPLETION, Viewer, serving, tail
 
-CHROMIUM = os.environ.get("SP_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM = os.environ.get("SP_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+"""Debian's chromium (run.sh installs it); ``SP_CHROMIUM`` names another Chromium build."""
 # FINDINGS.md, 2026-12-05: what runs here (no GPU, no sandbox for root, no network)
 CHROMIUM_ARGS = [
     "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-background-networking",
@@ -71,6 +72,13 @@ def ready(viewer: Viewer, line: str, timeout: float = 300) -> str:
 def logged_steps(viewer: Viewer) -> list:
     """The steps of the trainer's own progress lines (``N (x.xx%)``, every 10 steps)."""
     return [int(m) for m in re.findall(r"^\s*(\d+) \(\d+\.\d+%\)", ANSI.sub("", viewer.output()), flags=re.M)]
+
+
+def steady(viewer: Viewer, seconds: float) -> bool:
+    """Whether the trainer logged no new step during ``seconds``."""
+    before = logged_steps(viewer)
+    time.sleep(seconds)
+    return logged_steps(viewer) == before
 
 
 def wait_for(check, timeout: float, what: str, why=lambda: "", every: float = 0.25):
@@ -127,7 +135,7 @@ def prepare_view(page):
 def viewport_box(page) -> dict:
     """The part of the 3D canvas left of the control panel."""
     canvas = page.locator("canvas").first.bounding_box()
-    panel_x = page.get_by_text("Connected", exact=True).bounding_box()["x"] - 40
+    panel_x = page.get_by_role("tab", name="Control").bounding_box()["x"] - 20
     return {"x": canvas["x"], "y": canvas["y"], "width": panel_x - canvas["x"], "height": canvas["height"]}
 
 
@@ -220,13 +228,15 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
     # pause first, from the page: the run cannot end while the view is set up, and the trainer stops
     before = at("trainer's log before pausing", logged_steps(training)[-1:])
     click(page, "Pause Training")
-    time.sleep(1.5)  # the step in flight when the button was pressed finishes
+    # the step in flight when the button was pressed finishes: the trainer's log then holds still
+    wait_for(lambda: steady(training, 2.0), 60, "the trainer's log to hold still after pausing", why)
     paused = at("paused (page, trainer's log)", (readout(page), logged_steps(training)[-1]))
+    paused_at = time.monotonic()
     # a frame of our model, rendered while paused: the resolution readout is set by each render
     prepare_view(page)
     first = at("first frame", wait_for(lambda: (r := readout(page)) and r[1] > 0 and r, 90, "a rendered frame", why))
     at("first frame's pixels", frame_stats(page))
-    time.sleep(max(0.0, 4 - (time.monotonic() - t0)))
+    time.sleep(max(0.0, paused_at + 5 - time.monotonic()))  # at least 5 s paused (10 steps take about 1 s)
     assert (first[0], logged_steps(training)[-1]) == (paused[0][0], paused[1]), f"training went on while paused\n{why()}"
     # resume: the step shown advances, while SP is on (alpha > 0 at every step shown)
     click(page, "Resume Training")
@@ -243,8 +253,15 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
     assert logged_steps(training)[-1] > paused[1] >= (before or [0])[0], why()
     shot = tmp_path / "viewer_sp.png"
     page.screenshot(path=str(shot))
-    if os.environ.get("SP_VIEWER_SCREENSHOT"):
-        shutil.copyfile(shot, os.environ["SP_VIEWER_SCREENSHOT"])
+    if os.environ.get("SP_VIEWER_SCREENSHOT"):  # the README's picture: later in the run (SP still on), small
+        from PIL import Image
+
+        late = at("README picture at step", wait_for(lambda: (r := readout(page)) and r[0] >= 0.7 * STEPS and r[0], 120,
+                                                     "a step 70% into the run", why))
+        assert schedule(late) > 0, (late, schedule)
+        page.screenshot(path=str(shot))
+        picture = Image.open(shot).convert("RGB").convert("P", palette=Image.Palette.ADAPTIVE, colors=256)
+        picture.save(os.environ["SP_VIEWER_SCREENSHOT"], optimize=True)
     page.close()
     print("viewer readings:", readings)
 
