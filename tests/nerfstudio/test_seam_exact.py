@@ -11,11 +11,9 @@ from __future__ import annotations
 import copy
 
 import pytest
-
 import torch
 import torch.nn.functional as F
 from nerfstudio.cameras.rays import Frustums, RaySamples
-from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.sdf_field import SDFField
 from tests.core.test_properties import fold_reference
