@@ -13,9 +13,11 @@ in tests/nerfstudio and tests/cli each run one case that way).
 
 Protocol (one JSON document per line): the test writes ``{"cases": [...], "parallel": N}``, the
 server answers ``{"results": [...]}``, one ``{"name", "rc", "stdout", "stderr", "seconds"}`` per
-case, in order. A case is ``{"name", "script", "args", "cwd"?, "env"?, "fsize"?, "timeout"?}`` (seconds, after
-which the child and what it started are killed). Each child runs in its own process group, and what
-it leaves running there is stopped when it ends, as the interpreter's exit stops daemon processes.
+case, in order. A case is ``{"name", "script", "args", "cwd"?, "env"?, "fsize"?, "timeout"?, "log"?}``
+(``timeout``: seconds, after which the child and what it started are killed; ``log``: a file that takes
+its stdout and stderr instead of the result, for a command a test talks to while it runs, a viewer).
+Each child runs in its own process group, and what it leaves running there is stopped when it ends,
+as the interpreter's exit stops daemon processes.
 """
 
 from __future__ import annotations
@@ -47,6 +49,10 @@ def _exit_code(exc: SystemExit) -> int:
     return 1
 
 
+CHILD_PID = "fork server child pid"
+"""The first line of a case's ``log`` file: the child's pid (its process group; the test may stop it)."""
+
+
 def _end_group() -> None:
     """Stop what the command left in its process group (a data manager's worker processes), as the
     interpreter's exit does (multiprocessing's exit function: daemon workers stopped, queues and
@@ -73,6 +79,9 @@ def _kill_group(pid: int) -> None:
 
 
 def _child(case: dict, out: int, err: int) -> None:
+    if case.get("log"):  # output into a file the test reads while the command runs (a server), after a line with its pid
+        out = err = os.open(case["log"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        os.write(out, f"{CHILD_PID} {os.getpid()}\n".encode())
     os.dup2(out, 1)
     os.dup2(err, 2)
     os.setpgid(0, 0)  # its own process group: what it starts ends with it

@@ -8,6 +8,9 @@ finished run) and the headless-browser test (tests/nerfstudio/test_viewer_browse
     with serving([command("ns-viewer"), "--load-config", config], tmp_path / "viewer.log") as viewer:
         assert "<title>Viser</title>" in viewer.page()      # viewer.url for a browser
 
+    with forked_viewers(ns_server, {"sdf": [command("ns-viewer"), "--load-config", config]}, tmp_path) as viewers:
+        ...                                                 # several at once, forked: no import each
+
 The port comes from viser's own banner (``HTTP │ http://0.0.0.0:7007``), not from nerfstudio's
 "Viewer running locally at" line: nerfstudio picks 7007 when it is free, else a random free port,
 and viser moves to the next port when the bind fails; only viser's banner names the port it holds.
@@ -17,14 +20,17 @@ Parallel runs (pytest-xdist workers) therefore each get their own port.
 from __future__ import annotations
 
 import contextlib
+import os
 import re
+import signal
 import subprocess
+import threading
 import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
+from typing import Dict, Iterator, Optional, Sequence
 
 from tests.helpers.ns_commands import ENV
 
@@ -43,7 +49,7 @@ serving after the last step, waiting for a user to close it."""
 class Viewer:
     """A running viewer process: ``port`` is what viser bound, ``log`` its stdout and stderr."""
 
-    proc: subprocess.Popen
+    proc: subprocess.Popen  # or a ForkedChild
     log: Path
     port: int
 
@@ -128,6 +134,62 @@ def stop(proc: subprocess.Popen, timeout: float = 20.0) -> Optional[int]:
             proc.kill()
             proc.wait(timeout=timeout)
     return proc.returncode
+
+
+class ForkedChild:
+    """A command forked by the test fork server (``tests/helpers/forkserver.py``, a case with a ``log``):
+    what :class:`Viewer` needs of a process, from the pid the child wrote first in its log."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid, self.returncode = pid, None
+
+    def poll(self) -> Optional[int]:
+        if self.returncode is None:
+            try:
+                os.kill(self.pid, 0)
+            except ProcessLookupError:
+                self.returncode = -1  # ended (its status is the fork server's result)
+        return self.returncode
+
+
+@contextlib.contextmanager
+def forked_viewers(server, commands: Dict[str, Sequence[str]], folder: Path, *,
+                   timeout: float = 300.0) -> Iterator[Dict[str, Viewer]]:
+    """``name -> [console script, *args]`` forked together from the test fork ``server`` (no import per
+    command), each until its viewer page is served; yields ``name -> Viewer``; stops them all on exit.
+    ``server.run`` blocks until its children end, so it runs in a thread here; its results (exit
+    statuses) are ``forked_viewers.results`` afterwards."""
+    from tests.helpers.forkserver import CHILD_PID
+
+    logs = {name: Path(folder) / f"{name.replace(' ', '-')}.log" for name in commands}
+    cases = [{"name": name, "script": Path(str(args[0])).name, "args": [str(a) for a in args[1:]], "log": str(logs[name]),
+              "timeout": timeout + 60} for name, args in commands.items()]
+    results: dict = {}
+    thread = threading.Thread(target=lambda: results.update(server.run(cases, parallel=len(cases))), daemon=True)
+    thread.start()
+    children: Dict[str, ForkedChild] = {}
+    try:
+        deadline = time.monotonic() + timeout
+        for name, log in logs.items():
+            while name not in children:
+                first = log.read_text(errors="replace").split("\n", 1)[0] if log.exists() else ""
+                if first.startswith(CHILD_PID) and first.split()[-1].isdigit():
+                    children[name] = ForkedChild(int(first.split()[-1]))
+                elif time.monotonic() > deadline or not thread.is_alive():
+                    raise AssertionError(f"{name}: the fork server did not start it")
+                else:
+                    time.sleep(0.1)
+        viewers = {}
+        for name, child in children.items():
+            viewers[name] = Viewer(child, logs[name], wait_for_port(child, logs[name], timeout=max(1.0, deadline - time.monotonic())))
+            viewers[name].page()
+        yield viewers
+    finally:
+        for child in children.values():
+            with contextlib.suppress(OSError):
+                os.killpg(child.pid, signal.SIGTERM)
+        thread.join(timeout=60)
+        forked_viewers.results = results
 
 
 @contextlib.contextmanager
