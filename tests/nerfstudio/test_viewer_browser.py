@@ -66,9 +66,10 @@ def _browser_or_skip():
 def ready(viewer: Viewer, line: str, timeout: float = 300) -> str:
     """The viewer's address once the command printed ``line``: ns-train's banner ("Viewer running locally
     at", printed when training starts) or ns-viewer's "disabled local writer" (after its viewer is built).
-    A page that connects while nerfstudio is still building its viewer (between viser's table and those
-    lines) is never rendered to: measured 2026-12-05, it stays at "Step: 0", "Resolution: 0x0px", and a
-    click there raises in the host (``Viewer.camera_handles`` does not exist yet)."""
+    A page used before that (measured 2026-12-05: "Max res" set and "Hide Train Cams" clicked between
+    viser's table and the banner) was never rendered to, staying at "Step: 0", "Resolution: 0x0px", and
+    the click raised in the host (``Viewer.camera_handles`` does not exist yet); a page that only
+    connects early renders."""
     wait_for(lambda: line in viewer.output() or viewer.proc.poll() is not None, timeout, repr(line))
     assert viewer.proc.poll() is None, f"exited ({viewer.proc.returncode}) before {line!r}\n{tail(viewer.log)}"
     return viewer.url
