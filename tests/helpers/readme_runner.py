@@ -12,7 +12,8 @@ What may differ from the text, all declared here and nothing else:
 * ``BUDGET``: the budget flags a command may be run with at a lower value (steps, rays per batch,
   mesh resolution, sample counts); a flag the command leaves at its default is added at that value.
 * ``PLACEHOLDERS``: ``outputs/.../config.yml`` is the newest such file the commands before it wrote
-  (resolved when the line runs); ``DATA`` is the scene the README's ``sp-scene spot my-scene`` makes.
+  (resolved when the line runs). Blocks run in order in one folder and one shell session (variables
+  a block sets are set in the next): ``my-scene`` is what the README's ``sp-scene spot my-scene`` made.
 * ``FIXTURES``: inputs a block names that the README does not make: ``fox`` (a tiny crop of
   ``../shared/data/real/fox``, tests/helpers/fox_crop.py).
 * ``PYTHON``: what a Python block needs defined (``x``, ``field``, ``loss_fn``; the ``my_plugin``
@@ -29,6 +30,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
@@ -50,7 +52,7 @@ BUDGET: Tuple[Tuple[str, str, str], ...] = (
     (r"\bns-export pointcloud\b", "--num-points", "2000"),
     (r"\bsp-fit (?:pointcloud|sdf)\b", "--steps", "2"),
     (r"\bsp-fit (?:pointcloud|sdf)\b", "--mesh-resolution", "32"),
-    (r"\bsp-fit (?:pointcloud|sdf)\b", "--n-points", "5000"),
+    (r"\bsp-fit pointcloud\b", "--n-points", "5000"),
     (r"\bsp-fit (?:pointcloud|sdf)\b", "--metric-points", "2000"),
     (r"\bsp-fit image\b", "--steps", "2"),
     (r"\bsp-sweep\b", "--sample", "1"),  # one grid point of the sweep: its baseline and SP trials
@@ -63,7 +65,6 @@ HEAD_PLACED = (r"\bsp-sweep\b",)
 PLACEHOLDERS: Tuple[Tuple[str, object], ...] = (
     # outputs/.../x/.../config.yml -> the newest file matching outputs/**/x/**/config.yml, when the line runs
     (r"outputs/\.\.\.(?P<rest>/[\w./-]*)", lambda m: "\"$(_readme_newest 'outputs/**%s')\"" % m["rest"].replace("...", "**")),
-    (r"(?<=--data )DATA\b", "my-scene/sdfstudio"),
 )
 
 BASH_PRELUDE = """\
@@ -71,6 +72,8 @@ set -euo pipefail
 shopt -s globstar nullglob
 # outputs/.../config.yml in the README: the newest file of that pattern (the run a command before wrote)
 _readme_newest() { local f; f=$(ls -td $1 2>/dev/null | head -n 1); [ -n "$f" ] || { echo "readme-runner: nothing matches $1" >&2; return 1; }; echo "$f"; }
+# one terminal session: the variables earlier blocks set (spot=...) are set here too
+[ -f .readme_state ] && source .readme_state
 """
 
 PYTHON: Dict[str, Tuple[str, str]] = {
@@ -101,12 +104,12 @@ PYTHON: Dict[str, Tuple[str, str]] = {
 
 
 def fox_fixture(workdir: Path) -> Optional[str]:
-    """``fox``: a 6-view crop of the real capture at 1/5 size; the skip reason when it is missing."""
+    """``fox``: a 20-view crop of the real capture at 1/5 size; the skip reason when it is missing."""
     from tests.helpers.fox_crop import fox_missing, make_fox_crop
 
     why = fox_missing()
     if why is None and not (workdir / "fox").exists():
-        make_fox_crop(workdir / "fox", views=6, factor=5)
+        make_fox_crop(workdir / "fox", views=20, factor=5)  # instant-ngp-data holds out 2 (ns-eval fails on 1)
     return why
 
 
@@ -204,7 +207,7 @@ def lower(line: str) -> Tuple[str, List[str]]:
     code, hash_, comment = _split_comment(line)
     for command, flag, value in BUDGET:
         for m in reversed(list(re.finditer(command, code))):
-            end = _command_end(code, m.end())
+            end = _command_end(code, m.start(), m.end())
             segment = code[m.end():end]
             present = re.search(rf"(?<=\s){re.escape(flag)}(?:[ =])(?P<v>\S+)", segment)
             if present:
@@ -233,9 +236,11 @@ def _split_comment(line: str) -> Tuple[str, str, str]:
     return line, "", ""
 
 
-def _command_end(code: str, start: int) -> int:
-    """Where the command that starts before ``start`` ends: a closing quote, ``&&``, ``;``, ``|``."""
-    m = re.compile(r"\"|&&|;|\|").search(code, start)
+def _command_end(code: str, begin: int, start: int) -> int:
+    """Where the command at ``begin`` ends: its closing quote when it is quoted (``--command "..."``),
+    else ``&&``, ``;``, ``|`` or the line's end."""
+    quoted = code[:begin].count('"') % 2 == 1
+    m = re.compile(r'"' if quoted else r"&&|;|\|").search(code, start)
     return m.start() if m else len(code.rstrip())
 
 
@@ -250,6 +255,7 @@ class Outcome:
     block: Block
     status: str  # "as written", "lowered", "skipped", "not a command", "elsewhere"
     detail: str = ""
+    seconds: float = 0.0
 
 
 def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
@@ -274,21 +280,24 @@ def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
             lowered, changed = lower(line)
             changes += changed
             lines.append(fill(lowered))
+        assigned = re.findall(r"^([A-Za-z_]\w*)=", block.source, flags=re.M)
+        keep = "".join(f"declare -p {name} >> .readme_state\n" for name in assigned)
         script = workdir / f"readme_{block.line}.sh"
-        script.write_text(BASH_PRELUDE + "\n".join(lines) + "\n")
+        script.write_text(BASH_PRELUDE + "\n".join(lines) + "\n" + keep)
         args = ["bash", str(script)]
     else:
         prelude, epilogue = next(((p, e) for key, (p, e) in PYTHON.items() if key in block.source), ("", ""))
         script = workdir / f"readme_{block.line}.py"
         script.write_text(prelude + block.source + epilogue)
         args = [sys.executable, str(script)]
+    start = time.monotonic()
     proc = subprocess.run(args, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
     output = proc.stdout + proc.stderr
     report = f"{block.where} ({block.section}) failed, exit status {proc.returncode}:\n{script.read_text()}\n--- output\n{output[-6000:]}"
     assert proc.returncode == 0, report
     assert "Traceback (most recent call last)" not in output, "printed a traceback: " + report
     block.lowered = changes
-    return Outcome(block, "lowered" if changes else "as written", "; ".join(sorted(set(changes))))
+    return Outcome(block, "lowered" if changes else "as written", "; ".join(sorted(set(changes))), time.monotonic() - start)
 
 
 def summary(outcomes: List[Outcome]) -> str:
@@ -296,7 +305,8 @@ def summary(outcomes: List[Outcome]) -> str:
     for o in outcomes:
         counts[o.status] = counts.get(o.status, 0) + 1
     head = f"{len(outcomes)} fenced blocks: " + ", ".join(f"{n} {s}" for s, n in counts.items())
-    rows = [f"  {o.block.where:16} {o.block.language or '-':7} {o.status}{': ' + o.detail if o.detail else ''}" for o in outcomes]
+    rows = [f"  {o.block.where:16} {o.block.language or '-':7} {f'{o.seconds:5.0f} s' if o.seconds else '':7} {o.status}"
+            f"{': ' + o.detail if o.detail else ''}" for o in outcomes]
     return "\n".join([head, *rows])
 
 
