@@ -120,7 +120,7 @@ class StochasticPreconditioner(nn.Module):
     def schedule(self) -> Optional[AlphaSchedule]:
         """The schedule in force, or ``None`` while it is not known yet (a fractional ``end``
         before the step count is set). Never raises: hosts and tools read every attribute of the
-        objects they walk (nerfstudio's viewer ``getattr``\ s the whole pipeline before training)."""
+        objects they walk (nerfstudio's viewer reads every attribute of the pipeline before training)."""
         try:
             return self._resolved_schedule()
         except ValueError:
