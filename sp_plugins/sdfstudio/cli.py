@@ -119,7 +119,10 @@ def train(argv: Optional[list] = None) -> None:
     if sp is not None:
         from sp_plugins.adapter.callbacks import schedule_problem
 
+        from sp_plugins.sdfstudio.model import unsupported_setting
+
         problem = schedule_problem(sp, config.trainer.max_num_iterations, "--trainer.max-num-iterations")
+        problem = problem or unsupported_setting(sp)
         if problem:
             _error(prog, problem)
     if config.trainer.load_config is None:

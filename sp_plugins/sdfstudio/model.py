@@ -25,6 +25,18 @@ from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
 
+def unsupported_setting(sp: Any) -> str:
+    """Why an SP setting (an ``SPConfig``) cannot act in sdfstudio's SDF methods, or ``""``. Checked by
+    ``sp-sdfstudio-train`` before anything is written and again when the model is built."""
+    k = sp.num_samples
+    if k > 1:  # the contraction moves each query once: K draws would silently train one (issue 44)
+        return (
+            f"--pipeline.model.sp.num-samples {k} cannot apply to sdfstudio's SDF methods: their seam (the scene "
+            "contraction) perturbs each query once and does not average draws; pass --pipeline.model.sp.num-samples 1"
+        )
+    return ""
+
+
 class SPModel(adapter_model.SPModelBase):
     """Mixin for an sdfstudio ``Model``; list it before the host model class."""
 
@@ -50,14 +62,11 @@ class SDFFieldSPModel(SPModel):
                 f"{type(self).__name__}: SP needs the SDF field built from an SPSDFFieldConfig, got "
                 f"{type(field).__name__} (the model config's sdf_field must be SPSDFFieldConfig)"
             )
-        k = self.sp.config.num_samples
-        if k > 1:  # the contraction moves each query once: K draws would silently train one (issue 44)
+        problem = unsupported_setting(self.sp.config)
+        if problem:
             from sp_plugins.adapter.errors import InputError
 
-            raise InputError(
-                f"--pipeline.model.sp.num-samples {k} cannot apply to sdfstudio's SDF methods: their seam (the scene "
-                "contraction) perturbs each query once and does not average draws; pass --pipeline.model.sp.num-samples 1"
-            )
+            raise InputError(problem)
         field.use_preconditioner(self.sp)
 
     def sp_host_name(self) -> str:

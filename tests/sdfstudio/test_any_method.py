@@ -264,6 +264,18 @@ def test_a_method_without_sdf_field_is_refused_in_one_line(tmp_path):
     assert last.startswith("sp-sdfstudio-train: error: SP cannot be put on nerfacto: its model (NerfactoModel) has no SDF field")
 
 
+def test_more_than_one_draw_is_refused_in_one_line_before_anything_is_written(tmp_path):
+    """``--pipeline.model.sp.num-samples 2`` cannot act in sdfstudio (its seam perturbs each query once):
+    ``sp-sdfstudio-train`` refuses it in one line, exit status 2, before a run folder exists (it was a
+    traceback from inside the trainer, after ``config.yml``)."""
+    proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), "sp-neus", "--machine.num-gpus", "0",
+                           "--pipeline.model.sp.num-samples", "2", "sdfstudio-data", "--data", str(tmp_path / "none")],
+                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=300)
+    last = refused(proc, "sp-sdfstudio-train", others=True)
+    assert last.startswith("sp-sdfstudio-train: error: --pipeline.model.sp.num-samples 2 cannot apply to sdfstudio"), last
+    assert not (tmp_path / "outputs").exists()
+
+
 def listed_methods(help_text: str) -> set:
     """The subcommand choices of a tyro usage line (``{a,b,...}``, wrapped anywhere)."""
     choices = re.search(r"\{([^}]*)\}", help_text)
