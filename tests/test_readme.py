@@ -20,6 +20,7 @@ import pytest
 from tests.helpers import readme_runner as rr
 
 
+@pytest.mark.timeout(1800)  # about 4 minutes on 2 idle cores (the README's commands, lowered); a loaded machine takes longer
 def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property):
     start = time.monotonic()
     runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION)

@@ -46,6 +46,9 @@ SDFSTUDIO_SECTION = "## sdfstudio (second host)"
 # the flag, the value it runs with.
 _TRAIN = r"\b(?:ns-train|sp-train) (?!--help)\S+"
 BUDGET: Tuple[Tuple[str, str, str], ...] = (
+    (r"\bsp-scene \S+ \S+", "--resolution", "32"),  # the scene every later block trains and evaluates on
+    (r"\bsp-scene \S+ \S+", "--views", "8"),
+    (r"\bsp-scene \S+ \S+", "--test-views", "2"),
     (_TRAIN, "--max-num-iterations", "2"),
     (_TRAIN, "--pipeline.datamanager.train-num-rays-per-batch", "64"),
     (r"\bsp-export-mesh\b", "--resolution", "128"),  # its smallest
@@ -291,6 +294,7 @@ def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
         script.write_text(prelude + block.source + epilogue)
         args = [sys.executable, str(script)]
     start = time.monotonic()
+    print(f"readme-runner: {block.where} runs ({', '.join(sorted(set(changes))) or 'as written'})", file=sys.stderr, flush=True)
     proc = subprocess.run(args, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
     output = proc.stdout + proc.stderr
     report = f"{block.where} ({block.section}) failed, exit status {proc.returncode}:\n{script.read_text()}\n--- output\n{output[-6000:]}"
