@@ -87,7 +87,7 @@ def test_only_the_declared_budget_flags_change():
     assert inner == ('sp-sweep --sample 1 --command "sp-fit pointcloud $spot --steps 2 --mesh-resolution 32 '
                      '--n-points 5000 --metric-points 2000" --grid lr=1,2 --out runs/pc')
     declared = {flag for _, flag, _ in rr.BUDGET}
-    assert all(re.search(r"(steps|iterations|rays|resolution|points|sample)", flag) for flag in declared), declared
+    assert all(re.search(r"(steps|iterations|rays|resolution|points|sample|views)", flag) for flag in declared), declared
 
 
 def test_readme_chamfer_claims_match_bench_results():
