@@ -184,10 +184,12 @@ def forked_viewers(server, commands: Dict[str, Sequence[str]], folder: Path, *,
             viewers[name] = Viewer(child, logs[name], wait_for_port(child, logs[name], timeout=max(1.0, deadline - time.monotonic())))
             viewers[name].page()
         yield viewers
-    finally:
-        for child in children.values():
-            with contextlib.suppress(OSError):
-                os.killpg(child.pid, signal.SIGTERM)
+    finally:  # every child that started, also one the test had not got to (a failure on the way)
+        for log in logs.values():
+            first = log.read_text(errors="replace").split("\n", 1)[0] if log.exists() else ""
+            if first.startswith(CHILD_PID) and first.split()[-1].isdigit():
+                with contextlib.suppress(OSError):
+                    os.killpg(int(first.split()[-1]), signal.SIGTERM)
         thread.join(timeout=60)
         forked_viewers.results = results
 

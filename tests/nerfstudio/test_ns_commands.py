@@ -64,23 +64,14 @@ def train_args(name: str, out, scene) -> list:
 @pytest.fixture(scope="module")
 def checkpoints(tiny_scene, ns_server, tmp_path_factory):
     """``name -> config.yml`` of a 2-step run of each method here and of ``sp-train nerfacto`` under
-    nerfstudio's default viewer: ours forked from the test fork server, ``sp-train nerfacto`` as the
-    real script meanwhile (its parallel data manager spawns a worker that only a process's normal exit
-    stops; a forked child ends with ``os._exit`` and would leave it holding the output pipe)."""
-    folders = {name: tmp_path_factory.mktemp(name.replace(" ", "-")) for name in [*OTHERS, SP_TRAIN]}
-    script, *args = train_args(SP_TRAIN, folders[SP_TRAIN], tiny_scene)
-    real = subprocess.Popen([command(script), *args], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        cases = []
-        for name in OTHERS:
-            script, *args = train_args(name, folders[name], tiny_scene)
-            cases.append({"name": name, "script": script, "args": args, "timeout": 600})
-        results = ns_server.run(cases, parallel=2)
-        out, err = real.communicate(timeout=600)
-    finally:
-        if real.poll() is None:
-            real.kill()
-    results[SP_TRAIN] = {"rc": real.returncode, "stdout": out, "stderr": err}
+    nerfstudio's default viewer, forked two at a time from the test fork server (which stops the data
+    worker nerfacto's parallel data manager leaves when its command ends)."""
+    folders = {name: tmp_path_factory.mktemp(name.replace(" ", "-")) for name in [SP_TRAIN, *OTHERS]}
+    cases = []
+    for name, folder in folders.items():
+        script, *args = train_args(name, folder, tiny_scene)
+        cases.append({"name": name, "script": script, "args": args, "timeout": 600})
+    results = ns_server.run(cases, parallel=2)
     failed = [f"[{name}] rc {r['rc']}\n{r['stdout'][-1500:]}\n{r['stderr'][-3000:]}" for name, r in results.items() if r["rc"] != 0]
     assert not failed, "\n\n".join(failed)
     out = {}
