@@ -274,8 +274,9 @@ def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
                 if os.environ.get("CI") == "true":
                     raise AssertionError(f"{block.where}: CI=true and its input is missing: {why}")
                 return Outcome(block, "skipped", why)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
-               PYTHONPATH=os.pathsep.join(p for p in (str(workdir), str(REPO), os.environ.get("PYTHONPATH")) if p))
+    # the host's environment with this interpreter's commands first; no checkout on the path (a user
+    # who installed the package has no bench/ or tests/ to import)
+    env = dict(os.environ, OMP_NUM_THREADS="1", PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
     changes: List[str] = []
     if block.language == "bash":
         lines = []
