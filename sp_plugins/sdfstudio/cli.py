@@ -126,6 +126,9 @@ def train(argv: Optional[list] = None) -> None:
         if problem:
             _error(prog, problem)
     if config.trainer.load_config is None:
+        problem = _data_problem(config)
+        if problem:
+            _error(prog, problem)
         host_train.main(config)
         return
     from sp_plugins.adapter.safe_config import reading_configs_safely
@@ -133,6 +136,28 @@ def train(argv: Optional[list] = None) -> None:
     where = _check_saved_config(prog, config.trainer.load_config, "--trainer.load-config")
     with reading_configs_safely(host_train, where):  # main reads it again: through the restricted loader too
         host_train.main(config)
+
+
+LAYOUTS = {"SDFStudioDataParserConfig": ("meta_data.json", "sdfstudio-data: meta_data.json + images"),
+           "BlenderDataParserConfig": ("transforms_train.json", "blender-data: transforms_train.json + images")}
+"""sdfstudio dataparsers (by config class name) whose index file is checked before training: the
+file each reads first and the layout it expects."""
+
+
+def _data_problem(config) -> str:
+    """Why the run's ``--data`` cannot be read, or ``""``: the folder must exist and, for the layouts
+    of :data:`LAYOUTS`, hold its index file (sdfstudio stops with a traceback otherwise)."""
+    parser = getattr(getattr(config.pipeline, "datamanager", None), "dataparser", None)
+    data = getattr(parser, "data", None)
+    if data is None:
+        return ""
+    data = Path(data)
+    index, layout = LAYOUTS.get(type(parser).__name__, ("", "the layout its dataparser reads"))
+    if not data.is_dir():
+        return f"{data}: data folder not found; pass --data DIR pointing at a scene ({layout})"
+    if index and not (data / index).is_file():
+        return f"{data / index}: file not found; expected a scene in the {layout} layout (sp-scene MESH OUT writes one)"
+    return ""
 
 
 @dataclass
