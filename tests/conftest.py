@@ -63,7 +63,7 @@ def _remove_large_checkpoints_after_the_test(request):
 # -- order: the slowest files first ---------------------------------------------------------------
 SLOW_FIRST = (
     "test_readme.py",  # every README block, lowered (the longest file: minutes)
-    "sweeps/test_sweep_fit.py", "sweeps/test_sweep_ns.py", "test_wheel.py", "nerfstudio/test_with_sp.py",
+    "sweeps/test_sweep_fit.py", "test_wheel.py", "nerfstudio/test_with_sp.py",
     "nerfstudio/test_ns_commands.py", "nerfstudio/test_viewer_browser.py", "cli/test_demo.py", "bench/test_failure_regime.py",
     "nerfstudio/test_kill_resume.py",
     "nerfstudio/test_bad_input_ns.py", "nerfstudio/test_safe_config_ns.py", "nerfstudio/test_multiprocess.py",

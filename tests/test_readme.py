@@ -33,6 +33,27 @@ def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property):
     assert all(o.detail for o in runner.outcomes if o.status == "skipped"), text
     assert statuses.count("as written") + statuses.count("lowered") >= 8, text
     assert "elsewhere" in statuses, "the sdfstudio section's blocks were not found: " + text
+    check_the_readmes_ns_train_sweep(tmp_path / "runs" / "neus")
+
+
+def check_the_readmes_ns_train_sweep(out: Path) -> None:
+    """What the README's ``sp-sweep study.yaml`` run must show (it replaced tests/sweeps' own ns-train
+    sweep, which ran the same path): ``ns-train`` then ``ns-eval`` per trial on a local Ray, a
+    baseline and an SP trial of the grid point, each with a PSNR, the grid value and the SP axis in
+    the trainer's ``config.yml``."""
+    from tests.sweeps.conftest import result_rows
+
+    table = result_rows(out)
+    assert len(table) == 2 and sorted(r["sp"] for r in table) == ["SP", "baseline"], table
+    for r in table:
+        assert r["status"] == "ok", r["error"]
+        assert 0 < float(r["psnr"]) < 60 and 0 < float(r["ssim"]) <= 1, r
+        (config,) = (out / "trials" / r["trial"]).glob("train/**/config.yml")
+        text = config.read_text()
+        grid = re.search(r"^  field_grid:\n    optimizer: .*\n(?:      .*\n)*?      lr: (\S+)$", text, flags=re.M)
+        assert grid and float(grid[1]) == float(r["lr"]) in (1e-2, 1e-1), r  # the grid value reached the trainer
+        assert ("enabled: true" in text) == (r["sp"] == "SP")  # the SP axis reached the trainer
+    assert (out / "results.md").is_file()
 
 
 def _doc(tmp_path: Path, body: str) -> Path:
