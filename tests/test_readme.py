@@ -17,15 +17,19 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import forkshim
 from tests.helpers import readme_runner as rr
 
 
 @pytest.mark.timeout(1800)  # about 4 minutes on 2 idle cores (the README's commands, lowered); a loaded machine takes longer
 def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property):
     start = time.monotonic()
-    runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION)
-    for document in rr.documents():
-        runner.run(document)
+    # ns-* / sp-train as typed, each started once, but forked from one interpreter that imported nerfstudio
+    # (tests/helpers/forkshim.py): their 8-20 s import each was most of this test's time
+    with forkshim.shims(tmp_path.parent / f"{tmp_path.name}-shims", rr.block_env()) as env:
+        runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION, env=env)
+        for document in rr.documents():
+            runner.run(document)
     text = f"{rr.summary(runner.outcomes)}\nwall time {time.monotonic() - start:.0f} s"
     record_property("readme_runner", text)
     print(text)
@@ -120,3 +124,20 @@ def test_readme_chamfer_claims_match_bench_results():
     assert f"on Spot\nSP's raw Chamfer is {ratio['spot']}x" in readme and f"on the bunny {ratio['bunny']}x" in readme
     least = max(ratio, key=lambda mesh: float(ratio[mesh]))  # the largest ratio: the smallest gain
     assert least == "bunny" and "Spot is the mesh where SP's raw Chamfer gain is" not in readme, ratio
+
+
+def test_the_fork_shims_pass_on_the_exit_status_and_the_output_of_the_command(tmp_path):
+    """A shimmed command fails as the real one does (the README run relies on it to turn red): its
+    exit status and its stderr reach the shell, in the shell's folder."""
+    import subprocess
+
+    with forkshim.shims(tmp_path / "shims", rr.block_env()) as extra:
+        env = dict(rr.block_env(), **extra)
+        proc = subprocess.run(["bash", "-c", "command -v sp-train; sp-train nerfacto --machine.device-type cuda"],
+                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert proc.stdout.splitlines()[0] == str(tmp_path / "shims" / "sp-train"), proc.stdout[:500]
+        assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith(
+            "sp-train: error: --machine.device-type cuda: CUDA is not available"), proc.stderr[-2000:]
+        proc = subprocess.run(["bash", "-c", "ns-eval --load-config missing.yml"], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 1 and "missing.yml" in proc.stderr and "Traceback" in proc.stderr, proc.stderr[-2000:]

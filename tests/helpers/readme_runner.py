@@ -19,6 +19,11 @@ What may differ from the text, all declared here and nothing else:
 * ``PYTHON``: what a Python block needs defined (``x``, ``field``, ``loss_fn``; the ``my_plugin``
   the plugin example imports from, and a one-step training run of the method it registers).
 
+* ``Runner(env=...)``: ``tests/test_readme.py`` puts the fork shims first on ``PATH``
+  (:mod:`tests.helpers.forkshim`): each ``ns-*`` / ``sp-train`` / ``sp-export-mesh`` command the shell
+  starts is forked from one interpreter that imported nerfstudio once, with the command line, folder,
+  environment and output streams of the shell's; the real scripts run everywhere else (``sp-sweep``'s trials).
+
 A block that cannot run here carries ``<!-- readme-runner: skip (reason) -->`` on the line before
 its fence; a block with no language (a directory tree) is not a command. Every other ``bash`` /
 ``python`` block runs; a command that fails (or prints a traceback) fails the run.
@@ -171,8 +176,11 @@ class Runner:
     each ``bash`` / ``python`` block); ``mine(block)`` says which blocks this suite runs (the rest
     are counted as run elsewhere)."""
 
-    def __init__(self, workdir: Path, mine: Callable[[Block], bool], timeout: float = 600):
+    def __init__(self, workdir: Path, mine: Callable[[Block], bool], timeout: float = 600,
+                 env: Optional[Dict[str, str]] = None):
         self.workdir, self.mine, self.timeout = workdir, mine, timeout
+        self.env = env or {}
+        """Variables set for every block (the fork shims' ``PATH`` and socket: tests/helpers/forkshim.py)."""
         self.outcomes: List[Outcome] = []
 
     def run(self, path: Path) -> List[Outcome]:
@@ -197,7 +205,7 @@ class Runner:
         if not self.mine(block):
             self.outcomes.append(Outcome(block, "elsewhere", "run by the other environment's suite"))
             return
-        self.outcomes.append(run_block(block, self.workdir, self.timeout))
+        self.outcomes.append(run_block(block, self.workdir, self.timeout, self.env))
 
 
 def _logical_lines(source: str) -> List[str]:
@@ -261,7 +269,7 @@ class Outcome:
     seconds: float = 0.0
 
 
-def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
+def run_block(block: Block, workdir: Path, timeout: float = 600, extra_env: Optional[Dict[str, str]] = None) -> Outcome:
     """Run one block in ``workdir`` (the blocks before it ran there); raises AssertionError on failure."""
     if block.skip:
         return Outcome(block, "skipped", block.skip)
@@ -276,7 +284,8 @@ def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
                 return Outcome(block, "skipped", why)
     # the host's environment with this interpreter's commands first; no checkout on the path (a user
     # who installed the package has no bench/ or tests/ to import)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    env = block_env()
+    env.update(extra_env or {})
     changes: List[str] = []
     if block.language == "bash":
         lines = []
@@ -303,6 +312,11 @@ def run_block(block: Block, workdir: Path, timeout: float = 600) -> Outcome:
     assert "Traceback (most recent call last)" not in output, "printed a traceback: " + report
     block.lowered = changes
     return Outcome(block, "lowered" if changes else "as written", "; ".join(sorted(set(changes))), time.monotonic() - start)
+
+
+def block_env() -> Dict[str, str]:
+    """The environment blocks run in: the host's, with this interpreter's commands first."""
+    return dict(os.environ, OMP_NUM_THREADS="1", PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
 
 
 def summary(outcomes: List[Outcome]) -> str:
