@@ -25,7 +25,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
-from sp_plugins.adapter.variants import class_path
+from sp_plugins.adapter.variants import class_path, target_class
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, build_failure
@@ -152,8 +152,6 @@ before the run writes anything (other fields are checked after their first step)
 
 
 def _host_paths(model_config: object) -> List[str]:
-    from sp_plugins.adapter.variants import target_class
-
     target = target_class(model_config)
     return [class_path(c) for c in target.__mro__] if target is not None else []
 
@@ -206,8 +204,7 @@ class SPModel(adapter_model.SPModelBase):
             with offline_lpips(), registry.scope("nerfstudio_sdf_field"):  # for this build only
                 super().populate_host_modules()
         except OSError as exc:  # a plugin that downloads weights while it builds, run offline: one line
-            host = next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins."))
-            line = build_failure(exc, host, "its model was built (populate_modules), before any training step")
+            line = build_failure(exc, self.sp_host_class(), "its model was built (populate_modules), before any training step")
             if line is None:
                 raise
             raise InputError(line) from exc
@@ -218,8 +215,12 @@ class SPModel(adapter_model.SPModelBase):
         return super().build_preconditioner()
 
     # -- the seam --------------------------------------------------------------------------------
+    def sp_host_class(self) -> type:
+        """The host model class this SP variant is built on."""
+        return next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins."))
+
     def sp_host_name(self) -> str:
-        return class_path(next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins.")))
+        return class_path(self.sp_host_class())
 
     def sp_plain_fields(self) -> Dict[str, str]:
         plain: Dict[str, str] = {}

@@ -118,7 +118,6 @@ def train(argv: Optional[list] = None) -> None:
     sp = getattr(config.pipeline.model, "sp", None)
     if sp is not None:
         from sp_plugins.adapter.callbacks import schedule_problem
-
         from sp_plugins.sdfstudio.model import unsupported_setting
 
         problem = schedule_problem(sp, config.trainer.max_num_iterations, "--trainer.max-num-iterations")

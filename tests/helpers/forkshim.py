@@ -21,7 +21,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Dict, Iterator
@@ -133,7 +132,6 @@ def shims(folder: Path, env: Dict[str, str]) -> Iterator[Dict[str, str]]:
         except OSError:
             pass
         proc.wait()
-        time.sleep(0)
 
 
 if __name__ == "__main__":
