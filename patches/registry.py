@@ -127,7 +127,7 @@ OUR_COMMANDS: Tuple[str, ...] = SP_COMMANDS + ("sp-sdfstudio-train", "sp-sdfstud
 _MODULE_COMMANDS = {  # ``python -m <module>`` runs the same command
     "sp_plugins.cli.demo": "sp-demo", "sp_plugins.cli.bench": "sp-bench", "sp_plugins.cli.scene": "sp-scene",
     "sp_plugins.cli.fit": "sp-fit", "sp_plugins.cli.export_mesh": "sp-export-mesh", "sp_plugins.cli.sweep": "sp-sweep",
-    "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.nerfstudio.registration": "sp-train",
+    "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.cli.train": "sp-train",
 }
 
 

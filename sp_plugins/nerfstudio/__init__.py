@@ -8,8 +8,8 @@ One shape, as in ``sp_plugins.sdfstudio``, on the host-neutral base ``sp_plugins
   :mod:`~sp_plugins.nerfstudio.sdf_field` is our SDF field (masked levels, numerical gradients);
 - models: :mod:`~sp_plugins.nerfstudio.model` (``SPModel``: attaches the seam, refuses where it
   cannot act), :mod:`~sp_plugins.nerfstudio.neus`, :mod:`~sp_plugins.nerfstudio.mipnerf`;
-- registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, ``sp-train``, the refusal
-  table), :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
+- registration: :mod:`~sp_plugins.nerfstudio.registration` (``with_sp``, what ``sp-train`` offers,
+  the refusals; the command itself is :mod:`sp_plugins.cli.train`), :mod:`~sp_plugins.nerfstudio.variants` (SP subclasses of any host class, by path), and the
   trainer configs of our registered methods (:mod:`~sp_plugins.nerfstudio.sdf_configs`,
   :mod:`~sp_plugins.nerfstudio.radiance_configs`; ``runs`` runs them from Python).
 

@@ -220,7 +220,7 @@ METHOD = "sp-neus-hashgrid"
 
 
 def sp_train(argv):
-    from sp_plugins.nerfstudio.registration import train
+    from sp_plugins.cli.train import train
 
     try:
         return train(argv)
