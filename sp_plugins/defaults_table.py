@@ -42,8 +42,8 @@ def rows() -> List[Tuple[str, str]]:
     """``(name, markdown row)`` for every registered nerfstudio method, then every task."""
     out = []
     try:
-        from sp_plugins.nerfstudio.registration import SP_OFF_METHODS
         from sp_plugins.nerfstudio.runs import our_methods
+        from sp_plugins.nerfstudio.table import SP_OFF_METHODS
     except ImportError:  # base install without nerfstudio
         specs, SP_OFF_METHODS = {}, {}
     else:

@@ -5,7 +5,7 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 ``sp_alpha`` in the metrics) plus, for nerfstudio 1.x:
 
 - the seam (:mod:`sp_plugins.nerfstudio.seam`) attached to the fields the host's ``populate_modules``
-  built, whatever way it built them; the submodules of :data:`PLAIN_FIELDS` stay plain;
+  built, whatever way it built them; the submodules of ``table.PLAIN_FIELDS`` stay plain;
 - refusals in one line where SP cannot act: no field called with ``RaySamples``, a field that reads
   positions some other way (checked after the first step with alpha > 0), a box boundary in a
   contracted scene, an alpha grid no gradient reaches;
@@ -18,7 +18,7 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
@@ -29,10 +29,12 @@ from sp_plugins.adapter.variants import class_path, target_class
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, build_failure
+from sp_plugins.adapter.tables import lookup, merged
+from sp_plugins.nerfstudio import table
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 
-__all__ = ["PLAIN_FIELDS", "SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
+__all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
 
 
@@ -64,35 +66,6 @@ def install_process_settings(owner: object = None) -> None:
             registry.hold(name, owner)
 
 
-PLAIN_FIELDS: Dict[str, Dict[str, str]] = {
-    "nerfstudio.models.base_surface_model.SurfaceModel": {
-        "field_background": "the background model outside the SDF's sphere: the paper perturbs the SDF field only",
-    },
-}
-"""Host model classes (and subclasses) -> submodules that stay plain, and why."""
-
-ALPHA_GRID_UNREACHABLE = {
-    "nerfstudio.models.tensorf.TensoRFModel": (
-        "TensoRF", "nerfstudio's TensoRF encoding detaches its sample positions, so no gradient reaches the alpha grid"
-    ),
-}
-"""Host models whose fields detach the positions they read: a learnable alpha grid cannot learn."""
-
-CONTRACTED_MODELS: Dict[str, Optional[str]] = {
-    "nerfstudio.models.nerfacto.NerfactoModel": "disable_scene_contraction",
-    "nerfstudio.models.instant_ngp.NGPModel": "disable_scene_contraction",
-    "nerfstudio.models.semantic_nerfw.SemanticNerfWModel": None,
-}
-"""Host models whose radiance field contracts space, and the config flag that turns that off
-(None: always on). A box boundary cannot apply there; known from the config, so it is refused
-before the run writes anything (other fields are checked after their first step)."""
-
-
-def _host_paths(model_config: object) -> List[str]:
-    target = target_class(model_config)
-    return [class_path(c) for c in target.__mro__] if target is not None else []
-
-
 def refuse_unreachable_settings(model_config: object) -> None:
     """SP settings that cannot act on this model, as far as its config tells: an option that acts
     only through SP on a baseline, an alpha grid on a field that detaches positions, a box
@@ -104,20 +77,15 @@ def refuse_unreachable_settings(model_config: object) -> None:
     refuse_inert_options(sp)
     if not sp.enabled:
         return
-    paths = _host_paths(model_config)
-    if sp.alpha_grid:
-        for path in paths:
-            unreachable = ALPHA_GRID_UNREACHABLE.get(path)
-            if unreachable:
-                raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {unreachable[0]}: {unreachable[1]}; "
-                                 "use a global alpha (the default)")
-    if sp.boundary != "none":
-        for path in paths:
-            if path not in CONTRACTED_MODELS:
-                continue
-            flag = CONTRACTED_MODELS[path]
-            if flag is not None and getattr(model_config, flag, False):
-                break
+    host = target_class(model_config)
+    unreachable = lookup(table.ALPHA_GRID_UNREACHABLE, host)
+    if sp.alpha_grid and unreachable:
+        name, why = unreachable[1]
+        raise InputError(f"--pipeline.model.sp.alpha-grid True cannot learn on {name}: {why}; use a global alpha (the default)")
+    contracted = lookup(table.CONTRACTED_MODELS, host)
+    if sp.boundary != "none" and contracted:
+        path, flag = contracted
+        if flag is None or not getattr(model_config, flag, False):
             way_out = f" (or --pipeline.model.{flag.replace('_', '-')} True)" if flag else ""
             raise InputError(
                 f"--pipeline.model.sp.boundary {sp.boundary} needs a bounded scene, but {path.rsplit('.', 1)[-1]} contracts "
@@ -160,10 +128,7 @@ class SPModel(adapter_model.SPModelBase):
         return class_path(self.sp_host_class())
 
     def sp_plain_fields(self) -> Dict[str, str]:
-        plain: Dict[str, str] = {}
-        for cls in type(self).__mro__:
-            plain.update(PLAIN_FIELDS.get(class_path(cls), {}))
-        return plain
+        return merged(table.PLAIN_FIELDS, type(self))
 
     def sp_fields(self) -> List[torch.nn.Module]:
         """The fields that carry the seam."""

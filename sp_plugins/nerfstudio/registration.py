@@ -23,41 +23,10 @@ import dataclasses
 from typing import Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter.variants import class_path, convert, table_refusal, target_class
+from sp_plugins.adapter.tables import lookup
+from sp_plugins.adapter.variants import convert, table_refusal, target_class
 from sp_plugins.core import SPConfig
-
-REFUSED_MODELS: Dict[str, str] = {
-    "nerfstudio.models.splatfacto.SplatfactoModel": (
-        "Gaussian splatting has no field queried with RaySamples (it rasterises Gaussians); SP does not apply"
-    ),
-}
-"""Host model classes (and their subclasses) SP cannot reach, and why: only what has no field."""
-
-PRESETS: Dict[str, SPConfig] = {
-    "nerfstudio.models.base_surface_model.SurfaceModel": presets.NEUS,
-    "nerfstudio.models.mipnerf.MipNerfModel": presets.MIPNERF,
-}
-"""The paper's settings for host model classes (and subclasses); :data:`presets.DEFAULT` otherwise."""
-
-NEEDS_CUDA: Dict[str, str] = {
-    "nerfstudio.models.instant_ngp.NGPModel": "it ray-marches with nerfacc's CUDA kernels and no CUDA device is available",
-}
-"""Host models that cannot run without CUDA: refused on such a machine (on a CPU nerfacc tries to
-JIT-compile its CUDA extension, fails after minutes and can leave a lock that hangs later runs)."""
-
-OUR_BASELINES = {
-    "neus-hashgrid": "sp-neus-hashgrid",
-    "neuralangelo-lite": "sp-neuralangelo-lite",
-    "relu-field": "sp-relu-field",
-    "relu-field-flat": "sp-relu-field",
-}
-"""Our baselines (SP off) and the method that is the same with SP on."""
-
-SP_OFF_METHODS = {
-    "freenerf-lite": "FreeNeRF is a sparse-view method of its own, not SP's baseline: sp-train puts SP on it (FreeNeRF + SP)",
-}
-"""Our methods that have SP off by default but are no one's baseline: ``sp-train`` offers them, and why."""
-
+from sp_plugins.nerfstudio import table
 
 def _cuda_available() -> bool:
     import torch
@@ -72,17 +41,14 @@ def refusal(config: Any) -> Optional[str]:
     its model is built or after its first step (see :class:`sp_plugins.nerfstudio.model.SPModel`)."""
     if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
         return "it is an external method that is not installed; install it, then it is listed here"
-    cuda = {path: (lambda why=why: None if _cuda_available() else why) for path, why in NEEDS_CUDA.items()}
-    return table_refusal(config, REFUSED_MODELS, cuda)[1]
+    cuda = {path: (lambda why=why: None if _cuda_available() else why) for path, why in table.NEEDS_CUDA.items()}
+    return table_refusal(config, table.REFUSED_MODELS, cuda)[1]
 
 
 def preset_for(model: type) -> SPConfig:
-    """A copy of the SP settings for host model class ``model`` (:data:`PRESETS`)."""
-    for cls in model.__mro__:
-        preset = PRESETS.get(class_path(cls))
-        if preset is not None:
-            return dataclasses.replace(preset)
-    return dataclasses.replace(presets.DEFAULT)
+    """A copy of the SP settings for host model class ``model`` (``table.PRESETS``)."""
+    found = lookup(table.PRESETS, model)
+    return dataclasses.replace(found[1] if found else presets.DEFAULT)
 
 
 def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = None, description: Optional[str] = None):
@@ -123,8 +89,8 @@ def sp_methods(methods: Dict[str, Any], descriptions: Dict[str, str]) -> Tuple[D
     for method, config in methods.items():
         model = getattr(getattr(config, "pipeline", None), "model", None)
         sp = getattr(model, "sp", None)
-        if isinstance(sp, SPConfig) and not sp.enabled and method not in SP_OFF_METHODS:
-            counterpart = OUR_BASELINES.get(method, f"sp-{method}")
+        if isinstance(sp, SPConfig) and not sp.enabled and method not in table.SP_OFF_METHODS:
+            counterpart = table.OUR_BASELINES.get(method, f"sp-{method}")
             refused[method] = f"it is the baseline of {counterpart}, the method with SP; train that one"
             continue
         reason = refusal(config)

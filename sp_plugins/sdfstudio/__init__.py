@@ -9,8 +9,10 @@ nerfstudio adapter's:
   (``SPSDFField``), which every training query of every sdfstudio SDF method passes;
 - :mod:`~sp_plugins.sdfstudio.model` (models): ``SPModel`` (preconditioner, optimizer group,
   callbacks from :mod:`sp_plugins.adapter`) and ``SDFFieldSPModel``, which hands SP to the seam;
-- :mod:`~sp_plugins.sdfstudio.registration` (registration): ``with_sp``, ``refusal`` /
-  ``REFUSED_MODELS``, ``preset_for``, ``sp_methods``, and our entry-point group
+- :mod:`~sp_plugins.sdfstudio.table`: what is known about methods (refused models, presets,
+  finite-difference steps), the one file to edit to support or refuse one;
+- :mod:`~sp_plugins.sdfstudio.registration` (registration): ``with_sp``, ``refusal``,
+  ``preset_for``, ``sp_methods``, and our entry-point group
   ``sp_plugins.sdfstudio_methods`` (sp-neus, sp-neus-facto, sp-neuralangelo, sp-bakedangelo),
   added to ns-train with ``sp-<method>`` for every SDF method sdfstudio registers;
   :mod:`~sp_plugins.sdfstudio.conversion` builds those configs (host config, classes swapped,

@@ -10,7 +10,7 @@ are :func:`sp_method` with their preset.
 Where the host enables Neuralangelo's progressive hash encoding (neuralangelo, bakedangelo,
 neus-facto-angelo) SP *replaces* coarse-to-fine, as in the paper: all hash levels from step 0,
 and the finite-difference step fixed at the value sdfstudio's schedule ends on
-(:data:`FINAL_FD_STEP`). The curvature-loss weight schedule (a loss weight, not a representation
+(``table.FINAL_FD_STEP``). The curvature-loss weight schedule (a loss weight, not a representation
 schedule) is kept. Alphas are in scene units (sdfstudio normalises scenes to the unit box / sphere).
 """
 
@@ -20,22 +20,14 @@ import copy
 from typing import Any, Dict, Optional
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter.variants import class_path, convert, target_class
+from sp_plugins.adapter.tables import lookup
+from sp_plugins.adapter.variants import convert, target_class
 from sp_plugins.core import SPConfig
 from sp_plugins.sdfstudio.registration import MethodSpecification, with_sp
+from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
 NEUS_SP = presets.NEUS
 NEURALANGELO_SP = presets.NEURALANGELO
-
-FINAL_FD_STEP: Dict[str, float] = {
-    "nerfstudio.models.neuralangelo.NeuralangeloModel": 2.0,  # max(1/max_res, d) * 2
-    "nerfstudio.models.bakedangelo.BakedAngeloModel": 1.0,  # max(1/(4 max_res), d) * 4
-    "nerfstudio.models.neus_facto.NeuSFactoModel": 1.0,  # as bakedangelo (neus-facto-angelo)
-}
-"""Where sdfstudio's numerical-gradient step schedule ends, times ``1 / sdf_field.max_res``, per
-model class (commit 370902a). A model with the schedule that is not listed (nor a subclass of
-one) keeps its schedule under SP; only progressive hash encoding is replaced."""
-
 
 def host_method_config(name: str):
     """A deep copy of sdfstudio's own config of method ``name``."""
@@ -51,11 +43,8 @@ def replaces_coarse_to_fine(model_config: Any) -> bool:
 
 def final_fd_step(model: type, max_res: int) -> Optional[float]:
     """Where sdfstudio's numerical-gradient step schedule ends for ``model`` (None: not known)."""
-    for cls in model.__mro__:
-        factor = FINAL_FD_STEP.get(class_path(cls))
-        if factor is not None:
-            return factor / max_res
-    return None
+    found = lookup(FINAL_FD_STEP, model)
+    return found[1] / max_res if found else None
 
 
 def sp_model_config(model_config: Any, sp: SPConfig) -> Any:

@@ -1,7 +1,7 @@
 """How SP methods reach sdfstudio's commands: ``with_sp`` for any SDF method, our entry-point
 group, and ``sp-<method>`` for every method sdfstudio registers; the names of
-:mod:`sp_plugins.nerfstudio.registration` (``with_sp``, :func:`refusal`, :data:`REFUSED_MODELS`,
-:func:`preset_for`, :func:`sp_methods`).
+:mod:`sp_plugins.nerfstudio.registration` (``with_sp``, :func:`refusal`, :func:`preset_for`,
+:func:`sp_methods`). What is known about single methods is in :mod:`sp_plugins.sdfstudio.table`.
 
 ``with_sp(config)`` turns sdfstudio's own config of a method into ``sp-<method>``
 (:func:`sp_plugins.sdfstudio.conversion.sp_model_config`); a method that is already ours comes back
@@ -42,15 +42,6 @@ PREFIX = "sp-"
 REFUSED: Dict[str, str] = {}
 """``sp-<method>`` -> why SP cannot be put on that registered method (filled by :func:`add_methods`)."""
 
-REFUSED_MODELS: Dict[str, str] = {
-    "nerfstudio.models.dto.DtoOModel": (
-        "its model (DtoOModel) is a nerfacto model: nerfacto's density field renders, and its sdf_field only "
-        "builds an occupancy field that guides sampling, so there is no SDF surface for SP to precondition"
-    ),
-}
-"""Host model classes (and subclasses) with an ``sdf_field`` that SP still does not apply to, and
-why; a model without an ``SDFFieldConfig`` or not a ``SurfaceModel`` is refused by :func:`refusal`."""
-
 
 @dataclass
 class MethodSpecification:
@@ -67,6 +58,7 @@ def refusal(config: Any) -> Optional[str]:
     from nerfstudio.models.base_surface_model import SurfaceModel
 
     from sp_plugins.adapter.variants import table_refusal
+    from sp_plugins.sdfstudio.table import REFUSED_MODELS
 
     model, reason = table_refusal(config, REFUSED_MODELS)
     model_config = config.pipeline.model if model is not None else None
@@ -89,13 +81,12 @@ def preset_for(model_config: Any) -> "SPConfig":
     """A copy of the paper's SP settings (Ling et al. 2025) for an sdfstudio host model config.
 
     Decided by the config, not the model class as in nerfstudio (neus-facto and neus-facto-angelo
-    share ``NeuSFactoModel``): :data:`~sp_plugins.adapter.presets.NEURALANGELO` where the host enables
-    Neuralangelo's progressive hash encoding (neuralangelo, bakedangelo, neus-facto-angelo; SP then
-    replaces coarse-to-fine), :data:`~sp_plugins.adapter.presets.NEUS` for every other SDF method."""
-    from sp_plugins.adapter import presets
+    share ``NeuSFactoModel``): ``table.COARSE_TO_FINE_PRESET`` where the host enables Neuralangelo's
+    progressive hash encoding (SP then replaces coarse-to-fine), ``table.PRESET`` otherwise."""
+    from sp_plugins.sdfstudio import table
     from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
 
-    return dataclasses.replace(presets.NEURALANGELO if replaces_coarse_to_fine(model_config) else presets.NEUS)
+    return dataclasses.replace(table.COARSE_TO_FINE_PRESET if replaces_coarse_to_fine(model_config) else table.PRESET)
 
 
 def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] = None, description: Optional[str] = None) -> MethodSpecification:

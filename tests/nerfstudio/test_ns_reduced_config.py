@@ -36,7 +36,7 @@ of test_with_sp.py but the NeuS family, whose SDFStudio data the reduced procedu
 SDF_LAYOUT = ("neus", "neus-facto")
 SP_TRAIN = "sp-train:"
 OURS_UNDER_SP_TRAIN = ("freenerf-lite",)
-"""Our methods with SP off by default that ``sp-train`` offers (``registration.SP_OFF_METHODS``)."""
+"""Our methods with SP off by default that ``sp-train`` offers (``table.SP_OFF_METHODS``)."""
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_every_registered_method_is_covered():
 
 
 def test_sp_train_offers_exactly_our_methods_with_sp_off_that_are_no_baseline():
-    from sp_plugins.nerfstudio.registration import SP_OFF_METHODS
+    from sp_plugins.nerfstudio.table import SP_OFF_METHODS
 
     assert set(OURS_UNDER_SP_TRAIN) == set(SP_OFF_METHODS)
 

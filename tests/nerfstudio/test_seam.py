@@ -197,12 +197,12 @@ def test_nerfacto_box_boundary_must_match_contraction(tiny_scene, tmp_path, monk
     """Refused from the config, before the model is built (``ns-train`` checks it before it writes
     config.yml); a contracting field no table knows (a plugin's) is refused after the first step, when
     it has read the moved samples (nerfacto's proposal networks contract too, but are never handed samples)."""
-    from sp_plugins.nerfstudio import model as ns_model
+    from sp_plugins.nerfstudio import table
 
     config = tiny_radiance_config("sp-nerfacto", tiny_scene, tmp_path / "a", steps=3, boundary="reflect")
     with pytest.raises(InputError, match=r"boundary reflect needs a bounded scene, but NerfactoModel contracts space"):
         run_recording(config)
-    monkeypatch.setattr(ns_model, "CONTRACTED_MODELS", {})  # as for a model the table does not name
+    monkeypatch.setattr(table, "CONTRACTED_MODELS", {})  # as for a model the table does not name
     with pytest.raises(InputError, match=r"NerfactoField \(model.field\) contracts space \(scene contraction is on\)"):
         run_recording(config)
     monkeypatch.undo()

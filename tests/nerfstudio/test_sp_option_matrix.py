@@ -53,7 +53,7 @@ SP_TRAIN = "sp-train:"
 WRAPPED = ("sp-train:nerfacto", "sp-train:vanilla-nerf", "sp-train:tensorf")
 """nerfstudio's own methods as ``sp-train`` offers them (the generic route)."""
 SP_OFF_OURS = ("freenerf-lite",)
-"""Our methods with SP off by default that are no one's baseline (``registration.SP_OFF_METHODS``)."""
+"""Our methods with SP off by default that are no one's baseline (``table.SP_OFF_METHODS``)."""
 OURS_UNDER_SP_TRAIN = tuple(SP_TRAIN + m for m in SP_OFF_OURS)
 """...and as ``sp-train`` offers them: our model class with SP switched on, not a generic variant."""
 METHODS = SDF + RADIANCE + WRAPPED + OURS_UNDER_SP_TRAIN

@@ -93,7 +93,8 @@ def test_with_sp_on_a_method_that_is_ours_switches_sp_on():
 def test_with_sp_refuses_in_one_line_naming_the_method_and_why():
     import nerfstudio.configs.method_configs as host
 
-    from sp_plugins.sdfstudio.registration import REFUSED_MODELS, refusal, with_sp
+    from sp_plugins.sdfstudio.registration import refusal, with_sp
+    from sp_plugins.sdfstudio.table import REFUSED_MODELS
 
     assert all(path.count(".") >= 2 and reason for path, reason in REFUSED_MODELS.items())  # class path -> reason
     for method in ("dto", "nerfacto"):
@@ -124,9 +125,10 @@ def test_both_hosts_have_the_same_adapter_names():
             found |= {t.id for t in targets if isinstance(t, ast.Name)}
         return found
 
-    shared = {"with_sp", "refusal", "REFUSED_MODELS", "preset_for", "sp_methods"}
+    shared = {"with_sp", "refusal", "preset_for", "sp_methods"}
     for host in ("nerfstudio", "sdfstudio"):
         assert shared <= names(host, "registration"), host
+        assert "REFUSED_MODELS" in names(host, "table") and "REFUSED_MODELS" not in names(host, "registration"), host
         assert "SPModel" in names(host, "model") and (root / host / "seam.py").is_file(), host
     assert not (root / "sdfstudio" / "sdf_field.py").exists()
 
