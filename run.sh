@@ -61,7 +61,7 @@ setup() {
     "$venv/bin/python" -m pip install -q --upgrade pip
     # shellcheck disable=SC2086
     "$venv/bin/python" -m pip install -q $torch_spec
-    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,sweeps,dev]"
+    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev]"
     echo "$want" > "$stamp"
   fi
 }
@@ -135,8 +135,12 @@ run_tests() {
   local main_rc=5 sdf_rc=5 run_main=0 run_sdf=0 sdf_log="" sdf_pid=""
   if [ ${#main_paths[@]} -gt 0 ] || [ ${#sdf_paths[@]} -eq 0 ]; then run_main=1; fi
   if [ ${#sdf_paths[@]} -gt 0 ] || [ ${#main_paths[@]} -eq 0 ]; then run_sdf=1; fi
-  local sdf_missing=""
-  if [ "$run_sdf" = 1 ]; then
+  local sdf_missing="" sdf_beside=0
+  if [ "$run_sdf" = 1 ] && [ "$run_main" = 1 ] && { [ -e "$sdf_src" ] || [ -f "$sdf_stamp" ]; }; then
+    # built (when needed) and tested in the background, beside the main install and suite (below)
+    sdf_beside=1
+    export SP_SDFSTUDIO_TESTS=separate
+  elif [ "$run_sdf" = 1 ]; then
     setup_sdfstudio
     if [ ! -f "$sdf_stamp" ]; then
       sdf_missing="no sdfstudio environment at $sdf_venv (no source at $sdf_src to build it from; $sdf_get_one)"
@@ -156,12 +160,14 @@ run_tests() {
   if [ "$run_sdf" = 1 ]; then
     # the two suites share nothing but the CPU: each runs one torch thread (tests/conftest.py), so on
     # two or more cores they run side by side; the sdfstudio report is printed after the main one.
-    # The sdfstudio suite starts before the main environment is installed: a fresh clone's install
-    # (mostly waiting on downloads and disk) overlaps its tests
+    # The two environments are also installed side by side: a fresh clone's installs (one core each,
+    # mostly unpacking wheels) take about as long as each other, so the main suite starts one install
+    # earlier. A failed sdfstudio build fails the run (its log's tail is in the report).
     [ ${#sdf_paths[@]} -gt 0 ] || sdf_paths=(tests/sdfstudio)
     sdf_log="$(mktemp "${TMPDIR:-/tmp}/sp-sdfstudio-tests.XXXXXX")"
-    if [ "$run_main" = 1 ]; then
-      "$sdf_venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} "${sdf_paths[@]}" >"$sdf_log" 2>&1 &
+    if [ "$sdf_beside" = 1 ]; then
+      echo "[sp-plugins] sdfstudio: setting up its environment and running its tests in the background (reported after the main suite)"
+      ( setup_sdfstudio && exec "$sdf_venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} "${sdf_paths[@]}" ) >"$sdf_log" 2>&1 &
       sdf_pid=$!
     else
       echo "[sp-plugins] sdfstudio tests, in $sdf_venv"
@@ -171,7 +177,7 @@ run_tests() {
   fi
   if [ "$run_main" = 1 ]; then
     # a failed install ends this script (set -e): the sdfstudio run beside it ends with it
-    [ -n "$sdf_pid" ] && trap "kill $sdf_pid 2>/dev/null || true" EXIT
+    [ -n "$sdf_pid" ] && trap "pkill -P $sdf_pid 2>/dev/null; kill $sdf_pid 2>/dev/null || true" EXIT
     setup
     system_browser
     trap - EXIT

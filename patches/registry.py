@@ -103,6 +103,7 @@ ENTRIES: Dict[str, str] = {
     "nerfstudio_sdf_field": "sp_plugins.patches.nerfstudio_sdf_field",
     "nerfstudio_marching_cubes": "sp_plugins.patches.nerfstudio_marching_cubes",
     "nerfstudio_lpips": "sp_plugins.patches.nerfstudio_lpips",
+    "nerfbaselines_lpips": "sp_plugins.patches.nerfbaselines_lpips",
     "host_warnings": "sp_plugins.host_warnings",
     "input_error_hook": "sp_plugins.patches.input_error_hook",
     "sdfstudio_import_hook": "sp_plugins.patches.sdfstudio_import_hook",

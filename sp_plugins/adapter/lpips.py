@@ -71,6 +71,18 @@ class DetachedMetric:
         return self
 
 
+def say_skipped(net_type: str) -> None:
+    """The one log line (per backbone and process) that LPIPS is skipped and where its weights go."""
+    if net_type not in _warned:
+        _warned.add(net_type)
+        log.warning(
+            "LPIPS skipped (NaN): the %s backbone weights are not in the torch hub cache (%s) and sp-plugins "
+            "does not download at run time; copy them there to enable the metric.",
+            net_type,
+            lpips_weights_path(net_type),
+        )
+
+
 def offline_factory(real_cls: type, detach: bool = False) -> Callable[..., Any]:
     """Stands in for the metric class: the real metric (``detach``: wrapped in
     :class:`DetachedMetric`) when its weights are cached, else :class:`MissingLPIPS`."""
@@ -80,14 +92,7 @@ def offline_factory(real_cls: type, detach: bool = False) -> Callable[..., Any]:
         if lpips_available(net_type):
             metric = real_cls(*args, **kwargs)
             return DetachedMetric(metric) if detach else metric
-        if net_type not in _warned:
-            _warned.add(net_type)
-            log.warning(
-                "LPIPS skipped (NaN): the %s backbone weights are not in the torch hub cache (%s) and sp-plugins "
-                "does not download at run time; copy them there to enable the metric.",
-                net_type,
-                lpips_weights_path(net_type),
-            )
+        say_skipped(net_type)
         return MissingLPIPS()
 
     build.real = real_cls  # type: ignore[attr-defined]

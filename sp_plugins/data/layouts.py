@@ -5,9 +5,11 @@ Both take cameras as OpenGL camera-to-world matrices in dataset coordinates (see
 
 Blender layout (read by nerfstudio's ``blender-data``)::
 
-    transforms_{train,val,test}.json   {"camera_angle_x", "frames": [{"file_path": "./train/r_0",
+    transforms_{train,val,test}.json   {"camera_angle_x", "w", "h", "frames": [{"file_path": "./train/r_0",
                                         "rotation", "transform_matrix" (4x4 OpenGL c2w)}]}
     {train,val,test}/r_<i>.png          RGBA; the background is transparent (alpha 0)
+    nb-info.json                        for nerfbaselines: its Blender loader, dataset id ``sp-scene``,
+                                        the scene name and box (sp_plugins.nerfbaselines)
 
 SDFStudio layout (read by nerfstudio's ``sdfstudio-data``), the keys of sdfstudio's format::
 
@@ -30,7 +32,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import imageio.v2 as imageio
 import numpy as np
@@ -57,9 +59,15 @@ def _write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2))
 
 
-def write_blender(root: Path, views: SplitViews, fov_x: float) -> List[Path]:
-    """Write the Blender layout under `root`; returns the ``transforms_*.json`` paths."""
+def write_blender(root: Path, views: SplitViews, fov_x: float, nb_info: Optional[dict] = None) -> List[Path]:
+    """Write the Blender layout under `root`; returns the ``transforms_*.json`` paths.
+
+    Each file also gives the image size (``w``, ``h``: nerfbaselines' Blender loader reads them and
+    assumes 800 px without); ``nb_info`` is written as ``nb-info.json`` (which loader nerfbaselines
+    uses for the folder, the dataset id, the scene box)."""
     root.mkdir(parents=True, exist_ok=True)
+    if nb_info is not None:
+        _write_json(root / "nb-info.json", nb_info)
     written = []
     for split, (c2w, images) in views.items():
         (root / split).mkdir(exist_ok=True)
@@ -68,7 +76,8 @@ def write_blender(root: Path, views: SplitViews, fov_x: float) -> List[Path]:
             imageio.imwrite(root / split / f"r_{index}.png", to_uint8(image))
             frames.append({"file_path": f"./{split}/r_{index}", "rotation": 0.0, "transform_matrix": pose.tolist()})
         path = root / f"transforms_{split}.json"
-        _write_json(path, {"camera_angle_x": float(fov_x), "frames": frames})
+        height, width = images.shape[1:3]
+        _write_json(path, {"camera_angle_x": float(fov_x), "w": int(width), "h": int(height), "frames": frames})
         written.append(path)
     return written
 

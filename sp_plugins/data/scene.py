@@ -20,7 +20,7 @@ import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence, Tuple, Union
+from typing import Any, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -38,6 +38,16 @@ from sp_plugins.data.render import ray_intersector, render_views
 
 LAYOUTS = ("blender", "sdfstudio")
 SCENE_BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+NB_BLENDER_LOADER = "nerfbaselines.datasets.blender:load_blender_dataset"
+
+
+def nerfbaselines_info(mesh: Any, box: Any) -> dict:
+    """The Blender layout's ``nb-info.json``: nerfbaselines loads it with its own Blender loader as
+    dataset ``sp-scene`` (registered by sp_plugins.nerfbaselines), scene = the mesh's name."""
+    name = Path(str(mesh)).stem if not hasattr(mesh, "faces") else "mesh"
+    return {"loader": NB_BLENDER_LOADER, "id": "sp-scene", "scene": name, "type": "object-centric",
+            "evaluation_protocol": "sp-scene",
+            "scene_box": [list(map(float, corner)) for corner in box]}
 SCENE_FILE = "scene.json"
 GT_MESH_FILE = "gt_mesh.ply"
 PRODUCTS = (SCENE_FILE, GT_MESH_FILE, *LAYOUTS)
@@ -201,7 +211,7 @@ def make_scene(
     paths = {"blender": None, "sdfstudio": None}
     if "blender" in layouts:
         paths["blender"] = out_dir / "blender"
-        write_blender(paths["blender"], views, fov)
+        write_blender(paths["blender"], views, fov, nb_info=nerfbaselines_info(mesh, SCENE_BOX))
     if "sdfstudio" in layouts:
         paths["sdfstudio"] = out_dir / "sdfstudio"
         write_sdfstudio(

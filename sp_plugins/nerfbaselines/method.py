@@ -1,0 +1,120 @@
+"""The one nerfbaselines method class behind every spec of ours: nerfbaselines' own nerfstudio
+wrapper (``nerfbaselines.methods.nerfstudio.NerfStudio``, its ``python`` backend), subclassed where
+it falls short for our methods:
+
+- the nerfstudio method comes from the spec id (:data:`sp_plugins.nerfbaselines.specs.ENTRIES`);
+  ``<id>+sp`` puts SP on it with ``with_sp``;
+- ``--set`` values are typed to their field and an unknown key is refused in one line
+  (:mod:`~sp_plugins.nerfbaselines.overrides`), exit status 2, before the trainer is built;
+- models that name their image ``rgb_fine`` (vanilla-nerf, MipNeRF) render it as ``rgb``;
+- the dataset's scene box (:mod:`~sp_plugins.nerfbaselines.scene_box`);
+- LPIPS offline: our models and nerfstudio's build under the registry's ``nerfstudio_lpips`` scope,
+  and nerfbaselines' own LPIPS runs under ``nerfbaselines_lpips`` while this method exists.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import logging
+import sys
+from typing import Any, Optional
+
+from nerfbaselines.methods.nerfstudio import NerfStudio
+
+from sp_plugins.nerfbaselines import scene_box, specs
+from sp_plugins.nerfbaselines.overrides import OverrideError, apply_overrides
+from sp_plugins.patches import registry
+
+__all__ = ["SPNerfStudio", "with_output_aliases"]
+
+log = logging.getLogger("sp_plugins.nerfbaselines")
+PASSED = ("method", "pipeline.datamanager.dataparser")
+"""Override keys nerfbaselines' wrapper itself interprets (the rest are ours to type and set)."""
+ALIASES = ("rgb", "accumulation", "depth")
+
+
+def refuse(message: str) -> None:
+    """One line on stderr, exit status 2 (nothing of the trainer is built yet)."""
+    print(f"nerfbaselines: error: {message}", file=sys.stderr, flush=True)
+    raise SystemExit(2)
+
+
+def with_output_aliases(model_cls: type) -> type:
+    """``model_cls`` whose camera outputs also carry ``rgb`` / ``accumulation`` / ``depth`` where the
+    model only names them ``*_fine`` (nerfbaselines reads the plain names)."""
+
+    class Aliased(model_cls):  # type: ignore[misc, valid-type]
+        def get_outputs_for_camera_ray_bundle(self, *args: Any, **kwargs: Any):
+            outputs = super().get_outputs_for_camera_ray_bundle(*args, **kwargs)
+            for name in ALIASES:
+                if name not in outputs and f"{name}_fine" in outputs:
+                    outputs[name] = outputs[f"{name}_fine"]
+            return outputs
+
+    Aliased.__name__ = Aliased.__qualname__ = model_cls.__name__
+    return Aliased
+
+
+class SPNerfStudio(NerfStudio):
+    """nerfbaselines' nerfstudio wrapper for the nerfstudio method a spec of ours names."""
+
+    def __init__(self, *, checkpoint: Optional[str] = None, train_dataset: Optional[dict] = None,
+                 config_overrides: Optional[dict] = None):
+        self._sp_id = self.get_method_info().get("method_id", "")
+        if self._sp_id not in specs.ENTRIES:
+            raise RuntimeError(f"{type(self).__name__} is built by nerfbaselines from one of our specs, not {self._sp_id!r}")
+        self._sp_entry = specs.ENTRIES[self._sp_id]
+        registry.hold("nerfbaselines_lpips", self)
+        overrides = dict(config_overrides or {})
+        passed = {key: overrides.pop(key) for key in PASSED if key in overrides}
+        # (read by nerfbaselines' __init__; a "method" key it would also try to set as a config field)
+        self._default_nerfstudio_name = passed.pop("method", self._sp_entry.nerfstudio_name)
+        self._sp_overrides = overrides
+        try:
+            self._sp_box = scene_box.load(checkpoint) if checkpoint else scene_box.dataset_box(train_dataset)
+        except ValueError as err:
+            refuse(str(err))
+        super().__init__(checkpoint=checkpoint, train_dataset=train_dataset, config_overrides=passed)
+
+    def _sp_config(self, config: Any) -> Any:
+        if self._sp_entry.add_sp:
+            from sp_plugins.nerfstudio import with_sp
+
+            config = with_sp(config).config
+        try:
+            apply_overrides(config, self._sp_overrides, self._sp_id)
+        except OverrideError as err:
+            refuse(str(err))
+        if hasattr(config.pipeline.datamanager, "check_data"):  # nerfbaselines' loader read the folder, not ns-train's
+            config.pipeline.datamanager.check_data = False
+        parser = config.pipeline.datamanager.dataparser
+        if self._sp_box is not None and self._sp_entry.sdf and type(parser).__name__ != "BlenderDataParserConfig":
+            from nerfstudio.configs.dataparser_configs import all_dataparsers
+
+            log.info("%s: the dataset's scene box %s, with nerfstudio's blender-data parser (poses as given)",
+                     self._sp_id, self._sp_box)
+            config.pipeline.datamanager.dataparser = copy.deepcopy(all_dataparsers["blender-data"])
+        return config
+
+    def _setup(self, train_dataset, config_overrides):
+        if self.checkpoint is None:
+            self.config = self._sp_config(self._original_config)
+            self._original_config = copy.deepcopy(self.config)
+        with registry.scope("nerfstudio_lpips"):
+            super()._setup(train_dataset, config_overrides)
+
+    def _patch_model(self, model_cls, *, config):
+        return with_output_aliases(super()._patch_model(model_cls, config=config))
+
+    def _patch_dataparser(self, dataparser_cls, **kwargs):
+        made = super()._patch_dataparser(dataparser_cls, **kwargs)
+        config = kwargs.get("config")
+        identity = config is not None and type(config.pipeline.datamanager.dataparser).__name__ == "BlenderDataParserConfig"
+        if self._sp_box is None or not identity:
+            return made
+        return functools.partial(scene_box.scene_box_class(made.func, self._sp_box), *made.args, **made.keywords)
+
+    def save(self, path: str):
+        super().save(path)
+        scene_box.save(path, self._sp_box)

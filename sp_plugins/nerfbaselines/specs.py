@@ -1,0 +1,105 @@
+"""The method, dataset and loader specs nerfbaselines finds through its ``nerfbaselines.specs``
+entry point (pyproject.toml). Plain dicts: importing this module imports no host and changes
+nothing but nerfbaselines' registry, which is what nerfbaselines imports it for.
+
+Three kinds of method ids, one wrapper class (:class:`sp_plugins.nerfbaselines.method.SPNerfStudio`):
+
+- our nerfstudio methods, under their ``ns-train`` names (``sp-nerfacto`` ...), and the baselines
+  nerfbaselines lacks (``mipnerf``, ``vanilla-nerf``, ``neus-hashgrid`` ...);
+- ``<id>+sp``: SP on a nerfstudio-backed method of nerfbaselines or of this list (``nerfacto+sp``,
+  ``mipnerf+sp``, ``vanilla-nerf+sp``): the very config of ``<id>`` through ``with_sp``, with
+  ``<id>``'s presets, so ``<id>`` against ``<id>+sp`` is a like-for-like table row.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, NamedTuple
+
+WRAPPER = "sp_plugins.nerfbaselines.method:SPNerfStudio"
+SP_SUFFIX = "+sp"
+SP_SCENE = "sp-scene"
+"""The dataset id of ``sp-scene`` folders (their ``nb-info.json`` names it and the Blender loader)."""
+
+
+class Entry(NamedTuple):
+    nerfstudio_name: str
+    """The method in nerfstudio's ``all_methods`` (ns-train's name)."""
+    add_sp: bool = False
+    """Put SP on it with ``with_sp`` (the ``+sp`` ids)."""
+    sdf: bool = False
+
+
+OURS = ("sp-nerfacto", "sp-mipnerf", "sp-vanilla-nerf", "sp-tensorf", "sp-relu-field", "relu-field", "relu-field-flat")
+OURS_SDF = ("sp-neus", "sp-neus-hashgrid", "neus-hashgrid", "sp-neuralangelo-lite", "neuralangelo-lite")
+NERFSTUDIO_BASELINES = ("mipnerf", "vanilla-nerf")
+"""nerfstudio methods nerfbaselines 1.2.12 has no spec for (its ``nerf`` and ``tensorf`` are other code)."""
+SP_ON = ("nerfacto", "mipnerf", "vanilla-nerf")
+"""``<id>+sp``: nerfbaselines' nerfstudio-backed ``nerfacto`` and the two above."""
+
+ENTRIES: Dict[str, Entry] = {
+    **{name: Entry(name) for name in OURS + NERFSTUDIO_BASELINES},
+    **{name: Entry(name, sdf=True) for name in OURS_SDF},
+    **{name + SP_SUFFIX: Entry(name, add_sp=True) for name in SP_ON},
+}
+
+# the Blender layout sp-scene writes: the world as the files give it (as `ns-train ... blender-data`)
+_SP_SCENE_PRESET = {
+    "@apply": [{"dataset": SP_SCENE}],
+    "@description": "sp-scene folders: nerfstudio's blender-data parser (poses as given, white background).",
+    "pipeline.datamanager.dataparser": "blender-data",
+}
+_NERFACTO_SP_SCENE = {  # nerfbaselines' own blender preset of nerfacto, for the same kind of scene
+    **_SP_SCENE_PRESET,
+    "pipeline.model.near_plane": 2.0, "pipeline.model.far_plane": 6.0, "pipeline.model.use_appearance_embedding": False,
+    "pipeline.model.background_color": "white", "pipeline.model.proposal_initial_sampler": "uniform",
+    "pipeline.model.distortion_loss_mult": 0.0, "pipeline.model.disable_scene_contraction": True,
+    "pipeline.model.camera_optimizer.mode": "off",
+}
+
+
+def method_spec(method_id: str) -> dict:
+    entry = ENTRIES[method_id]
+    kind = "SP on " if entry.add_sp else ""
+    presets = {SP_SCENE: _NERFACTO_SP_SCENE if "nerfacto" in entry.nerfstudio_name else _SP_SCENE_PRESET}
+    if method_id == "nerfacto" + SP_SUFFIX:
+        presets.update({
+            "blender": {**_NERFACTO_SP_SCENE, "@apply": [{"dataset": "blender"}]},
+            "big": {"method": "nerfacto-big"}, "huge": {"method": "nerfacto-huge"},
+        })
+    return {
+        "id": method_id,
+        "method_class": WRAPPER,
+        "backends_order": ["python"],
+        "presets": presets,
+        "metadata": {
+            "name": method_id,
+            "description": f"{kind}nerfstudio's `{entry.nerfstudio_name}` (sp-plugins); python backend, in the "
+                           "environment where nerfstudio 1.1.5 and sp-plugins are installed.",
+            "link": "https://github.com/",
+        },
+        "implementation_status": {},
+    }
+
+
+def _register() -> None:
+    from nerfbaselines import register
+
+    for method_id in ENTRIES:
+        register(method_spec(method_id))
+    register({
+        "id": "sdfstudio-layout",
+        "load_dataset_function": "sp_plugins.nerfbaselines.sdfstudio_loader:load_sdfstudio_dataset",
+    })
+    register({"id": SP_SCENE, "evaluation_protocol_class": "sp_plugins.nerfbaselines.protocol:SceneProtocol"})
+    register({
+        "id": SP_SCENE,
+        "download_dataset_function": "sp_plugins.nerfbaselines.sdfstudio_loader:refuse_download",
+        "evaluation_protocol": SP_SCENE,
+        "metadata": {
+            "id": SP_SCENE, "name": "sp-scene", "description": "Synthetic scenes rendered by sp-plugins' sp-scene.",
+            "metrics": ["psnr", "ssim", "lpips"], "default_metric": "psnr", "scenes": [],
+        },
+    })
+
+
+_register()

@@ -1,0 +1,146 @@
+"""nerfbaselines' own commands on our methods (issue 46), run as a user types them, at a tiny budget.
+
+One module fixture trains ``sp-nerfacto`` three steps through ``nerfbaselines train --backend python``
+on a bundled scene (Blender layout, loaded by nerfbaselines' own Blender loader through the
+``nb-info.json`` sp-scene writes); ``render``, ``evaluate`` and ``generate-dataset-results`` run on
+what it wrote. An SDF method trains on the SDFStudio layout (our loader) and gets the dataset's box.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers.ns_commands import ENV, command
+
+STEPS = 3
+BUDGET = ["--set", "machine.device_type=cpu", "--set", f"max_num_iterations={STEPS}",
+          "--set", "pipeline.datamanager.train_num_rays_per_batch=32",
+          "--set", "pipeline.model.eval_num_rays_per_chunk=512"]
+NERFACTO = ["--set", "pipeline.model.num_nerf_samples_per_ray=8", "--set", "pipeline.model.num_proposal_samples_per_ray=8,8",
+            "--set", "pipeline.model.log2_hashmap_size=12", "--set", "pipeline.model.max_res=64",
+            "--set", "pipeline.model.hidden_dim=16"]
+SDF = ["--set", "pipeline.model.num_samples=16", "--set", "pipeline.model.num_samples_importance=8",
+       "--set", "pipeline.model.num_up_sample_steps=1", "--set", "pipeline.model.num_samples_outside=8",
+       "--set", "pipeline.model.sdf_field.log2_hashmap_size=12", "--set", "pipeline.model.sdf_field.max_res=64"]
+SKIPPED = "LPIPS skipped (NaN): the alex backbone weights are not in the torch hub cache"
+
+
+def nb(*args: str, env=None, check: bool = True, timeout: int = 600) -> subprocess.CompletedProcess:
+    proc = subprocess.run([command("nerfbaselines"), *args], env=env or ENV, capture_output=True, text=True, timeout=timeout)
+    if check:
+        assert proc.returncode == 0, f"nerfbaselines {' '.join(args)}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+    return proc
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("nb") / "my-scene"
+    subprocess.run([command("sp-scene"), "spot", str(root), "--resolution", "32", "--views", "8", "--test-views", "2",
+                    "--quiet"], env=ENV, check=True, capture_output=True, timeout=300)
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(scene) -> tuple:
+    out = scene.parent / "sp-nerfacto"
+    proc = nb("train", "--method", "sp-nerfacto", "--backend", "python", "--data", str(scene / "blender"),
+              "--output", str(out), *BUDGET, *NERFACTO)
+    return out, proc
+
+
+def our_psnr(predictions: Path) -> float:
+    """Our metric code (sp_plugins.tasks.image.psnr) on the rendered and ground-truth PNGs, each
+    composited on white as the dataset's background, averaged over the test images."""
+    import imageio.v2 as imageio
+
+    from sp_plugins.tasks.image import psnr
+
+    def srgb(path: Path) -> np.ndarray:
+        image = imageio.imread(path).astype(np.float64) / 255.0
+        if image.shape[-1] == 4:
+            image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
+        return np.round(image * 255.0) / 255.0  # nerfbaselines scores uint8 sRGB
+
+    preds = sorted((predictions / "color").rglob("*.png"))
+    assert preds, f"no rendered images under {predictions}"
+    return float(np.mean([psnr(srgb(p), srgb(predictions / "gt-color" / p.relative_to(predictions / "color")))
+                          for p in preds]))
+
+
+def untar(archive: Path) -> Path:
+    folder = archive.with_suffix("").with_suffix("")
+    with tarfile.open(archive) as tar:
+        tar.extractall(folder, filter="data")
+    return folder
+
+
+def test_train_writes_checkpoint_renders_results_and_one_lpips_line(trained):
+    out, proc = trained
+    checkpoint = out / f"checkpoint-{STEPS}"
+    assert list((checkpoint / "nerfstudio_models").glob("step-*.ckpt")), "no checkpoint"
+    assert "SP" in (checkpoint / "config.yml").read_text() and "enabled: true" in (checkpoint / "config.yml").read_text()
+    assert json.loads((checkpoint / "sp-scene-box.json").read_text())["aabb"] == [[-1, -1, -1], [1, 1, 1]]
+    assert (out / f"predictions-{STEPS}.tar.gz").is_file()
+    results = json.loads((out / f"results-{STEPS}.json").read_text())
+    assert math.isfinite(results["metrics"]["psnr"]) and math.isfinite(results["metrics"]["ssim"])
+    assert math.isnan(results["metrics"]["lpips"])  # no weights here: skipped, not downloaded
+    assert results["render_dataset_metadata"]["id"] == "sp-scene" and results["evaluation_protocol"] == "sp-scene"
+    lines = [line for line in proc.stderr.splitlines() if "LPIPS" in line and "skipped" in line]
+    assert len(lines) == 1 and "alexnet-owt-7be5be79.pth" in lines[0], lines
+
+
+def test_render_and_evaluate_give_our_psnr_and_lpips_with_weights(trained, tmp_path):
+    """``render`` from the checkpoint, then ``evaluate`` with (stand-in) LPIPS weights in the torch hub
+    cache: LPIPS is computed, and PSNR is what our own metric code gives on the same images."""
+    import torch
+    import torchvision
+
+    out, _ = trained
+    hub = tmp_path / "torch"
+    (hub / "hub" / "checkpoints").mkdir(parents=True)
+    net = torchvision.models.alexnet()  # small stand-in: real features, the classifier as one broadcast value
+    state = {k: (v if k.startswith("features") else torch.zeros(1).expand(v.shape)) for k, v in net.state_dict().items()}
+    torch.save(state, hub / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth")
+    env = dict(ENV, TORCH_HOME=str(hub))
+    renders = tmp_path / "renders"
+    nb("render", "--checkpoint", str(out / f"checkpoint-{STEPS}"), "--data", str(out.parent / "my-scene" / "blender"),
+       "--output", str(renders), "--backend", "python", env=env)
+    assert len(list((renders / "color").rglob("*.png"))) == 2
+    proc = nb("evaluate", str(renders), "-o", str(tmp_path / "results.json"), env=env)
+    metrics = json.loads((tmp_path / "results.json").read_text())["metrics"]
+    assert math.isfinite(metrics["lpips"]) and "skipped" not in proc.stderr
+    assert abs(metrics["psnr"] - our_psnr(renders)) < 1e-3, metrics
+
+
+def test_results_table_from_nerfbaselines_tooling(trained):
+    out, _ = trained
+    proc = nb("generate-dataset-results", "--results", str(out), "--dataset", "sp-scene", "--scenes", "spot")
+    assert "sp-nerfacto" in proc.stdout and "PSNR" in proc.stdout, proc.stdout
+
+
+def test_unknown_set_key_is_one_line_with_the_keys_that_exist(scene, tmp_path):
+    proc = nb("train", "--method", "sp-nerfacto", "--backend", "python", "--data", str(scene / "blender"),
+              "--output", str(tmp_path / "run"), *BUDGET, "--set", "pipeline.model.sp.alpha00=0.1", check=False)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    (line,) = [line for line in proc.stderr.splitlines() if "error" in line]
+    assert "pipeline.model.sp.alpha00" in line and "alpha0" in line and "enabled" in line, line
+    assert "Traceback" not in proc.stderr
+
+
+def test_sdf_method_gets_the_dataset_box_and_scores_as_ours(scene):
+    """sp-neus-hashgrid on the SDFStudio layout (our loader): the box is meta_data.json's, not
+    nerfbaselines' fixed one, and the results nerfbaselines wrote match our PSNR on its renders."""
+    out = scene.parent / "sp-neus-hashgrid"
+    nb("train", "--method", "sp-neus-hashgrid", "--backend", "python", "--data", str(scene / "sdfstudio"),
+       "--output", str(out), *BUDGET, *SDF)
+    box = json.loads((scene / "sdfstudio" / "meta_data.json").read_text())["scene_box"]["aabb"]
+    assert json.loads((out / f"checkpoint-{STEPS}" / "sp-scene-box.json").read_text())["aabb"] == box
+    results = json.loads((out / f"results-{STEPS}.json").read_text())["metrics"]
+    assert abs(results["psnr"] - our_psnr(untar(out / f"predictions-{STEPS}.tar.gz"))) < 1e-3, results
