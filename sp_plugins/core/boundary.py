@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from contextvars import ContextVar
 from typing import Literal, Optional, Tuple, Union
 
 import torch
@@ -154,10 +156,24 @@ def reflect(
     return _Reflect.apply(y, origin, lo, hi, sparse_fold_on(y.device) if sparse is None else sparse)
 
 
+_DENSE_FOLD: ContextVar[bool] = ContextVar("sp_plugins_dense_fold", default=False)
+
+
 def sparse_fold_on(device: torch.device) -> bool:
     """Whether :func:`reflect` folds sparsely by default on ``device``: on the CPU only, where a host
-    sync costs nothing (a test that counts a GPU run's syncs on the CPU takes the GPU's choice here)."""
-    return device.type == "cpu"
+    sync costs nothing, and nowhere inside :func:`dense_fold`."""
+    return device.type == "cpu" and not _DENSE_FOLD.get()
+
+
+@contextlib.contextmanager
+def dense_fold():
+    """Within the block (this thread or task), :func:`reflect` folds densely on every device, the
+    sync-free branch a GPU takes: what counts a GPU run's syncs on a CPU runs under it."""
+    token = _DENSE_FOLD.set(True)
+    try:
+        yield
+    finally:
+        _DENSE_FOLD.reset(token)
 
 
 def apply_boundary(

@@ -58,8 +58,10 @@ the rows, and finding them costs more than the fused dense update. Coarse-to-fin
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+from contextvars import ContextVar
 from typing import Any, Dict, Literal, Mapping, Optional, Union
 
 import torch
@@ -78,6 +80,20 @@ INTERPOLATIONS: tuple[str, ...] = ("Linear", "Smoothstep")
 
 TCNN_DEVICE_TYPES: tuple[str, ...] = ("cuda",)
 """Device types tiny-cuda-nn's kernels run on."""
+
+_TORCH_ONLY: ContextVar[bool] = ContextVar("sp_plugins_hashgrid_torch_only", default=False)
+
+
+@contextlib.contextmanager
+def torch_backend_only():
+    """Within the block (this thread or task), tiny-cuda-nn counts as unusable on every device: an
+    ``auto`` grid built or moved there takes the torch backend, and so do nerfacto's grids
+    (:func:`tcnn_usable`). What ``sp-gpu-check`` times our torch grid on a GPU with."""
+    token = _TORCH_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _TORCH_ONLY.reset(token)
 
 _logged_choices: set = set()
 
@@ -111,6 +127,8 @@ def tcnn_usable(device: Union[str, torch.device], dtype: torch.dtype = torch.flo
     """Whether tiny-cuda-nn can hold a grid on ``device``: a CUDA device, ``tinycudann`` imports,
     and the table is float32 (tcnn's torch bindings keep ``params`` in float32)."""
     device = torch.device(device)
+    if _TORCH_ONLY.get():
+        return False
     return device.type in TCNN_DEVICE_TYPES and dtype == torch.float32 and _import_tcnn() is not None
 
 
@@ -138,6 +156,8 @@ def resolve_backend(backend: str, device: Union[str, torch.device] = "cpu", dtyp
         _logged_choices.add(key)
         if usable:
             reason = f"tinycudann imports and the module is on {device.type}"
+        elif _TORCH_ONLY.get():
+            reason = "torch_backend_only() is in force"
         elif device.type not in TCNN_DEVICE_TYPES:
             reason = f"the module is on {device.type}; tiny-cuda-nn runs on CUDA only"
         elif dtype != torch.float32:

@@ -98,6 +98,22 @@ def test_reflect_matches_an_unfolded_reference_in_a_non_cubic_box_with_its_deriv
     assert torch.equal(y.grad, numeric)
 
 
+def test_dense_fold_takes_the_gpus_sync_free_branch_on_the_cpu_with_the_same_result():
+    """What counts a GPU run's syncs on a CPU (sp-gpu-check) folds densely inside the switch; the
+    default returns after it."""
+    from sp_plugins.core import boundary
+
+    cpu = torch.device("cpu")
+    y = torch.randn(500, 3) * 3
+    lo, hi = torch.tensor([-1.0, 0.0, -0.5]), torch.tensor([1.0, 0.5, 2.0])
+    assert boundary.sparse_fold_on(cpu)
+    with boundary.dense_fold():
+        assert not boundary.sparse_fold_on(cpu)
+        dense = reflect(y, lo, hi)
+    assert boundary.sparse_fold_on(cpu)
+    assert torch.equal(dense, reflect(y, lo, hi, sparse=False)) and torch.allclose(dense, reflect(y, lo, hi, sparse=True), atol=1e-6)
+
+
 def test_reflect_accepts_non_contiguous_positions_and_gradients():
     y = (torch.randn(3, 400, generator=gen(13)) * 2.0).t().requires_grad_()  # [400, 3], transposed storage
     out = reflect(y, torch.tensor(-1.0), torch.tensor(1.0))

@@ -124,6 +124,18 @@ def test_auto_on_the_cpu_of_a_gpu_machine_uses_torch(monkeypatch, caplog):
         grids[0].cpu()  # an explicit tcnn grid moved off the GPU is refused, not silently slow
 
 
+def test_torch_backend_only_keeps_auto_grids_on_torch_where_tcnn_runs(fake_tcnn):
+    """The switch sp-gpu-check times our torch grid on a GPU with: inside it an ``auto`` grid takes the
+    torch backend and an explicit ``tcnn`` one is refused; after it, tcnn is chosen again."""
+    assert HashGrid(**CONFIGS["hash+dense"], backend="auto").backend == "tcnn"
+    with hashgrid_module.torch_backend_only():
+        assert not hashgrid_module.tcnn_usable("cpu")
+        assert HashGrid(**CONFIGS["hash+dense"], backend="auto").backend == "torch"
+        with pytest.raises(ValueError, match="backend='tcnn' cannot"):
+            HashGrid(**CONFIGS["hash+dense"], backend="tcnn")
+    assert HashGrid(**CONFIGS["hash+dense"], backend="auto").backend == "tcnn"
+
+
 def test_moving_the_module_hands_the_values_over(fake_tcnn, monkeypatch):
     monkeypatch.setattr(hashgrid_module, "TCNN_DEVICE_TYPES", ("cuda",))
     grid = HashGrid(**CONFIGS["hash+dense"], backend="auto", init_scale=1.0)
