@@ -35,7 +35,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
-from sp_plugins.tasks.common import ResumableTrainer, run_to_end
+from sp_plugins.tasks.trainer import ResumableTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
 from sp_plugins.tasks.settings import FitSettings
 

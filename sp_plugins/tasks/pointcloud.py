@@ -27,7 +27,7 @@ from torch import Tensor
 
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, OrientedPoints
-from sp_plugins.tasks.common import SDFTrainer, run_to_end
+from sp_plugins.tasks.trainer import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
 from sp_plugins.tasks.settings import MeshedFitSettings
 
@@ -143,7 +143,7 @@ class PointCloudSDFTrainer(SDFTrainer):
     # ------------------------------------------------------------------------------------------
     def step(self) -> Mapping[str, float]:
         """One optimisation step; returns the weighted total and the unweighted terms (read from
-        the device when looked at: see :class:`~sp_plugins.tasks.common.ResumableTrainer`)."""
+        the device when looked at: see :class:`~sp_plugins.tasks.trainer.ResumableTrainer`)."""
         c = self.config
         with self.timer:
             alpha = self.sp.set_step(self.step_index, c.steps)

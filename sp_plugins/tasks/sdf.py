@@ -21,7 +21,7 @@ from torch import Tensor
 
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import Frame, sample_surface
-from sp_plugins.tasks.common import SDFTrainer, run_to_end
+from sp_plugins.tasks.trainer import SDFTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
 from sp_plugins.tasks.settings import MeshedFitSettings
 

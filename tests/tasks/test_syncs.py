@@ -57,7 +57,7 @@ def test_no_training_step_of_ours_syncs(blob_points, blob_mesh, tiny_grid):
 
 
 def test_a_fit_reads_its_numbers_once_per_logging_interval(blob_points, tiny_grid):
-    from sp_plugins.tasks.common import LOG_EVERY
+    from sp_plugins.tasks.trainer import LOG_EVERY
 
     trainer = PointCloudSDFConfig(steps=2 * LOG_EVERY + 10, surface_batch=64, space_batch=64, encoding=tiny_grid,
                                   hidden=(16,)).setup(blob_points)
