@@ -104,7 +104,7 @@ ENTRIES: Dict[str, str] = {
     "nerfstudio_marching_cubes": "sp_plugins.patches.nerfstudio_marching_cubes",
     "nerfstudio_lpips": "sp_plugins.patches.nerfstudio_lpips",
     "nerfbaselines_lpips": "sp_plugins.patches.nerfbaselines_lpips",
-    "host_warnings": "sp_plugins.host_warnings",
+    "host_warnings": "sp_plugins.patches.host_warnings",
     "input_error_hook": "sp_plugins.patches.input_error_hook",
     "sdfstudio_import_hook": "sp_plugins.patches.sdfstudio_import_hook",
     "sdfstudio_dataclasses": "sp_plugins.patches.sdfstudio_dataclasses",

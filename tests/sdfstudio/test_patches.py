@@ -304,7 +304,7 @@ def state():
             "filter_entries": list(warnings.filters), "meta_path": list(sys.meta_path), "six": "torch._six" in sys.modules,
             "cuda": (torch.cuda.synchronize, torch.cuda.set_device, torch.Tensor.cuda), "modules": dict(sys.modules)}
 
-from sp_plugins.host_warnings import HOST_WARNINGS
+from sp_plugins.patches.host_warnings import HOST_WARNINGS
 OURS = {message for _, message, _ in HOST_WARNINGS}
 
 def changed(before, after):

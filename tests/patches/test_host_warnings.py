@@ -9,7 +9,7 @@ which tests ran before."""
 import gc
 import warnings
 
-from sp_plugins.host_warnings import HOST_WARNINGS, host_warnings_shown
+from sp_plugins.patches.host_warnings import HOST_WARNINGS, host_warnings_shown
 from sp_plugins.patches import registry
 
 INDEXING = "Using a non-tuple sequence for multidimensional indexing is deprecated and will be changed in pytorch 2.9"
