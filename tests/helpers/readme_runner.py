@@ -67,6 +67,8 @@ BUDGET: Tuple[Tuple[str, str, str], ...] = (
     (r"\bsp-sdfstudio-train \S+", "--trainer.max-num-iterations", "2"),
     (r"\bsp-sdfstudio-train \S+", "--pipeline.datamanager.train-num-rays-per-batch", "64"),
     (r"\bsp-sdfstudio-extract-mesh\b", "--resolution", "64"),
+    (r"\bnerfbaselines train\b", "--set max_num_iterations", "2"),  # (--set key=value: the value after "=")
+    (r"\bnerfbaselines train\b", "--set pipeline.datamanager.train_num_rays_per_batch", "64"),
 )
 HEAD_PLACED = (r"\bsp-sweep\b",)
 
