@@ -84,7 +84,7 @@ MUTATIONS: List[Mutation] = [
              "        return moved\n", "        return plain\n", (SDF_TRAINS, SDF_MOVES)),
     # -- where SP moved a query, not only that it moved (issue 44: the exact-value tests) -----------
     Mutation("nerfstudio seam: SDF fields' offset taken at the midpoint", "sp_plugins/nerfstudio/seam.py",
-             "at_start = isinstance(self, SDFField)", "at_start = False", (NS_EXACT,)),
+             "((SDFField, Frustums.get_start_positions),)", "((SDFField, Frustums.get_positions),)", (NS_EXACT,)),
     Mutation("nerfstudio seam: K-draw normals not recomputed", "sp_plugins/nerfstudio/seam.py",
              "outputs[FieldHeadNames.NORMALS] = F.normalize(outputs[FieldHeadNames.GRADIENT], p=2, dim=-1)",
              "outputs[FieldHeadNames.NORMALS] = outputs[FieldHeadNames.NORMALS]", (NS_EXACT,)),

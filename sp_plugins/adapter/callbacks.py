@@ -1,14 +1,16 @@
 """Training callbacks that drive a :class:`StochasticPreconditioner` from a host's trainer.
 
-Both hosts are a package named ``nerfstudio`` with the same ``nerfstudio.engine.callbacks``
-(``TrainingCallback``, its locations and attributes), imported lazily here, so one module serves
-both. What differs is where the run's length lives (nerfstudio 1.x: ``attributes.trainer.config``;
-sdfstudio: ``attributes.config``) and the flag that sets it, which the model passes.
+Host-neutral: a host's callback object is made by the function the model passes
+(:meth:`sp_plugins.adapter.model.SPModelBase.sp_training_callback`, ``make(where, func)``), and the
+host's optimizer config class is passed to :func:`alpha_grid_optimizer`. What the two hosts' trainers
+differ in is read from the callback attributes by name: where the run's length lives (nerfstudio
+1.x: ``attributes.trainer.config``; sdfstudio: ``attributes.config``) and the flag that sets it,
+which the model passes.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, List, Optional
+from typing import Any, Callable, List, Literal, Optional
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
@@ -16,14 +18,17 @@ from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
 ALPHA_GRID_GROUP = "sp_alpha_grid"
 """Name of the optimizer param group holding a learnable alpha grid."""
 
+Where = Literal["before", "after"]
+"""When a training callback runs: before or after every training iteration."""
+MakeCallback = Callable[[Where, Callable[[int], None]], Any]
+"""``make(where, func)``: the host's training callback calling ``func(step)`` at ``where``."""
 
-def alpha_grid_optimizer(sp_config: SPConfig) -> dict:
-    """The optimizer entry for a learnable alpha grid (``--pipeline.model.sp.alpha-grid True``).
-    Every SP method config carries it: the hosts need an entry per parameter group, and an entry
-    without a group (alpha grid off) is never used."""
-    from nerfstudio.engine.optimizers import AdamOptimizerConfig
 
-    return {"optimizer": AdamOptimizerConfig(lr=sp_config.alpha_grid_lr, eps=1e-15), "scheduler": None}
+def alpha_grid_optimizer(sp_config: SPConfig, adam: Callable[..., Any]) -> dict:
+    """The optimizer entry for a learnable alpha grid (``--pipeline.model.sp.alpha-grid True``),
+    ``adam`` being the host's ``AdamOptimizerConfig``. Every SP method config carries it: the hosts
+    need an entry per parameter group, and an entry without a group (alpha grid off) is never used."""
+    return {"optimizer": adam(lr=sp_config.alpha_grid_lr, eps=1e-15), "scheduler": None}
 
 
 def trainer_total_steps(attributes: Any) -> Optional[int]:
@@ -64,34 +69,31 @@ def sync_alpha_grid_lr(sp: StochasticPreconditioner, attributes: Any) -> None:
         group["initial_lr"] = sp.config.alpha_grid_lr
 
 
-def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int]):
+def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int], make: MakeCallback) -> Any:
     """Before every iteration, move ``sp`` to the trainer's step (with ``total_steps`` None, the
     total saved in ``sp``'s state is kept). A resumed run starts at the checkpoint's step + 1, so it
     continues at the alpha it stopped at."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
     def step_to(step: int) -> None:
         sp.set_step(step, total_steps)
 
-    return TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], func=step_to, update_every_num_iters=1)
+    return make("before", step_to)
 
 
-def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes: Any):
+def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes: Any, make: MakeCallback) -> Any:
     """A schedule of a model's own (FreeNeRF's frequency mask, Neuralangelo's coarse-to-fine) as one
     callback: ``at(step, total)`` is applied now, at the step training starts (0, or a resumed
     run's), and then before every iteration, with the run's length from ``attributes``."""
-    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-
     total = trainer_total_steps(attributes)
     at(start_step(attributes) or 0, total)
 
     def update(step: int) -> None:
         at(step, total)
 
-    return TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], update, update_every_num_iters=1)
+    return make("before", update)
 
 
-def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, steps_flag: str = "--max-num-iterations") -> List[Any]:
+def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, make: MakeCallback, steps_flag: str = "--max-num-iterations") -> List[Any]:
     """Everything a model with SP registers: the schedule (checked against the run's length, one
     line naming the flags when it does not fit), plus the alpha grid's learning rate."""
     total = trainer_total_steps(attributes)
@@ -104,4 +106,4 @@ def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, steps_flag: str 
         # the schedule callback moves to the trainer's step before every iteration either way
         sp.set_step(int(sp.step) if start is None else start, total)
     sync_alpha_grid_lr(sp, attributes)
-    return [schedule_callback(sp, total)]
+    return [schedule_callback(sp, total, make)]

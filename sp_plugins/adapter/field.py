@@ -54,9 +54,9 @@ class SPFieldMixin:
         sp = self.sp
         return sp is not None and bool(getattr(self, "training", False)) and sp.active
 
-    def perturbed(self, run_once: Callable[[], T]) -> T:
-        """``run_once()`` (which perturbs through ``self.sp``), averaged over ``num_samples``
-        draws, and counted."""
+    def mean_over_draws(self, run_once: Callable[[], T]) -> T:
+        """``run_once()`` (which perturbs through ``self.sp``), averaged over ``num_samples`` draws
+        (:meth:`StochasticPreconditioner.mean_over_draws`), and counted as one moved call."""
         assert self.sp_handle is not None and self.sp_handle.sp is not None
         self.sp_handle.perturbed_calls += 1
         return self.sp_handle.sp.mean_over_draws(run_once)

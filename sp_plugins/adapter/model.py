@@ -1,34 +1,40 @@
 """The model side of every adapter: the preconditioner, its optimizer group, callbacks, metrics.
 
 Each host's ``SPModel`` (``sp_plugins.nerfstudio.model``, ``sp_plugins.sdfstudio.model``) is this
-class plus the host's few differences; it and :class:`SPModelConfig` go first among the bases of
-an SP model and its config (the hosts' ``variants`` modules make those subclasses on demand)::
+class plus what that host must provide, declared here as abstract methods (in the manner of
+nerfstudio's ``Model.get_outputs``): :meth:`SPModelBase.attach_sp`, :meth:`SPModelBase.check_sp_reached`,
+:meth:`SPModelBase.sp_preset`, :meth:`SPModelBase.sp_scene_aabb` and :meth:`SPModelBase.sp_training_callback`.
+It and :class:`SPModelConfig` go first among the bases of an SP model and its config (the hosts'
+``variants`` modules make those subclasses on demand)::
 
     class SPModelConfig__NeuSModelConfig(SPModelConfig, NeuSModelConfig): ...
-    class SPModel__NeuSModel(SPModel, NeuSModel):   # SPModel = SPModelBase + host differences
-        def attach_sp(self): ...    # put the seam on the fields the host built
+    class SPModel__NeuSModel(SPModel, NeuSModel):   # SPModel = SPModelBase + the host's methods
+        ...
 
-The mixin then
+The base then
 
 - builds ``self.sp`` (a :class:`StochasticPreconditioner`) from ``config.sp`` before the host's
   modules, bounded by :meth:`SPModelBase.sp_bounds` and with the scene box's diagonal as the scale
-  for relative alphas;
+  for relative alphas, and hands it to the host's fields (:meth:`SPModelBase.attach_sp`);
 - registers it as a submodule, so its step, total and alpha grid are in every checkpoint;
 - exposes a learnable alpha grid as the optimizer group ``sp_alpha_grid``;
 - drives the schedule from the trainer (step and ``max_num_iterations``);
+- runs the host's "reached" check once, after the first training step with alpha > 0;
 - logs ``sp_alpha`` with the training metrics.
 
-Both hosts are a package named ``nerfstudio``; this module imports neither at module level.
+This module imports no host: what it needs of one comes through the declared methods.
 """
 
 from __future__ import annotations
 
+import abc
+import inspect
 from dataclasses import dataclass, field
-from typing import Any, Dict, List
+from typing import Any, Callable, Dict, List, Tuple
 
 import torch
 
-from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, sp_callbacks
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, Where, sp_callbacks
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 
 
@@ -46,12 +52,63 @@ def box_diagonal(aabb: torch.Tensor) -> float:
     return float(torch.linalg.norm(aabb[1] - aabb[0]))
 
 
+def unimplemented(cls: type) -> Tuple[str, ...]:
+    """The abstract methods of :class:`SPModelBase` that ``cls`` leaves unimplemented."""
+    return tuple(name for name in sorted(dir(cls))
+                 if getattr(inspect.getattr_static(cls, name, None), "__isabstractmethod__", False))
+
+
 class SPModelBase:
-    """Mixin for a host ``Model``; list it before the host model class."""
+    """Mixin for a host ``Model``; list it before the host model class.
+
+    A class that puts this mixin on a host model (an ``nn.Module``) must implement every method
+    marked abstract here; one that does not is refused when it is defined (a ``TypeError`` naming
+    the method), not at its first training step. (``abc.ABCMeta`` cannot be used: host models'
+    metaclass is torch's ``type``, and our variants are made with ``type(...)``.)"""
 
     sp: StochasticPreconditioner
     steps_flag = "--max-num-iterations"
     """The flag that sets the run's length in this host's ``ns-train`` (named in errors)."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        missing = unimplemented(cls) if issubclass(cls, torch.nn.Module) else ()
+        if missing:
+            raise TypeError(f"{cls.__qualname__} puts SP on a host model but does not implement {', '.join(missing)} "
+                            "(the methods SPModelBase declares abstract)")
+
+    # -- what a host provides ----------------------------------------------------------------------
+    @abc.abstractmethod
+    def attach_sp(self) -> None:
+        """Hand ``self.sp`` to the fields the host built (after its ``populate_modules``); raise
+        :class:`~sp_plugins.adapter.errors.InputError` when no field can be reached."""
+
+    @abc.abstractmethod
+    def check_sp_reached(self, step: int) -> None:
+        """Raise :class:`~sp_plugins.adapter.errors.InputError` unless a field query *read* positions
+        that SP *moved* in the training step ``step`` that just ran (the first with alpha > 0; the
+        base calls this once per run)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def sp_preset(cls, model_config: Any) -> SPConfig:
+        """A fresh copy of the SP settings ``with_sp`` gives the host ``model_config`` (its paper
+        preset, or :data:`sp_plugins.adapter.presets.DEFAULT`)."""
+
+    @abc.abstractmethod
+    def sp_scene_aabb(self) -> torch.Tensor:
+        """The scene's box ``[2, 3]`` (min, max) in the units SP's alpha is given in."""
+
+    @abc.abstractmethod
+    def sp_training_callback(self, where: Where, func: Callable[[int], None]) -> Any:
+        """A host training callback that calls ``func(step)`` ``"before"`` or ``"after"`` every
+        training iteration."""
+
+    # -- shared by every host ----------------------------------------------------------------------
+    @classmethod
+    def sp_host_class(cls) -> type:
+        """The host model class this SP class is built on (the first base not of sp_plugins)."""
+        return next(c for c in cls.__mro__ if not c.__module__.startswith("sp_plugins."))
 
     def sp_bounds(self, aabb: torch.Tensor) -> Any:
         """The box SP reflects into: the scene box here; sdfstudio uses its contraction's range."""
@@ -59,7 +116,7 @@ class SPModelBase:
 
     def build_preconditioner(self) -> StochasticPreconditioner:
         """``config.sp`` set up over :meth:`sp_bounds`; the total steps come later from the trainer."""
-        aabb = self.scene_box.aabb  # type: ignore[attr-defined]
+        aabb = self.sp_scene_aabb()
         return self.config.sp.setup(scene_diagonal=box_diagonal(aabb), bounds=self.sp_bounds(aabb), dim=3)  # type: ignore[attr-defined]
 
     def populate_modules(self) -> None:
@@ -71,8 +128,12 @@ class SPModelBase:
         """The host model's own ``populate_modules``."""
         super().populate_modules()  # type: ignore[misc]
 
-    def attach_sp(self) -> None:
-        """Hand ``self.sp`` to the fields that perturb positions (host and method specific)."""
+    def check_first_step(self, step: int) -> None:
+        """After every training step until the first with alpha > 0: then :meth:`check_sp_reached`, once."""
+        if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
+            return
+        self._sp_reach_checked = True
+        self.check_sp_reached(step)
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
         groups = super().get_param_groups()  # type: ignore[misc]
@@ -82,7 +143,8 @@ class SPModelBase:
 
     def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
         callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]
-        return list(callbacks) + sp_callbacks(self.sp, training_callback_attributes, self.steps_flag)
+        ours = sp_callbacks(self.sp, training_callback_attributes, self.sp_training_callback, self.steps_flag)
+        return list(callbacks) + ours + [self.sp_training_callback("after", self.check_first_step)]
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
         metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]

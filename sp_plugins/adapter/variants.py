@@ -72,16 +72,40 @@ def import_class(path: str) -> type:
 class VariantFactory:
     """Makes, caches and resolves the SP variants of host classes for one module.
 
+    The factory is a leaf: it imports none of the host adapter's modules. The mixin each kind of
+    variant puts first among its bases (a host's ``SPModel``, its seam field) is registered with it
+    by the module that defines that mixin (:meth:`register`, at that module's import); ``providers``
+    names those modules, so that a saved ``config.yml`` naming a variant, read in a fresh process
+    where they are not imported yet, still finds the mixin (:meth:`mixin`).
+
     Args:
         module: the module that holds the variants and resolves them in its ``__getattr__``.
         builders: for each kind (``"Model"``, ``"ModelConfig"``, ``"Field"``...), a function
             ``(host_class, name, module) -> class`` that makes the subclass under that name.
+        providers: kind -> the module that registers that kind's mixin when it is imported.
     """
 
-    def __init__(self, module: str, builders: Dict[str, Callable[[type, str, str], type]]) -> None:
+    def __init__(self, module: str, builders: Dict[str, Callable[[type, str, str], type]],
+                 providers: Optional[Dict[str, str]] = None) -> None:
         self.module = module
         self.builders = builders
+        self.providers = dict(providers or {})
+        self._mixins: Dict[str, type] = {}
         self._made: Dict[Tuple[str, type], type] = {}
+
+    def register(self, kind: str, mixin: type) -> type:
+        """Make ``mixin`` the first base of every ``kind`` variant; returns it."""
+        self._mixins[kind] = mixin
+        return mixin
+
+    def mixin(self, kind: str) -> type:
+        """The mixin registered for ``kind``, importing its provider module first if needed."""
+        if kind not in self._mixins and kind in self.providers:
+            importlib.import_module(self.providers[kind])
+        try:
+            return self._mixins[kind]
+        except KeyError:
+            raise LookupError(f"no {kind} mixin is registered with {self.module}") from None
 
     def name(self, kind: str, host: type) -> str:
         return f"{PREFIX}{kind}{SEPARATOR}{encode_path(class_path(host))}"
@@ -155,12 +179,11 @@ def convert(config: Any, cls: type, **changes: Any) -> Any:
     return cls(**values)
 
 
-def table_refusal(config: Any, *tables: Any) -> Tuple[Optional[type], Optional[str]]:
-    """``(model class, reason)`` for a host trainer ``config``: why SP cannot be put on it as far as
+def table_refusal(model_config: Any, *tables: Any) -> Tuple[Optional[type], Optional[str]]:
+    """``(model class, reason)`` for a host ``model_config``: why SP cannot be put on it as far as
     classes tell (no model class; the first entry of ``tables``, dicts of class path -> reason or
     of class path -> callable giving a reason or None, that names the model class or a base), or
     ``(model class, None)``. A method that is ours already (its model config has ``sp``) passes."""
-    model_config = getattr(getattr(config, "pipeline", None), "model", None)
     model = target_class(model_config)
     if model is None:
         return None, "its model config has no model class (_target) to subclass"
@@ -175,15 +198,14 @@ def table_refusal(config: Any, *tables: Any) -> Tuple[Optional[type], Optional[s
     return model, None
 
 
-def refuse_or_switch_on(config: Any, reason: Optional[str], sp: Any) -> bool:
+def refuse_or_switch_on(method_name: str, model_config: Any, reason: Optional[str], sp: Any) -> bool:
     """The start of each host's ``with_sp`` (the same in both): raise ``ValueError("SP cannot be put
-    on <method>: <reason>")`` when ``reason`` is set; for a model config that is ours already (it
-    has ``sp``), switch SP on (an explicit ``sp`` wins) and return True; else return False, and the
-    host converts the model config to its SP variant."""
+    on <method_name>: <reason>")`` when ``reason`` is set; for a ``model_config`` that is ours already
+    (it has ``sp``), switch SP on (an explicit ``sp`` wins) and return True; else return False, and
+    the host converts the model config to its SP variant."""
     if reason:
-        raise ValueError(f"SP cannot be put on {config.method_name}: {reason}")
-    model = config.pipeline.model
-    if not hasattr(model, "sp"):
+        raise ValueError(f"SP cannot be put on {method_name}: {reason}")
+    if not hasattr(model_config, "sp"):
         return False
-    model.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model.sp, enabled=True)
+    model_config.sp = copy.deepcopy(sp) if sp is not None else dataclasses.replace(model_config.sp, enabled=True)
     return True

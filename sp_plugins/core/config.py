@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal, Optional, Type
 
 from sp_plugins.core.alpha_grid import AlphaGridParameterization, check_parameterization
 from sp_plugins.core.boundary import BoundaryKind, check_boundary_kind
 from sp_plugins.core.noise import NoiseKind, check_noise_kind
+from sp_plugins.core.preconditioner import StochasticPreconditioner
 from sp_plugins.core.schedule import SCHEDULE_KINDS, ScheduleKind
-from sp_plugins.core.stencil import STENCIL_KINDS  # noqa: F401  (re-exported for docs)
 
 
 AlphaGridMode = Literal["replace", "scaled"]
 ALPHA_GRID_MODES: tuple[str, ...] = ("replace", "scaled")
-
-
-def _preconditioner():
-    from sp_plugins.core.preconditioner import StochasticPreconditioner
-
-    return StochasticPreconditioner
 
 
 @dataclass
@@ -27,7 +22,7 @@ class SPConfig:
     """Stochastic preconditioning settings. Nested as ``sp`` in every model config, so
     ``--pipeline.model.sp.alpha0 0.01`` means the same on every method."""
 
-    _target: Type = field(default_factory=_preconditioner)
+    _target: Type = field(default_factory=lambda: StochasticPreconditioner)
     enabled: bool = True
     """Perturb query positions while training. False gives the plain baseline."""
     alpha0: float = 0.01
@@ -75,8 +70,6 @@ class SPConfig:
 
     def validate(self) -> None:
         """Raise a ValueError naming the first bad setting."""
-        import math
-
         check_noise_kind(self.noise)
         check_boundary_kind(self.boundary)
         if self.schedule not in SCHEDULE_KINDS:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-from typing import Any, Callable, Optional, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Optional, TypeVar
 
 import torch
 from jaxtyping import Float
@@ -13,9 +13,11 @@ from torch import Tensor, nn
 
 from sp_plugins.core.alpha_grid import AlphaGrid
 from sp_plugins.core.boundary import BoundsLike, as_bounds
-from sp_plugins.core.config import SPConfig
 from sp_plugins.core.perturb import compute_dtype, perturb, perturbed_mean
 from sp_plugins.core.schedule import AlphaSchedule
+
+if TYPE_CHECKING:  # the config names this class as its _target: a type-only import the other way
+    from sp_plugins.core.config import SPConfig
 
 log = logging.getLogger(__name__)
 
@@ -81,12 +83,12 @@ class StochasticPreconditioner(nn.Module):
         self.scene_diagonal = scene_diagonal if config.relative_to_diagonal else None
         if config.boundary != "none" and bounds is None:
             raise ValueError(f"boundary={config.boundary!r} needs the scene bounds; pass bounds or use boundary='none'")
-        self._bounds = None
+        self._has_bounds = False
         if bounds is not None:
             lo, hi = as_bounds(bounds, dim, torch.zeros(()))
             self.register_buffer("bounds_lo", lo, persistent=False)
             self.register_buffer("bounds_hi", hi, persistent=False)
-            self._bounds = True
+            self._has_bounds = True
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         self.register_buffer("total_steps", torch.tensor(-1 if total_steps is None else int(total_steps)))
         self._step = 0
@@ -261,7 +263,7 @@ class StochasticPreconditioner(nn.Module):
 
     def _kwargs(self, x: Tensor) -> dict:
         bounds = None
-        if self._bounds and self.config.boundary != "none":
+        if self._has_bounds and self.config.boundary != "none":
             dtype = compute_dtype(x.dtype)
             bounds = (self.bounds_lo.to(dtype), self.bounds_hi.to(dtype))
         return dict(

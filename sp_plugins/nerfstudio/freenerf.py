@@ -45,9 +45,10 @@ from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from nerfstudio.models.mipnerf import MipNerfModel
 from torch import Tensor
 
+from sp_plugins.adapter import presets
 from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.core import SPConfig
-from sp_plugins.nerfstudio.mipnerf import MIPNERF_SP, SPMipNerfModel, SPMipNerfModelConfig
+from sp_plugins.nerfstudio.mipnerf import SPMipNerfModel, SPMipNerfModelConfig
 
 OCCLUSION_LOSS = "occ_reg_loss"
 OCCLUSION_OUTPUT = "occ_reg"
@@ -125,7 +126,7 @@ class FreeNeRFModelConfig(SPMipNerfModelConfig):
     """MipNeRF + FreeNeRF's frequency and occlusion regularisation (SP off; ``sp-train`` turns it on)."""
 
     _target: Type = field(default_factory=lambda: FreeNeRFModel)
-    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(MIPNERF_SP, enabled=False))
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(presets.MIPNERF, enabled=False))
     freq_reg: bool = True
     """Mask the position encoding's frequency bands, opened linearly until ``freq_reg_end``."""
     freq_reg_end: float = 0.7
@@ -197,7 +198,7 @@ class FreeNeRFModel(SPMipNerfModel, FreeNeRFLosses):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        return callbacks + [model_schedule_callback(self.frequency_mask_at, training_callback_attributes)]
+        return callbacks + [model_schedule_callback(self.frequency_mask_at, training_callback_attributes, self.sp_training_callback)]
 
     def get_outputs(self, ray_bundle) -> Dict[str, Tensor]:
         c = self.config

@@ -18,21 +18,25 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 
 from __future__ import annotations
 
-from typing import Dict, List
+from typing import Any, Callable, Dict, List
 
 import torch
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import class_path, target_class
 from sp_plugins.core import SPConfig, StochasticPreconditioner
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, Where
 from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.nerfstudio import table
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
+from sp_plugins.nerfstudio import variants
+from sp_plugins.nerfstudio.registration import preset_for
+from sp_plugins.nerfstudio.seam import attach_seam, check_reached, seam_fields
 
 __all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
@@ -119,27 +123,28 @@ class SPModel(adapter_model.SPModelBase):
         refuse_unreachable_settings(self.config)  # type: ignore[attr-defined]  (runs not started by ns-train)
         return super().build_preconditioner()
 
+    # -- what SPModelBase asks of a host -------------------------------------------------------------
+    @classmethod
+    def sp_preset(cls, model_config: Any) -> SPConfig:
+        return preset_for(cls.sp_host_class())
+
+    def sp_scene_aabb(self) -> torch.Tensor:
+        return self.scene_box.aabb  # type: ignore[attr-defined]
+
+    def sp_training_callback(self, where: Where, func: Callable[[int], None]) -> TrainingCallback:
+        at = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION if where == "before" else TrainingCallbackLocation.AFTER_TRAIN_ITERATION
+        return TrainingCallback([at], func, update_every_num_iters=1)
+
     # -- the seam --------------------------------------------------------------------------------
-    def sp_host_class(self) -> type:
-        """The host model class this SP variant is built on."""
-        return next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins."))
-
-    def sp_host_name(self) -> str:
-        return class_path(self.sp_host_class())
-
     def sp_plain_fields(self) -> Dict[str, str]:
         return merged(table.PLAIN_FIELDS, type(self))
 
     def sp_fields(self) -> List[torch.nn.Module]:
         """The fields that carry the seam."""
-        from sp_plugins.nerfstudio.seam import seam_fields
-
         return [f for _, f in seam_fields(self)]  # type: ignore[arg-type]
 
     def attach_sp(self) -> None:
-        from sp_plugins.nerfstudio.seam import attach_seam
-
-        host = self.sp_host_name()
+        host = class_path(self.sp_host_class())
         if not attach_seam(self, self.sp, self.sp_plain_fields()):  # type: ignore[arg-type]
             raise InputError(
                 f"SP cannot reach {host}: none of its modules is a nerfstudio Field or takes ray_samples in forward, so "
@@ -150,27 +155,21 @@ class SPModel(adapter_model.SPModelBase):
         return sum(f.sp_handle.perturbed_calls for f in self.sp_fields() if f.sp_handle is not None)  # type: ignore[union-attr]
 
     def check_sp_reached(self, step: int) -> None:
-        """After the first training step with alpha > 0: the fields read the moved positions."""
-        if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
-            return
-        self._sp_reach_checked = True
-        from sp_plugins.nerfstudio.seam import check_reached
-
-        check_reached(self, self.sp_host_name(), step, self.sp.config.boundary)  # type: ignore[arg-type]
+        """After the first training step with alpha > 0: the fields read the moved positions, and a
+        learnable alpha grid got a gradient."""
+        host = class_path(self.sp_host_class())
+        check_reached(self, host, step, self.sp.config.boundary)  # type: ignore[arg-type]
         grid = self.sp.alpha_grid
         if grid is not None and all(p.grad is None or not bool(p.grad.any()) for p in grid.parameters()):
             raise InputError(
-                f"--pipeline.model.sp.alpha-grid True cannot learn on {self.sp_host_name()}: no gradient reached the alpha "
+                f"--pipeline.model.sp.alpha-grid True cannot learn on {host}: no gradient reached the alpha "
                 "grid in the first training step (the field detaches the positions it reads); use a global alpha (the default)"
             )
 
     # -- training -------------------------------------------------------------------------------
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        from nerfstudio.engine.callbacks import TrainingCallbackLocation
-
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        reached = TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_sp_reached, update_every_num_iters=1)
-        return callbacks + [reached, divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes)]
+        return callbacks + [divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes)]
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         losses = super().get_loss_dict(outputs, batch, metrics_dict)  # type: ignore[misc]
@@ -179,10 +178,11 @@ class SPModel(adapter_model.SPModelBase):
         return losses
 
     def _lr_groups(self) -> List[str]:
-        from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
-
         return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]
 
     def get_image_metrics_and_images(self, outputs, batch):
         metrics, images = super().get_image_metrics_and_images(outputs, batch)  # type: ignore[misc]
         return drop_missing_lpips(self, metrics), images  # type: ignore[arg-type]
+
+
+variants.FACTORY.register("Model", SPModel)

@@ -222,7 +222,7 @@ class NeuralangeloLiteModel(SPNeuSModel):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        return callbacks + [model_schedule_callback(self.coarse_to_fine_at, training_callback_attributes)]
+        return callbacks + [model_schedule_callback(self.coarse_to_fine_at, training_callback_attributes, self.sp_training_callback)]
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         losses = super().get_loss_dict(outputs, batch, metrics_dict)

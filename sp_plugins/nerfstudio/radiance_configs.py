@@ -5,15 +5,11 @@
   ``sp-relu-field``. The grid here has 257 vertices per axis so every upsampling is exact.
 - ``sp-mipnerf``: nerfstudio's mipnerf settings (RAdam 5e-4, 1024 rays, 128 + 128 samples) with
   SP on the Gaussian means (alpha0 0.04, exponential to 0 by step 2500 of the preset's 7500,
-  a third of training when a run is shortened). With sparse views (3 of 49) that preset changes
-  nothing; alpha0 about the object's radius (``--pipeline.model.sp.alpha0 1.0`` on the DTU-like
-  scenes) with the same end lifts whole-image SSIM on every seed measured and object PSNR on 4 of 6
-  (Spot and cow, 3 seeds each); at 6 views +4.5 dB inside the object on Spot (SSIM 0.14 -> 0.68;
-  FreeNeRF-lite: +7.0 dB, 0.77) and +2.9 dB on the cow; at 9 views of Spot +9.4 dB, ahead of
-  FreeNeRF-lite on every seed (issue 31, ``bench/RESULTS.md``; guarded by the opt-in
-  ``tests/bench/test_sparse_views_gap.py``, ``SP_SLOW_TESTS=1``). Only where MipNeRF fails (held-out
-  views of fog): on the cow at 9 views it costs 0.4 dB, and on a white background, where MipNeRF does
-  not fail, it does harm (-7.7 dB over three seeds of the white 6-view Spot).
+  a third of training when a run is shortened). With sparse views that preset changes nothing;
+  alpha0 about the object's radius (``--pipeline.model.sp.alpha0 1.0`` on the DTU-like scenes)
+  helps only where MipNeRF fails (held-out views of fog) and harms where it does not (a white
+  background): the figures are in ``bench/RESULTS.md`` ("Sparse views against FreeNeRF-lite"),
+  guarded by the opt-in ``tests/bench/test_sparse_views_gap.py`` (``SP_SLOW_TESTS=1``).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
   SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on
   :class:`~sp_plugins.nerfstudio.components.hash_encoding.NerfactoHashGridModel`, our hash grids where tcnn
@@ -58,8 +54,6 @@ class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     """torch.optim.Adam's fused implementation; None lets torch choose."""
 
 
-RELU_FIELD_STEPS = presets.RELU_FIELD_STEPS
-RELU_FIELD_SP = presets.RELU_FIELD
 MIPNERF_STEPS = 7_500
 """sp-mipnerf's preset length: SP ends at the paper's step 2500, a third of training (the paper's
 "by 1/3 of training at the latest"); nerfstudio's own mipnerf preset has no length (1M steps)."""
@@ -67,7 +61,7 @@ MIPNERF_STEPS = 7_500
 
 def _with_sp_optimizer(config: TrainerConfig, description: str) -> MethodSpecification:
     """The method spec, with the optimizer entry a learnable alpha grid needs."""
-    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp, AdamOptimizerConfig)
     return MethodSpecification(config=config, description=description)
 
 
@@ -77,7 +71,7 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         hierarchy_stages=stages,
         num_samples=512,
         eval_num_rays_per_chunk=4096,
-        sp=dataclasses.replace(RELU_FIELD_SP, enabled=sp),
+        sp=dataclasses.replace(presets.RELU_FIELD, enabled=sp),
     )
     config = checked_trainer(
         name,
@@ -85,7 +79,7 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         model,
         {"fields": {"optimizer": FusedAdamOptimizerConfig(lr=0.03, eps=1e-15), "scheduler": None}},
         viewer_rays=1 << 14,
-        steps_per_eval_batch=500, steps_per_eval_image=500, steps_per_save=2000, max_num_iterations=RELU_FIELD_STEPS,
+        steps_per_eval_batch=500, steps_per_eval_image=500, steps_per_save=2000, max_num_iterations=presets.RELU_FIELD_STEPS,
         mixed_precision=False,
     )
     return _with_sp_optimizer(config, description)

@@ -28,6 +28,7 @@ from sp_plugins.adapter.variants import convert, table_refusal, target_class
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio import table
 
+
 def _cuda_available() -> bool:
     import torch
 
@@ -42,7 +43,7 @@ def refusal(config: Any) -> Optional[str]:
     if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
         return "it is an external method that is not installed; install it, then it is listed here"
     cuda = {path: (lambda why=why: None if _cuda_available() else why) for path, why in table.NEEDS_CUDA.items()}
-    return table_refusal(config, table.REFUSED_MODELS, cuda)[1]
+    return table_refusal(getattr(getattr(config, "pipeline", None), "model", None), table.REFUSED_MODELS, cuda)[1]
 
 
 def preset_for(model: type) -> SPConfig:
@@ -57,6 +58,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     ``sp`` defaults to :func:`preset_for` the host model; ``name`` to ``sp-<method name>``.
     A method that is already ours (its model config has ``sp``) comes back with SP enabled.
     Raises ``ValueError`` naming the reason when SP cannot reach the method."""
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.plugins.types import MethodSpecification
 
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
@@ -69,12 +71,12 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     config = checked(copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec))  # ns-train checks before writing
     base_description = getattr(spec, "description", "") or config.method_name
     model = config.pipeline.model
-    if not refuse_or_switch_on(config, refusal(config), sp):
-        sp_config = copy.deepcopy(sp) if sp is not None else preset_for(target_class(model))
+    if not refuse_or_switch_on(config.method_name, model, refusal(config), sp):
+        sp_config = copy.deepcopy(sp) if sp is not None else variant("Model", target_class(model)).sp_preset(model)
         config_cls = variant("ModelConfig", type(model))
         config.pipeline.model = convert(model, config_cls, _target=variant("Model", target_class(model)), sp=sp_config)
     config.method_name = name or (config.method_name if config.method_name.startswith("sp-") else f"sp-{config.method_name}")
-    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp, AdamOptimizerConfig)
     with_float_schedulers(config.optimizers)  # the host's numpy learning rates break torch.load in ns-eval
     text = description or f"{base_description} + stochastic preconditioning of the sample positions (sp-plugins)."
     return MethodSpecification(config=config, description=text)

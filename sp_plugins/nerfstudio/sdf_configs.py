@@ -34,9 +34,6 @@ from sp_plugins.nerfstudio.components.trainer import checked_trainer
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
-NEUS_SP = presets.NEUS
-NEURALANGELO_SP = presets.NEURALANGELO
-
 
 def _optimizer(lr: float, steps: int, warm_up_end: int) -> dict:
     return {
@@ -57,7 +54,7 @@ def sdf_trainer_config(method_name: str, model, steps: int, lr: float, warm_up_e
             "fields": _optimizer(lr, steps, warm_up_end),
             GRID_GROUP: _optimizer(lr, steps, warm_up_end),  # the hash-grid tables: same settings unless swept
             "field_background": _optimizer(lr, steps, warm_up_end),
-            ALPHA_GRID_GROUP: alpha_grid_optimizer(sp),
+            ALPHA_GRID_GROUP: alpha_grid_optimizer(sp, AdamOptimizerConfig),
         },
         viewer_rays=1 << 12,
         steps_per_eval_image=500, steps_per_eval_batch=5000, steps_per_save=20000, steps_per_eval_all_images=1000000,
@@ -73,7 +70,7 @@ def neus_method(name: str, *, hash_grid: bool, sp: bool, description: str) -> Me
     field = SPSDFFieldConfig(use_grid_feature=hash_grid, **(PAPER_HASH_GRID if hash_grid else {}))
     if hash_grid:  # a small MLP on the grid, as in nerfstudio's neus-facto
         field = dataclasses.replace(field, num_layers=2, num_layers_color=2, hidden_dim=256)
-    model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, sp=_sp(NEUS_SP, sp))
+    model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, sp=_sp(presets.NEUS, sp))
     return MethodSpecification(config=sdf_trainer_config(name, model, 100_000, 5e-4, 5000), description=description)
 
 
@@ -81,7 +78,7 @@ def neuralangelo_method(name: str, *, sp: bool, description: str, alpha_grid: Op
     field = SPSDFFieldConfig(
         use_grid_feature=True, numerical_gradients=True, num_layers=2, num_layers_color=2, hidden_dim=256, **PAPER_HASH_GRID
     )
-    sp_config = _sp(NEURALANGELO_SP, sp)
+    sp_config = _sp(presets.NEURALANGELO, sp)
     if alpha_grid is not None:
         sp_config = dataclasses.replace(sp_config, alpha_grid=alpha_grid)
     model = NeuralangeloLiteModelConfig(

@@ -24,7 +24,7 @@ from typing import Dict, Literal, Optional, Tuple, Type
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
-from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
@@ -174,7 +174,7 @@ class SPSDFField(SPFieldMixin, SDFField):
         if self.config.perturb_sampler_queries and self.sp_active():
             from sp_plugins.nerfstudio.seam import perturbed_samples
 
-            ray_samples = perturbed_samples(ray_samples, self.sp, at_start=True)  # type: ignore[arg-type]
+            ray_samples = perturbed_samples(ray_samples, self.sp, Frustums.get_start_positions)  # type: ignore[arg-type]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
         return hidden[..., :1]

@@ -11,9 +11,11 @@ Every accessor then sees the same moved sample, with no host class touched:
 - ``get_start_positions()`` and the Gaussian's mean move by the same offset (the covariance, which
   depends on directions and bins only, is unchanged), so an SDF's autograd eikonal gradient is taken
   at the moved point and a finite-difference stencil around it shares the one offset. The offset is
-  computed where the field reads: at the start for SDF fields (nerfstudio's ``SDFField`` and its
-  subclasses), at the bin's midpoint for the others (a MipNeRF mean sits near it), so the box
-  reflection is exact at the point queried;
+  computed where the field reads (its *read point*, :meth:`SeamField.sp_read_positions`): at the
+  start for SDF fields (nerfstudio's ``SDFField`` and its subclasses, :data:`READ_POINTS`), at the
+  bin's midpoint for the others (a MipNeRF mean sits near it), so the box reflection is exact at
+  the point queried. A field class that queries elsewhere defines ``sp_read_positions`` itself;
+  the seam is not edited;
 - directions, bins, camera indices and times are the host's, and the host's own ``RaySamples`` is
   never modified: renderers, samplers and losses read the plain samples.
 
@@ -38,20 +40,23 @@ import contextvars
 import dataclasses
 import inspect
 from dataclasses import dataclass
-from typing import Any, Dict, List, Mapping, Optional, Set, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Set, Tuple
 
 import torch.nn.functional as F
 from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
 from nerfstudio.fields.sdf_field import SDFField
-from torch import nn
+from torch import Tensor, nn
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import SPFieldMixin
+from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.nerfstudio import variants
 
-__all__ = ["SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples", "seam_fields", "takes_ray_samples"]
+__all__ = ["READ_POINTS", "ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
+           "seam_fields", "takes_ray_samples"]
 
 _READS: contextvars.ContextVar[Optional[Set[str]]] = contextvars.ContextVar("sp_seam_reads", default=None)
 """The read record of the field that is running on moved samples (None outside such a call)."""
@@ -59,6 +64,14 @@ _READS: contextvars.ContextVar[Optional[Set[str]]] = contextvars.ContextVar("sp_
 _FRUSTUM_TENSORS = frozenset(f.name for f in dataclasses.fields(Frustums))
 POSITION_READ = "origins"
 """Every position accessor reads the origins: a field that never did, never saw the offset."""
+
+ReadPoint = Callable[[Frustums], Tensor]
+"""Where a field queries a batch of samples: ``frustums -> positions [*bs, 3]``."""
+
+READ_POINTS: Tuple[Tuple[type, ReadPoint], ...] = ((SDFField, Frustums.get_start_positions),)
+"""The built-in read points of host field classes (and their subclasses) that do not query at
+``get_positions()``, the default: nerfstudio's SDF fields query the bins' starts. (MipNeRF's
+Gaussian blob needs no entry: its mean moves with the midpoint's offset.)"""
 
 
 @dataclass
@@ -77,16 +90,16 @@ class SeamFrustums(Frustums):
         return object.__getattribute__(self, name)
 
 
-def perturbed_samples(samples: RaySamples, sp: StochasticPreconditioner, at_start: bool = False) -> RaySamples:
+def perturbed_samples(samples: RaySamples, sp: StochasticPreconditioner, read: ReadPoint = Frustums.get_positions) -> RaySamples:
     """A copy of ``samples`` whose every position accessor sees ``sp`` applied once per sample.
 
-    ``origins`` ``[*bs, 3]`` become ``origins + sp(x) - x`` with ``x = get_positions()`` (existing
-    ``offsets`` kept: the perturbation applies to the offset position), or ``x =
-    get_start_positions()`` with ``at_start`` (SDF fields, which read the starts: the box reflection is
-    then exact where they query). Gradients reach ``sp``'s alpha grid through the offset. ``samples``
-    itself is not modified."""
+    ``origins`` ``[*bs, 3]`` become ``origins + sp(x) - x`` with ``x = read(frustums)``, the field's
+    read point: ``get_positions()`` by default (existing ``offsets`` kept: the perturbation applies to
+    the offset position), ``get_start_positions()`` for SDF fields (the box reflection is then exact
+    where they query). Gradients reach ``sp``'s alpha grid through the offset. ``samples`` itself is
+    not modified."""
     frustums = samples.frustums
-    x = frustums.get_start_positions() if at_start else frustums.get_positions()
+    x = read(frustums)
     q = sp(x.reshape(-1, x.shape[-1])).view(x.shape)
     values = {f.name: getattr(frustums, f.name) for f in dataclasses.fields(Frustums)}
     values["origins"] = frustums.origins + (q - x)
@@ -127,7 +140,15 @@ class SeamField(SPFieldMixin):
     :func:`perturbed_samples` (averaged over ``sp.num_samples`` draws), recording what it read.
     Any other call is the host's, untouched."""
 
-    __sp_variant__ = True
+    def sp_read_positions(self, frustums: Frustums) -> Tensor:
+        """The positions ``[*bs, 3]`` this field queries for ``frustums``: SP's offset is computed
+        there. The field class's own ``sp_read_positions`` wins (define it to declare a new read
+        point: one method, in the field's file); else :data:`READ_POINTS`; else ``get_positions()``."""
+        own = getattr(super(), "sp_read_positions", None)
+        if own is not None:
+            return own(frustums)
+        read = next((r for cls, r in READ_POINTS if isinstance(self, cls)), Frustums.get_positions)
+        return read(frustums)
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
         host_forward = super().forward  # type: ignore[misc]
@@ -138,10 +159,8 @@ class SeamField(SPFieldMixin):
         assert handle is not None and handle.sp is not None
         sp = handle.sp
 
-        at_start = isinstance(self, SDFField)
-
         def one_draw() -> Any:
-            moved = perturbed_samples(samples, sp, at_start)
+            moved = perturbed_samples(samples, sp, self.sp_read_positions)
             if handle.first_move is None:  # once per run, device-side: the reach check reads it
                 handle.first_move = (moved.frustums.origins - samples.frustums.origins).detach().abs().max()
             moved_args, moved_kwargs = _with_samples(args, kwargs, where, moved)
@@ -151,8 +170,11 @@ class SeamField(SPFieldMixin):
             finally:
                 _READS.reset(token)
 
-        outputs = self.perturbed(one_draw)
+        outputs = self.mean_over_draws(one_draw)
         return _finish_mean(self, outputs, samples) if sp.config.num_samples > 1 else outputs
+
+
+variants.FACTORY.register("Field", SeamField)
 
 
 def takes_ray_samples(module: nn.Module) -> bool:
@@ -174,10 +196,8 @@ def seam_class(host: type) -> type:
     when ``host`` is; a local subclass otherwise)."""
     if issubclass(host, SeamField):
         return host
-    from sp_plugins.nerfstudio.variants import variant
-
     try:
-        return variant("Field", host)
+        return variants.variant("Field", host)
     except ValueError:  # a class not importable by its path (defined in a function): still reachable
         return _LOCAL.setdefault(host, type(f"SPField_{host.__name__}", (SeamField, host), {"__module__": __name__}))
 
@@ -211,11 +231,8 @@ def attach_seam(model: nn.Module, sp: StochasticPreconditioner, plain: Mapping[s
 def host_name(module: nn.Module) -> str:
     """The class a seam field was built as (its host class), by path."""
     ours = (SeamField, SPFieldMixin)
-    cls = next(c for c in type(module).__mro__ if c not in ours and c.__module__ not in (__name__, _VARIANTS))
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
-_VARIANTS = "sp_plugins.nerfstudio.variants"
+    cls = next(c for c in type(module).__mro__ if c not in ours and c.__module__ not in (__name__, variants.__name__))
+    return class_path(cls)
 
 
 def check_reached(model: nn.Module, model_name: str, step: int, boundary: str = "none") -> None:

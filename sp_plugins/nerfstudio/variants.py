@@ -8,6 +8,10 @@ seen; their SP subclasses are made here on demand and named after the host class
     variant("ModelConfig", NerfactoModelConfig)  # SPModelConfig__nerfstudio_dmodels_dnerfacto_dNerfactoModelConfig
     variant("Model", NerfactoModel)              # SPModel__...
     variant("Field", NerfactoField)              # SPField__..., the class a built field instance is swapped to
+
+A leaf: the mixins that go first among the bases (:class:`sp_plugins.nerfstudio.model.SPModel`,
+:class:`sp_plugins.nerfstudio.seam.SeamField`) register with :data:`FACTORY` when their modules are
+imported.
 """
 
 from __future__ import annotations
@@ -17,13 +21,12 @@ from dataclasses import dataclass, field
 from typing import Type
 
 from sp_plugins.adapter import presets
+from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import VariantFactory, field_default, subclass
 from sp_plugins.core import SPConfig
 
 
 def _model_config(host: type, name: str, module: str) -> type:
-    from sp_plugins.nerfstudio.model import SPModelConfig
-
     host_model = field_default(host, "_target")
     cls = subclass(
         (SPModelConfig, host),
@@ -38,18 +41,15 @@ def _model_config(host: type, name: str, module: str) -> type:
 
 
 def _model(host: type, name: str, module: str) -> type:
-    from sp_plugins.nerfstudio.model import SPModel
-
-    return subclass((SPModel, host), name, module, __doc__=f"{host.__name__} with stochastic preconditioning.")
+    return subclass((FACTORY.mixin("Model"), host), name, module, __doc__=f"{host.__name__} with stochastic preconditioning.")
 
 
 def _field(host: type, name: str, module: str) -> type:
-    from sp_plugins.nerfstudio.seam import SeamField
-
-    return subclass((SeamField, host), name, module, __doc__=f"{host.__name__} carrying the SP seam (moved RaySamples).")
+    return subclass((FACTORY.mixin("Field"), host), name, module, __doc__=f"{host.__name__} carrying the SP seam (moved RaySamples).")
 
 
-FACTORY = VariantFactory(__name__, {"ModelConfig": _model_config, "Model": _model, "Field": _field})
+FACTORY = VariantFactory(__name__, {"ModelConfig": _model_config, "Model": _model, "Field": _field},
+                         providers={"Model": "sp_plugins.nerfstudio.model", "Field": "sp_plugins.nerfstudio.seam"})
 
 
 def variant(kind: str, host: type) -> type:

@@ -3,9 +3,10 @@
 :func:`sp_model_config` turns a host model config (trainer, data, optimizers, schedulers, field
 sizes stay as the host ships them) into the SP variant of its own class
 (:mod:`sp_plugins.sdfstudio.variants`), its ``sdf_field`` an
-:class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig`. ``with_sp``, the refusals and the presets are
-in :mod:`sp_plugins.sdfstudio.registration`; our four named methods (``method_configs/sdfstudio``)
-are :func:`sp_method` with their preset.
+:class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig`. ``with_sp``, the refusals, the presets and
+``sp_method`` (our four named methods in ``method_configs/sdfstudio``) are in
+:mod:`sp_plugins.sdfstudio.registration`, which imports this module (never the other way round).
+The host loads on use (:func:`sp_model_config`), so importing this module stays cheap.
 
 Where the host enables Neuralangelo's progressive hash encoding (neuralangelo, bakedangelo,
 neus-facto-angelo) SP *replaces* coarse-to-fine, as in the paper: all hash levels from step 0,
@@ -19,21 +20,10 @@ from __future__ import annotations
 import copy
 from typing import Any, Dict, Optional
 
-from sp_plugins.adapter import presets
 from sp_plugins.adapter.tables import lookup
 from sp_plugins.adapter.variants import convert, target_class
 from sp_plugins.core import SPConfig
-from sp_plugins.sdfstudio.registration import MethodSpecification, with_sp
 from sp_plugins.sdfstudio.table import FINAL_FD_STEP
-
-NEUS_SP = presets.NEUS
-NEURALANGELO_SP = presets.NEURALANGELO
-
-def host_method_config(name: str):
-    """A deep copy of sdfstudio's own config of method ``name``."""
-    from nerfstudio.configs.method_configs import method_configs
-
-    return copy.deepcopy(method_configs[name])
 
 
 def replaces_coarse_to_fine(model_config: Any) -> bool:
@@ -78,8 +68,3 @@ def describe(sp: SPConfig, replaced: bool) -> str:
     """What SP does to the method, for its ``ns-train`` description."""
     what = f"alpha0 {sp.alpha0:g}, to 0 over the first {sp.end:.0%}" if sp.end <= 1 else f"alpha0 {sp.alpha0:g}, to 0 by step {sp.end:g}"
     return ("coarse-to-fine replaced by stochastic preconditioning" if replaced else "+ stochastic preconditioning") + f" ({what})"
-
-
-def sp_method(base: str, sp: Optional[SPConfig] = None, description: Optional[str] = None) -> MethodSpecification:
-    """``sp-<base>`` from sdfstudio's registered method ``base`` (for ``method_configs.sdfstudio``)."""
-    return with_sp(host_method_config(base), sp, description=description)

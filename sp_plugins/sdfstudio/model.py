@@ -6,9 +6,9 @@ in the metrics; the same names as in ``sp_plugins.nerfstudio.model``), except th
 into the scene contraction's range (the hash grid's domain, where sdfstudio's SDF field is
 queried) and the run's length is ``--trainer.max-num-iterations``.
 
-After the first training step with alpha > 0 the model checks, once, that SP moved the positions
-its SDF field was queried at (:func:`sp_plugins.sdfstudio.seam.check_reached`), as the nerfstudio
-adapter does for its seam.
+After the first training step with alpha > 0 the base checks, once, that SP reached the SDF field
+(:meth:`SDFFieldSPModel.check_sp_reached`: :func:`sp_plugins.sdfstudio.seam.check_reached`), as it
+does for the nerfstudio adapter's seam.
 
 (LPIPS without downloads is a patch here, :mod:`sp_plugins.patches.sdfstudio_lpips`, because
 sdfstudio's own ns-eval builds the same models.)
@@ -16,11 +16,18 @@ sdfstudio's own ns-eval builds the same models.)
 
 from __future__ import annotations
 
-from typing import Any, List
+from typing import Any, Callable
+
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from sp_plugins.adapter import model as adapter_model
+from sp_plugins.adapter.callbacks import Where
+from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.model import SPModelConfig
-from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
+from sp_plugins.core import SPConfig
+from sp_plugins.sdfstudio.registration import preset_for
+from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS, SPSDFField, check_reached
 
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
@@ -29,7 +36,7 @@ def unsupported_setting(sp: Any) -> str:
     """Why an SP setting (an ``SPConfig``) cannot act in sdfstudio's SDF methods, or ``""``. Checked by
     ``sp-sdfstudio-train`` before anything is written and again when the model is built."""
     k = sp.num_samples
-    if k > 1:  # the contraction moves each query once: K draws would silently train one (issue 44)
+    if k > 1:  # the contraction moves each query once: K draws would silently train one
         return (
             f"--pipeline.model.sp.num-samples {k} cannot apply to sdfstudio's SDF methods: their seam (the scene "
             "contraction) perturbs each query once and does not average draws; pass --pipeline.model.sp.num-samples 1"
@@ -45,6 +52,17 @@ class SPModel(adapter_model.SPModelBase):
     def sp_bounds(self, aabb) -> Any:
         return CONTRACTED_BOUNDS
 
+    @classmethod
+    def sp_preset(cls, model_config: Any) -> SPConfig:
+        return preset_for(model_config)
+
+    def sp_scene_aabb(self) -> torch.Tensor:
+        return self.scene_box.aabb  # type: ignore[attr-defined]
+
+    def sp_training_callback(self, where: Where, func: Callable[[int], None]) -> TrainingCallback:
+        at = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION if where == "before" else TrainingCallbackLocation.AFTER_TRAIN_ITERATION
+        return TrainingCallback([at], func, update_every_num_iters=1)
+
 
 class SDFFieldSPModel(SPModel):
     """:class:`SPModel` for any sdfstudio ``SurfaceModel``: the preconditioner goes to the SDF
@@ -54,8 +72,6 @@ class SDFFieldSPModel(SPModel):
     :mod:`sp_plugins.sdfstudio.variants` are ``(SDFFieldSPModel, HostModel)``)."""
 
     def attach_sp(self) -> None:
-        from sp_plugins.sdfstudio.seam import SPSDFField
-
         field = getattr(self, "field", None)
         if not isinstance(field, SPSDFField):
             raise TypeError(
@@ -64,27 +80,9 @@ class SDFFieldSPModel(SPModel):
             )
         problem = unsupported_setting(self.sp.config)
         if problem:
-            from sp_plugins.adapter.errors import InputError
-
             raise InputError(problem)
         field.use_preconditioner(self.sp)
 
-    def sp_host_name(self) -> str:
-        """The sdfstudio model class this SP variant is built on."""
-        return next(c for c in type(self).__mro__ if not c.__module__.startswith("sp_plugins.")).__name__
-
     def check_sp_reached(self, step: int) -> None:
-        """After the first training step with alpha > 0: the field's queries moved (once per run)."""
-        if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
-            return
-        self._sp_reach_checked = True
-        from sp_plugins.sdfstudio.seam import check_reached
-
-        check_reached(self.field, self.sp_host_name(), step)  # type: ignore[attr-defined]
-
-    def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
-        from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-
-        callbacks = super().get_training_callbacks(training_callback_attributes)
-        reached = TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.check_sp_reached, update_every_num_iters=1)
-        return list(callbacks) + [reached]
+        """After the first training step with alpha > 0: the SDF field's queries moved."""
+        check_reached(self, self.sp_host_class().__name__, step)

@@ -20,7 +20,7 @@ right after ``scripts.train`` is imported). Unlike ``sp-train``, the SP methods 
 ``sp-`` names: they sit in the one dict next to the host's.
 
 A method whose module fails to import is skipped with one line on stderr, so one broken
-method never breaks the others. Cheap to import: the host and the conversion load on use.
+method never breaks the others. Cheap to import: the host loads on use.
 """
 
 from __future__ import annotations
@@ -32,6 +32,10 @@ from dataclasses import dataclass
 from importlib.metadata import entry_points
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
+
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+from sp_plugins.adapter.variants import refuse_or_switch_on, table_refusal, target_class
+from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
 
 if TYPE_CHECKING:
     from sp_plugins.core import SPConfig
@@ -57,10 +61,9 @@ def refusal(config: Any) -> Optional[str]:
     from nerfstudio.fields.sdf_field import SDFFieldConfig
     from nerfstudio.models.base_surface_model import SurfaceModel
 
-    from sp_plugins.adapter.variants import table_refusal
     from sp_plugins.sdfstudio.table import REFUSED_MODELS
 
-    model, reason = table_refusal(config, REFUSED_MODELS)
+    model, reason = table_refusal(getattr(getattr(config, "pipeline", None), "model", None), REFUSED_MODELS)
     model_config = config.pipeline.model if model is not None else None
     if reason or model is None or hasattr(model_config, "sp"):
         return reason
@@ -84,7 +87,6 @@ def preset_for(model_config: Any) -> "SPConfig":
     share ``NeuSFactoModel``): ``table.COARSE_TO_FINE_PRESET`` where the host enables Neuralangelo's
     progressive hash encoding (SP then replaces coarse-to-fine), ``table.PRESET`` otherwise."""
     from sp_plugins.sdfstudio import table
-    from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
 
     return dataclasses.replace(table.COARSE_TO_FINE_PRESET if replaces_coarse_to_fine(model_config) else table.PRESET)
 
@@ -95,30 +97,40 @@ def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] =
     ``sp`` defaults to :func:`preset_for` the host model config; ``name`` to ``sp-<method name>``.
     A method that is already ours (its model config has ``sp``) comes back with SP enabled (an
     explicit ``sp`` wins). Raises ``ValueError`` naming the reason when SP cannot reach the method."""
-    from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-    from sp_plugins.adapter.variants import refuse_or_switch_on
-    from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+
+    from sp_plugins.sdfstudio.variants import variant
 
     config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
     base = config.method_name
     model = config.pipeline.model
-    if refuse_or_switch_on(config, refusal(config), sp):
+    if refuse_or_switch_on(config.method_name, model, refusal(config), sp):
         text = (spec.description if isinstance(spec, MethodSpecification) else "") or f"sdfstudio {base} {describe(model.sp, False)}."
     else:
-        sp = copy.deepcopy(sp) if sp is not None else preset_for(model)
+        sp = copy.deepcopy(sp) if sp is not None else variant("Model", target_class(model)).sp_preset(model)
         config.pipeline.model = sp_model_config(model, sp)
         text = f"sdfstudio {base} {describe(sp, replaces_coarse_to_fine(model))}."
     config.method_name = name or (base if base.startswith(PREFIX) else f"{PREFIX}{base}")
-    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp)
+    config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp, AdamOptimizerConfig)
     return MethodSpecification(config=config, description=description or text)
+
+
+def host_method_config(name: str) -> Any:
+    """A deep copy of sdfstudio's own config of method ``name``."""
+    from nerfstudio.configs.method_configs import method_configs
+
+    return copy.deepcopy(method_configs[name])
+
+
+def sp_method(base: str, sp: Optional["SPConfig"] = None, description: Optional[str] = None) -> MethodSpecification:
+    """``sp-<base>`` from sdfstudio's registered method ``base`` (for ``method_configs.sdfstudio``)."""
+    return with_sp(host_method_config(base), sp, description=description)
 
 
 def sp_methods(method_configs: Dict[str, Any], descriptions: Dict[str, str]) -> Tuple[Dict[str, Any], Dict[str, str], Dict[str, str]]:
     """``(configs, descriptions, refused)``, keyed by SP method name (``sp-<method>``): for every
     host method, its SP config or why it is refused. Methods that are already ours are skipped
     (they are in the dict under their own names)."""
-    from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine
-
     configs: Dict[str, Any] = {}
     texts: Dict[str, str] = {}
     refused: Dict[str, str] = {}

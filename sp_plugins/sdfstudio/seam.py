@@ -21,9 +21,15 @@ nerfstudio's fields share no contraction, sdfstudio's SDF methods all share this
   perturbed.
 - Evaluation, rendering and mesh extraction (``forward_geonetwork`` called directly) always see
   the plain field.
-- "Reached" means *moved*: the contraction records the largest move of the first positions it
-  perturbed (a device scalar on the field's handle) and :func:`check_reached`, run by the model
-  after the first training step with alpha > 0, reads it once and refuses a run that moved none.
+- "Reached" means what it means in the nerfstudio adapter: a field query read positions SP moved.
+  Here the SDF field queries exactly what its contraction returns, so the contraction records the
+  largest move of the first positions it returned (a device scalar on the field's handle), and
+  :func:`check_reached`, run by the model after the first training step with alpha > 0, reads it
+  once and refuses a run that moved none.
+- The hook for a field that is not called with ray samples (its positions come in as a tensor):
+  the seam sits in a module every query passes (here the contraction, :class:`PerturbedContraction`),
+  sharing the field's :class:`~sp_plugins.adapter.field.PreconditionerHandle`; it counts its moved
+  calls and the first move on that handle, which is all :func:`check_reached` reads.
 """
 
 from __future__ import annotations
@@ -80,12 +86,12 @@ class PerturbedContraction(nn.Module):
         return moved
 
 
-def check_reached(field: nn.Module, model_name: str, step: int) -> None:
-    """After the first training step with alpha > 0: the SDF field's queries went through the
-    perturbed contraction and the positions really moved. Runs once per run; one device read
-    (the first move), so a run whose perturbation is drawn but not applied stops at once instead
-    of training a baseline under an SP name."""
-    handle = getattr(field, "sp_handle", None)
+def check_reached(model: nn.Module, model_name: str, step: int) -> None:
+    """After the first training step with alpha > 0: the queries of ``model``'s SDF field
+    (``model.field``) went through the perturbed contraction and the positions really moved. Runs
+    once per run; one device read (the first move), so a run whose perturbation is drawn but not
+    applied stops at once instead of training a baseline under an SP name."""
+    handle = getattr(getattr(model, "field", None), "sp_handle", None)
     calls = 0 if handle is None else handle.perturbed_calls
     if not calls:
         raise InputError(

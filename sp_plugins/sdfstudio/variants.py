@@ -24,15 +24,17 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Type
 
+from nerfstudio.models.base_surface_model import SurfaceModel
+
 from sp_plugins.adapter import presets
+from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import VariantFactory, convert, field_default, subclass
 from sp_plugins.core import SPConfig
+from sp_plugins.sdfstudio.model import SDFFieldSPModel
+from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
 
 
 def _model_config(host: type, name: str, module: str) -> type:
-    from sp_plugins.sdfstudio.model import SPModelConfig
-    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
-
     host_model = field_default(host, "_target")
 
     def sdf_field() -> SPSDFFieldConfig:
@@ -52,10 +54,6 @@ def _model_config(host: type, name: str, module: str) -> type:
 
 
 def _model(host: type, name: str, module: str) -> type:
-    from nerfstudio.models.base_surface_model import SurfaceModel
-
-    from sp_plugins.sdfstudio.model import SDFFieldSPModel
-
     if not issubclass(host, SurfaceModel):
         raise ValueError(f"{host.__name__} is not an sdfstudio SurfaceModel: it has no SDF field built from sdf_field")
     return subclass((SDFFieldSPModel, host), name, module, __doc__=f"sdfstudio's {host.__name__} with stochastic preconditioning.")

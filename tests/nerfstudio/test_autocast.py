@@ -39,8 +39,8 @@ def test_a_mixed_precision_step_is_finite_and_perturbed_in_float32(name, tiny_sc
     handed = []
     plain = seam.perturbed_samples
 
-    def recording(samples, sp, at_start=False):
-        moved = plain(samples, sp, at_start)
+    def recording(samples, sp, *read):
+        moved = plain(samples, sp, *read)
         handed.append((torch.is_autocast_cpu_enabled(), moved.frustums.get_positions().dtype,
                        float((moved.frustums.get_positions() - samples.frustums.get_positions()).abs().max())))
         return moved

@@ -65,7 +65,7 @@ def reference(x, alpha, eps, boundary="reflect"):
 
 def test_positions_are_x_plus_alpha_eps_reflected_into_the_scene_box():
     """Kills: the offset not applied (``origins + (q - x)`` -> ``origins``), its sign flipped, or the
-    draw taken at the start for a field that reads midpoints (``at_start`` ignored)."""
+    draw taken at the start for a field that reads midpoints (its read point ignored)."""
     rs = samples()
     x = rs.frustums.get_positions()
     moved = perturbed_samples(rs, preconditioner())
@@ -78,12 +78,12 @@ def test_positions_are_x_plus_alpha_eps_reflected_into_the_scene_box():
 
 def test_sdf_fields_read_starts_moved_by_the_offset_computed_at_the_start():
     """SDF fields read ``get_start_positions()``: the start of every bin with a length is exactly the
-    reflected ``start + alpha * eps`` and the midpoint moves by that same offset. Kills: ``at_start``
+    reflected ``start + alpha * eps`` and the midpoint moves by that same offset. Kills: the read point
     dropped (the offset then computed at the midpoint: starts near a wall leave the box)."""
     rs = samples()
     start, mid = rs.frustums.get_start_positions(), rs.frustums.get_positions()
     assert ((rs.frustums.ends - rs.frustums.starts) > 0).all()
-    moved = perturbed_samples(rs, preconditioner(), at_start=True)
+    moved = perturbed_samples(rs, preconditioner(), Frustums.get_start_positions)
     (eps,) = draws(start.reshape(-1, 3).shape)
     ref = reference(start.reshape(-1, 3), 0.4, eps).view(start.shape)
     torch.testing.assert_close(moved.frustums.get_start_positions().double(), ref, **TOL)
@@ -160,7 +160,7 @@ def test_k_draws_of_an_sdf_field_recompute_normals_and_alpha_from_the_mean():
     """An SDF field's K = 4 draws: SDF and gradient are the means over the K exact offsets taken at
     the starts; normals are the unit mean gradient and alpha is ``get_alpha(mean SDF, mean gradient)``,
     not the means of the per-draw normals and alphas. Kills: the normals (or alpha) not recomputed
-    after averaging, and ``at_start`` dropped for SDF fields."""
+    after averaging, and the SDF fields' read point dropped."""
     model = Holder(SDFProbe())
     attach_seam(model, preconditioner(alpha=0.3, num_samples=4))
     rs = samples()

@@ -129,8 +129,8 @@ def count_calls(monkeypatch):
     counter = {"n": 0, "offsets": None}
     plain = seam.perturbed_samples
 
-    def perturbed_samples(samples, sp, at_start=False):
-        moved = plain(samples, sp, at_start)
+    def perturbed_samples(samples, sp, *read):
+        moved = plain(samples, sp, *read)
         offset = (moved.frustums.get_positions() - samples.frustums.get_positions()).detach()
         if float(offset.abs().max()) > 0:
             counter["n"] += 1

@@ -197,15 +197,16 @@ def test_a_field_that_moved_nothing_is_refused_in_one_line():
     from sp_plugins.adapter.field import PreconditionerHandle
     from sp_plugins.sdfstudio.seam import check_reached
 
-    field = nn.Module()
-    field.sp_handle = PreconditionerHandle(None)
+    model = nn.Module()
+    model.field = nn.Module()
+    model.field.sp_handle = PreconditionerHandle(None)
     with pytest.raises(InputError, match="SP reached no SDF query of NeuSModel in training step 0"):
-        check_reached(field, "NeuSModel", 0)
-    field.sp_handle.perturbed_calls, field.sp_handle.first_move = 3, torch.tensor(0.0)
+        check_reached(model, "NeuSModel", 0)
+    model.field.sp_handle.perturbed_calls, model.field.sp_handle.first_move = 3, torch.tensor(0.0)
     with pytest.raises(InputError, match="moved no position .largest move 0.: the perturbation is not applied"):
-        check_reached(field, "NeuSModel", 0)
-    field.sp_handle.first_move = torch.tensor(0.01)
-    check_reached(field, "NeuSModel", 0)
+        check_reached(model, "NeuSModel", 0)
+    model.field.sp_handle.first_move = torch.tensor(0.01)
+    check_reached(model, "NeuSModel", 0)
 
 
 @pytest.mark.parametrize("method", sorted(CUDA_ONLY))
