@@ -16,7 +16,7 @@ Where it goes in (registry entry ``nerfstudio_external_methods``): only in our o
 ``sp-train``, for its whole process (``registry.install_for_process``), before it imports
 nerfstudio's method list. Installing sp-plugins must change nothing for ``ns-*`` commands that train methods not ours,
 and nerfstudio imports every plugin's method configs in all of them, so discovery does not install
-it (it did until issue 20): plain ``ns-train`` / ``ns-eval`` keep nerfstudio's start-up time.
+it: plain ``ns-train`` / ``ns-eval`` keep nerfstudio's start-up time.
 """
 
 from __future__ import annotations

@@ -145,12 +145,6 @@ class NetworkWithInputEncoding(nn.Module):
         return self.network(self.encoding(x))
 
 
-def real_tcnn_available() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("tinycudann") is not None
-
-
 def _give_stand_in(module, rebind=None) -> None:
     if "tcnn" not in vars(module):
         import sys

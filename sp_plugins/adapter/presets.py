@@ -17,9 +17,8 @@ NEURALANGELO = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid
 (``--pipeline.model.sp.alpha-grid True``) the paper's spatially adaptive variant: a learnable alpha
 grid initialised to 0.03, Adam lr 1e-3, *in place of* the annealed scalar for the same first 30%
 (the grid alone, not times the schedule), then SP off. The grid stores log-alpha, so lr 1e-3 is a
-0.1% relative step (about 800 Adam steps to halve a cell; the paper's alpha-stored grid moves
-0.001 in scene units, about 15 steps to halve 0.03): see ``AlphaGrid`` and bench/RESULTS.md,
-"Alpha grid parameterisation (issue 37)"."""
+0.1% relative step (the paper's alpha-stored grid moves 0.001 in scene units per step): see
+``AlphaGrid`` and bench/RESULTS.md, "Alpha grid parameterisation"."""
 
 MIPNERF = SPConfig(alpha0=0.04, end=1 / 3, schedule="exponential", boundary="none")
 """Sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500, a third of the sp-mipnerf preset's

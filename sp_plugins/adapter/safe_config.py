@@ -4,7 +4,8 @@
 the trainer config; the hosts read it back with PyYAML's full ``yaml.Loader``, which builds any
 Python object a file names: a one-line file ``!!python/object/apply:os.system ["..."]`` runs a
 shell command. A real ``config.yml`` holds only these tags (every registered method of both hosts,
-ours and ``sp-train``'s variants checked; tests/cli/test_safe_config.py):
+ours and ``sp-train``'s variants checked: tests/nerfstudio/test_safe_config_ns.py,
+tests/sdfstudio/test_safe_config_sdf.py):
 
 - ``!!python/object:<class>``: the config dataclasses of the host's ``nerfstudio`` package and ours;
 - ``!!python/name:<class>``: the classes the configs instantiate (``_target``), from those two

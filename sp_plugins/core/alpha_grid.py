@@ -54,18 +54,14 @@ class AlphaGrid(nn.Module):
     ``x + alpha(x) * eps`` and the task loss back-propagates into the grid. Where blurring hurts
     (fine detail) the loss pushes alpha down; where the target is smooth it barely moves.
 
-    Parameterisation (what Adam moves; measured in ``bench/RESULTS.md``, "Alpha grid
-    parameterisation (issue 37)"): ``log`` (default) stores log-alpha. Chosen because (1) a step of
-    lr changes alpha by a factor of about ``e^lr`` whatever its scale, so one learning rate serves a
-    scene in metres and an image in [0, 1]; (2) alpha never reaches 0, so no cell stops learning;
-    (3) on ``sp-fit image`` (256 px, map at 1/16) it gave the clearest level-of-detail map: rank
-    correlation of alpha with the image gradient -0.84 after 250 SP steps at lr 1e-2, against
-    -0.47 for alpha stored directly at lr 1e-3, which had put 92% of the cells at exactly 0 (a
-    clamped cell gets no gradient). ``alpha`` stores alpha itself (the paper's words; clamped at 0
-    when read): a step moves it by about lr in scene units (lr 1e-3 halves 0.03 in 15 Adam steps),
-    so lr must scale with the initial alpha. ``softplus`` (sp-plugins 0.1.0) is log-alpha in all but
-    name below alpha ~ 0.1 (the same maps, the same ~800 steps at lr 1e-3 to halve 0.03): the slow
-    grid of 0.1.0 came from lr 1e-3, not from softplus.
+    Parameterisation (what Adam moves; compared in ``bench/RESULTS.md``, "Alpha grid
+    parameterisation"): ``log`` (default) stores log-alpha: (1) a step of lr changes alpha by a
+    factor of about ``e^lr`` whatever its scale, so one learning rate serves a scene in metres and
+    an image in [0, 1]; (2) alpha never reaches 0, so no cell stops learning (a clamped cell gets no
+    gradient); (3) it gives the clearest level-of-detail map on ``sp-fit image``. ``alpha`` stores
+    alpha itself (the paper's words; clamped at 0 when read): a step moves it by about lr in scene
+    units, so lr must scale with the initial alpha. ``softplus`` is log-alpha in all but name below
+    alpha ~ 0.1.
 
     Checkpoints name their parameterisation by key (``log_alpha``, ``alpha``, ``logits`` for
     softplus): a grid loads any of them, converted through alpha.

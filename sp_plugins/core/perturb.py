@@ -33,7 +33,7 @@ def check_positions(x: Tensor) -> None:
 def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     """The dtype SP computes and returns positions in: at least float32. A half-precision offset
     would be rounded away: fp16's spacing on [0.5, 1] is 2^-11 ~ 5e-4 and bf16's 2^-8 ~ 4e-3,
-    larger than a typical late alpha (issue 36)."""
+    larger than a typical late alpha."""
     return torch.promote_types(dtype, torch.float32)
 
 

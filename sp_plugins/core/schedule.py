@@ -103,6 +103,3 @@ class AlphaSchedule:
             return self.alpha0 * (1.0 - t)
         r = self.final_ratio
         return self.alpha0 * (r**t - r) / (1.0 - r)
-
-    def active(self, step: int) -> bool:
-        return self(step) > 0.0

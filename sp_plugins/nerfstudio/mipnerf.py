@@ -19,15 +19,13 @@ from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 
-MIPNERF_SP = presets.MIPNERF
-
 
 @dataclass
 class SPMipNerfModelConfig(SPModelConfig, VanillaModelConfig):
     """MipNeRF with SP on the Gaussian means."""
 
     _target: Type = field(default_factory=lambda: SPMipNerfModel)
-    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(MIPNERF_SP))
+    sp: SPConfig = field(default_factory=lambda: dataclasses.replace(presets.MIPNERF))
     mlp_num_layers: int = 8
     """Layers of the base MLP (MipNeRF: 8); fewer for CPU-sized runs."""
     mlp_layer_width: int = 256

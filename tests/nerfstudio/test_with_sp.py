@@ -272,7 +272,7 @@ def test_sp_variants_resolve_by_path_in_a_saved_config(toy_importable):
 
 def test_a_field_built_through_a_module_object_is_reached(toy_importable, tiny_scene, tmp_path):
     """The seam is put on the field instances the model built, whatever name built them (a module
-    object here, which the former class-name redirection could not reach)."""
+    object here, which no redirection of class names could reach)."""
     from toyplugin.config import toy_method
     from toyplugin.hidden import HiddenFieldModelConfig
 

@@ -11,7 +11,7 @@ and every ``sp-train`` run) is nerfstudio's ``TrainerConfig`` whose ``save_confi
 written. The same checks run again where they always ran (data manager, model), for runs that
 do not go through ``ns-train``.
 
-Runs saved with nerfstudio's own ``TrainerConfig`` (before this class) load as they are.
+Runs whose ``config.yml`` names nerfstudio's own ``TrainerConfig`` load as they are.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""A model that builds its field through a module object, not a module-level class name: SP's
-generic route cannot redirect that construction, so the SP variant must refuse to train."""
+"""A model that builds its field through a module object, not a module-level class name: the seam is
+attached to the field instance the model built, so the SP variant reaches it all the same
+(tests/nerfstudio/test_with_sp.py)."""
 
 from dataclasses import dataclass, field
 from typing import Type
