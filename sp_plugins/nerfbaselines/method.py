@@ -8,6 +8,7 @@ it falls short for our methods:
   (:mod:`~sp_plugins.nerfbaselines.overrides`), exit status 2, before the trainer is built;
 - models that name their image ``rgb_fine`` (vanilla-nerf, MipNeRF) render it as ``rgb``;
 - the dataset's scene box (:mod:`~sp_plugins.nerfbaselines.scene_box`);
+- seeded from ``machine.seed`` as ``ns-train`` is (nerfbaselines does not seed);
 - LPIPS offline: our models and nerfstudio's build under the registry's ``nerfstudio_lpips`` scope,
   and nerfbaselines' own LPIPS runs under ``nerfbaselines_lpips`` while this method exists.
 """
@@ -38,6 +39,19 @@ def refuse(message: str) -> None:
     """One line on stderr, exit status 2 (nothing of the trainer is built yet)."""
     print(f"nerfbaselines: error: {message}", file=sys.stderr, flush=True)
     raise SystemExit(2)
+
+
+def seed(value: int) -> None:
+    """Seed Python, NumPy and torch as ``ns-train`` does before it builds the trainer (nerfbaselines'
+    wrapper does not), so a run here draws the same weights and rays as ``ns-train`` with that seed."""
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(value)
+    np.random.seed(value)
+    torch.manual_seed(value)
 
 
 def with_output_aliases(model_cls: type) -> type:
@@ -82,6 +96,7 @@ class SPNerfStudio(NerfStudio):
             from sp_plugins.nerfstudio import with_sp
 
             config = with_sp(config).config
+            config.pipeline.model.sp.enabled = not self._sp_entry.sp_off
         try:
             apply_overrides(config, self._sp_overrides, self._sp_id)
         except OverrideError as err:
@@ -101,6 +116,7 @@ class SPNerfStudio(NerfStudio):
         if self.checkpoint is None:
             self.config = self._sp_config(self._original_config)
             self._original_config = copy.deepcopy(self.config)
+        seed(self.config.machine.seed)
         with registry.scope("nerfstudio_lpips"):
             super()._setup(train_dataset, config_overrides)
 

@@ -8,7 +8,10 @@ Three kinds of method ids, one wrapper class (:class:`sp_plugins.nerfbaselines.m
   nerfbaselines lacks (``mipnerf``, ``vanilla-nerf``, ``neus-hashgrid`` ...);
 - ``<id>+sp``: SP on a nerfstudio-backed method of nerfbaselines or of this list (``nerfacto+sp``,
   ``mipnerf+sp``, ``vanilla-nerf+sp``): the very config of ``<id>`` through ``with_sp``, with
-  ``<id>``'s presets, so ``<id>`` against ``<id>+sp`` is a like-for-like table row.
+  ``<id>``'s presets, so ``<id>`` against ``<id>+sp`` is a like-for-like table row;
+- ``<id>+sp-off``: the same with SP switched off, the baseline row where ``<id>`` itself cannot be run
+  at the settings you need (nerfbaselines' own ``nerfacto`` sets ``--set`` values as strings, so
+  ``--set max_num_iterations=400`` or a smaller hash grid breaks it: no CPU budget from the command line).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Dict, NamedTuple
 
 WRAPPER = "sp_plugins.nerfbaselines.method:SPNerfStudio"
 SP_SUFFIX = "+sp"
+SP_OFF_SUFFIX = "+sp-off"
 SP_SCENE = "sp-scene"
 """The dataset id of ``sp-scene`` folders (their ``nb-info.json`` names it and the Blender loader)."""
 
@@ -27,6 +31,8 @@ class Entry(NamedTuple):
     add_sp: bool = False
     """Put SP on it with ``with_sp`` (the ``+sp`` ids)."""
     sdf: bool = False
+    sp_off: bool = False
+    """``with_sp``, then SP switched off (the ``+sp-off`` ids)."""
 
 
 OURS = ("sp-nerfacto", "sp-mipnerf", "sp-vanilla-nerf", "sp-tensorf", "sp-relu-field", "relu-field", "relu-field-flat")
@@ -40,6 +46,7 @@ ENTRIES: Dict[str, Entry] = {
     **{name: Entry(name) for name in OURS + NERFSTUDIO_BASELINES},
     **{name: Entry(name, sdf=True) for name in OURS_SDF},
     **{name + SP_SUFFIX: Entry(name, add_sp=True) for name in SP_ON},
+    **{name + SP_OFF_SUFFIX: Entry(name, add_sp=True, sp_off=True) for name in SP_ON},
 }
 
 # the Blender layout sp-scene writes: the world as the files give it (as `ns-train ... blender-data`)
@@ -48,22 +55,23 @@ _SP_SCENE_PRESET = {
     "@description": "sp-scene folders: nerfstudio's blender-data parser (poses as given, white background).",
     "pipeline.datamanager.dataparser": "blender-data",
 }
-_NERFACTO_SP_SCENE = {  # nerfbaselines' own blender preset of nerfacto, for the same kind of scene
-    **_SP_SCENE_PRESET,
+_NERFACTO_BLENDER = {  # nerfbaselines' own blender preset of nerfacto (less its @apply), for the same kind of scene
+    "pipeline.datamanager.dataparser": "blender-data",
     "pipeline.model.near_plane": 2.0, "pipeline.model.far_plane": 6.0, "pipeline.model.use_appearance_embedding": False,
     "pipeline.model.background_color": "white", "pipeline.model.proposal_initial_sampler": "uniform",
     "pipeline.model.distortion_loss_mult": 0.0, "pipeline.model.disable_scene_contraction": True,
-    "pipeline.model.camera_optimizer.mode": "off",
+    "pipeline.model.average_init_density": 1.0, "pipeline.model.camera_optimizer.mode": "off",
 }
+_NERFACTO_SP_SCENE = {**_SP_SCENE_PRESET, **_NERFACTO_BLENDER}
 
 
 def method_spec(method_id: str) -> dict:
     entry = ENTRIES[method_id]
-    kind = "SP on " if entry.add_sp else ""
+    kind = ("SP off (baseline of +sp), " if entry.sp_off else "SP on ") if entry.add_sp else ""
     presets = {SP_SCENE: _NERFACTO_SP_SCENE if "nerfacto" in entry.nerfstudio_name else _SP_SCENE_PRESET}
-    if method_id == "nerfacto" + SP_SUFFIX:
+    if entry.nerfstudio_name == "nerfacto" and entry.add_sp:
         presets.update({
-            "blender": {**_NERFACTO_SP_SCENE, "@apply": [{"dataset": "blender"}]},
+            "blender": {"@apply": [{"dataset": "blender"}], **_NERFACTO_BLENDER},
             "big": {"method": "nerfacto-big"}, "huge": {"method": "nerfacto-huge"},
         })
     return {
@@ -78,6 +86,10 @@ def method_spec(method_id: str) -> dict:
             "link": "https://github.com/",
         },
         "implementation_status": {},
+        # what nerfbaselines' NerfStudio.get_method_info says; the results tooling reads it from the spec
+        "required_features": ["color"],
+        "supported_camera_models": ["pinhole", "opencv", "opencv_fisheye"],
+        "supported_outputs": ["color", "depth", "accumulation"],
     }
 
 

@@ -56,17 +56,18 @@ def trained(scene) -> tuple:
 
 
 def our_psnr(predictions: Path) -> float:
-    """Our metric code (sp_plugins.tasks.image.psnr) on the rendered and ground-truth PNGs, each
-    composited on white as the dataset's background, averaged over the test images."""
+    """Our metric code (sp_plugins.tasks.image.psnr) on the images the protocol compares: the rendered
+    and ground-truth PNGs composited on white (the dataset's background) and cut to 8 bits as
+    nerfbaselines does (truncation), averaged over the test images."""
     import imageio.v2 as imageio
 
     from sp_plugins.tasks.image import psnr
 
     def srgb(path: Path) -> np.ndarray:
-        image = imageio.imread(path).astype(np.float64) / 255.0
+        image = imageio.imread(path).astype(np.float32) / np.float32(255.0)
         if image.shape[-1] == 4:
             image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
-        return np.round(image * 255.0) / 255.0  # nerfbaselines scores uint8 sRGB
+        return np.floor(np.clip(image * np.float32(255.0), 0, 255)) / 255.0
 
     preds = sorted((predictions / "color").rglob("*.png"))
     assert preds, f"no rendered images under {predictions}"

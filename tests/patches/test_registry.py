@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import gc
 import importlib
+import importlib.util
 import sys
 import warnings
 
@@ -29,7 +30,7 @@ pytest.importorskip("nerfstudio")
 from sp_plugins.patches import registry  # noqa: E402
 from sp_plugins.patches.registry import PatchGuardError  # noqa: E402
 
-HOSTS = ("nerfstudio", "python", "torchmetrics")
+HOSTS = ("nerfstudio", "python", "torchmetrics") + (("nerfbaselines",) if importlib.util.find_spec("nerfbaselines") else ())
 ENTRIES = [p for p in registry.entries() if p.host in HOSTS]
 
 
@@ -115,6 +116,7 @@ ACTIVE = {  # inside the scope: what must be different
     "nerfstudio_marching_cubes": lambda: resolve("nerfstudio.exporter.marching_cubes").generate_mesh_with_multires_marching_cubes.__name__
     == "scoped_marching_cubes",
     "nerfstudio_lpips": lambda: hasattr(resolve("torchmetrics.image.lpip").LearnedPerceptualImagePatchSimilarity, "real"),
+    "nerfbaselines_lpips": lambda: hasattr(resolve("nerfbaselines.metrics")._lpips, "real"),
     "host_warnings": lambda: any(getattr(f[1], "pattern", "").startswith("Using a non-tuple sequence") for f in warnings.filters),
     "input_error_hook": lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
 }
