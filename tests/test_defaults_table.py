@@ -36,12 +36,12 @@ def test_rows_are_read_from_the_configs(monkeypatch):
     assert "| 0.5 | linear | 0.5 (1,000 of 2,000 steps) |" in dict(defaults_table.rows())["sp-fit pointcloud"]
 
 
-def _run(cwd):
+def _run(cwd, module="defaults_table"):
     import os
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-m", "sp_plugins.defaults_table", "--write"], cwd=cwd, capture_output=True,
+    return subprocess.run([sys.executable, "-m", f"sp_plugins.{module}", "--write"], cwd=cwd, capture_output=True,
                           text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
 
 
@@ -61,9 +61,10 @@ def test_write_restores_a_drifted_readme_table(tmp_path):
     assert f"wrote {tmp_path / 'README.md'}, {tmp_path / 'docs' / 'sp_defaults.md'}" in proc.stdout
 
 
-def test_write_outside_a_checkout_is_one_line_and_writes_nothing(tmp_path):
-    proc = _run(tmp_path)
+@pytest.mark.parametrize("module", ["defaults_table", "method_table"])
+def test_write_outside_a_checkout_is_one_line_and_writes_nothing(module, tmp_path):
+    proc = _run(tmp_path, module)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     (line,) = proc.stderr.strip().splitlines()
-    assert line.startswith("python -m sp_plugins.defaults_table: error: ") and "root of" in line
+    assert line.startswith(f"python -m sp_plugins.{module}: error: ") and "root of" in line
     assert list(tmp_path.iterdir()) == []

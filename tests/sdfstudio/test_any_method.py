@@ -1,14 +1,13 @@
 """SP on any sdfstudio SDF method (issue 20, item 3): every method sdfstudio registers is either
 offered as ``sp-<method>`` (and trains with SP active) or refused in one line that says why.
 
-Set ``SP_SDFSTUDIO_METHOD_TABLE=path.md`` to have the run write its markdown table of methods.
+README's table of sdfstudio's methods is the generated one (``python -m sp_plugins.method_table``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
 import subprocess
 import sys
@@ -35,18 +34,6 @@ REFUSED = ["dto", "nerfacto", "instant-ngp", "mipnerf", "semantic-nerfw", "vanil
 CONTROLS_ANGELO = {"neuralangelo", "bakedangelo", "neus-facto-angelo"}
 """Host configs that enable progressive hash encoding: the Neuralangelo preset, coarse-to-fine replaced."""
 
-
-
-def outcome(method: str) -> str:
-    """The table's second column for host method ``method``: what the tests below check for it."""
-    from sp_plugins.sdfstudio.registration import REFUSED as refused
-
-    if method in TRAINS:  # test_sp_method_trains_two_steps_with_sp_active
-        preset = "Neuralangelo preset, coarse-to-fine replaced" if method in CONTROLS_ANGELO else "NeuS preset"
-        return f"trains with SP (`sp-{method}`, {preset})"
-    if method in CUDA_ONLY:  # test_cuda_only_sp_method_builds_with_sp
-        return CUDA_ONLY[method]
-    return "refused: " + refused[f"sp-{method}"]  # test_every_host_method_is_offered_or_refused
 
 
 def host_methods():
@@ -313,22 +300,20 @@ def test_help_of_both_commands_lists_the_generic_methods(capsys, tmp_path):
     assert offered <= listed_methods(proc.stdout), "sdfstudio's ns-train (opt-in hook) does not list them"
 
 
-def test_method_table():
-    """The markdown table of sdfstudio's methods (written to $SP_SDFSTUDIO_METHOD_TABLE when set): one
-    row per host method, from the registration and the lists above (each row's claim is what the
-    test named in :func:`outcome` checks; this test needs none of them to have run)."""
-    import nerfstudio.configs.method_configs as host
+def test_the_readme_table_is_the_generated_one():
+    """README's sdfstudio method table is ``sp_plugins.method_table``'s, and what it offers and refuses
+    is what the tests above train, build and refuse."""
+    from sp_plugins import method_table
 
-    order = [*TRAINS, *CUDA_ONLY, *REFUSED]
-    assert set(host_methods()) == set(order), "sdfstudio's method list changed"
-    for method in [*TRAINS, *CUDA_ONLY]:
-        assert host.method_configs[f"sp-{method}"].pipeline.model.sp.enabled
-    rows = ["| sdfstudio method | with SP (`sp-sdfstudio-train sp-<method>`) |", "|---|---|"]
-    rows += [f"| {m} | {outcome(m)} |" for m in order]
-    assert len(rows) == 2 + len(host_methods()) and all(row.split(" | ")[1].strip(" |") for row in rows[2:])
-    assert sum("refused: " in row for row in rows) == len(REFUSED) and sum("trains with SP" in row for row in rows) == len(TRAINS)
-    table = "\n".join(rows) + "\n"
-    target = os.environ.get("SP_SDFSTUDIO_METHOD_TABLE")
-    if target:
-        Path(target).write_text(table)
-    print(table)
+    outcomes = method_table.sdfstudio_outcomes()
+    assert set(outcomes) == set(host_methods()), "sdfstudio's method list changed"
+    assert {m for m, (order, _) in outcomes.items() if order == 0} == set(TRAINS) | set(CUDA_ONLY)
+    assert {m for m, (order, _) in outcomes.items() if order == 1} == set(REFUSED)
+    begin, end = method_table.markers("sdfstudio")
+    text = method_table.README.read_text()
+    assert begin in text and end in text, "README.md has lost the sdfstudio method table's markers"
+    assert text[text.index(begin): text.index(end) + len(end)] == method_table.table("sdfstudio", outcomes), (
+        "README's sdfstudio method table is out of date: run python -m sp_plugins.method_table --write in sdfstudio's environment"
+    )
+    after = text.partition(end)[2][:400]
+    assert all(f"`{m}`" in after for m in CUDA_ONLY), "README's sentence under the table names other untrained methods"
