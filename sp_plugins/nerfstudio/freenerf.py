@@ -46,7 +46,6 @@ from nerfstudio.models.mipnerf import MipNerfModel
 from torch import Tensor
 
 from sp_plugins.adapter import presets
-from sp_plugins.adapter import presets
 from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.mipnerf import SPMipNerfModel, SPMipNerfModelConfig
