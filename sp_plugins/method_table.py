@@ -21,6 +21,7 @@ from typing import Dict, List, Optional, Tuple
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.adapter.variants import target_class
 from sp_plugins.sdfstudio.detect import is_sdfstudio, nerfstudio_dir
+from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
 PROG = "python -m sp_plugins.method_table"
 README = Path(__file__).resolve().parent.parent / "README.md"
@@ -101,7 +102,6 @@ def sdfstudio_outcomes() -> Dict[str, Tuple[int, str]]:
 
     from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
     from sp_plugins.sdfstudio.registration import REFUSED, add_methods
-    from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
     add_methods()
     out: Dict[str, Tuple[int, str]] = {}
