@@ -204,14 +204,14 @@ def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, ns_server,
     assert math.isfinite(results["psnr"])
 
 
-def test_a_training_step_of_freenerf_with_sp_has_no_sync_of_ours(tiny_scene, tmp_path, monkeypatch):
+def test_a_training_step_of_freenerf_with_sp_has_no_sync_of_ours(tiny_scene, tmp_path):
     """The mask moves on the device, the occlusion term stays a tensor (issue 36's counter)."""
     from tests.nerfstudio.test_syncs_ns import steady_state_syncs
 
-    from sp_plugins.core import boundary
+    from sp_plugins.core.boundary import dense_fold
 
-    monkeypatch.setattr(boundary, "sparse_fold_on", lambda device: False)
     config = tiny_radiance_config("freenerf-lite", tiny_scene, tmp_path, steps=5, enabled=True, alpha0=0.05, end=1.0, seed=0)
-    counter = steady_state_syncs(config)
+    with dense_fold():  # the fold a GPU run takes
+        counter = steady_state_syncs(config)
     assert 0 < config.pipeline.model.freq_reg_end < 1  # the counted steps move the mask
     assert not counter.ours(), f"host-device syncs inside sp_plugins per step: {counter.ours()}"

@@ -66,10 +66,10 @@ class _nothing:
 
 
 @pytest.mark.parametrize("name", OURS)
-def test_a_training_step_has_no_sync_of_ours(name, tiny_scene, tmp_path, monkeypatch):
-    from sp_plugins.core import boundary
+def test_a_training_step_has_no_sync_of_ours(name, tiny_scene, tmp_path):
+    from sp_plugins.core.boundary import dense_fold
 
-    monkeypatch.setattr(boundary, "sparse_fold_on", lambda device: False)  # the fold a GPU run takes (the CPU's syncs)
-    counter = steady_state_syncs(config_for(name, tiny_scene, tmp_path))
+    with dense_fold():  # the fold a GPU run takes (the CPU's sparse fold syncs on purpose)
+        counter = steady_state_syncs(config_for(name, tiny_scene, tmp_path))
     print(f"{name}: per {len(COUNTED)} steps\n{counter.report()}")
     assert not counter.ours(), f"{name}: host-device syncs inside sp_plugins per step: {counter.ours()}"

@@ -16,12 +16,13 @@ GRID_2D = EncodingConfig(levels=4, log2_table_size=10, base_resolution=4, max_re
 
 
 @pytest.fixture(autouse=True)
-def gpu_code_paths(monkeypatch):
+def gpu_code_paths():
     """Boundaries take their GPU branch (the dense fold): the CPU's sparse reflect reads the count of
     escaped coordinates back on purpose, a path a CUDA run never takes."""
-    import sp_plugins.core.boundary as boundary
+    from sp_plugins.core.boundary import dense_fold
 
-    monkeypatch.setattr(boundary, "sparse_fold_on", lambda device: False)
+    with dense_fold():
+        yield
 
 
 def image(size=32):
