@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.adapter.variants import refuse_or_switch_on, table_refusal, target_class
+from sp_plugins.sdfstudio import table
 from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
 
 if TYPE_CHECKING:
@@ -61,9 +62,7 @@ def refusal(config: Any) -> Optional[str]:
     from nerfstudio.fields.sdf_field import SDFFieldConfig
     from nerfstudio.models.base_surface_model import SurfaceModel
 
-    from sp_plugins.sdfstudio.table import REFUSED_MODELS
-
-    model, reason = table_refusal(getattr(getattr(config, "pipeline", None), "model", None), REFUSED_MODELS)
+    model, reason = table_refusal(getattr(getattr(config, "pipeline", None), "model", None), table.REFUSED_MODELS)
     model_config = config.pipeline.model if model is not None else None
     if reason or model is None or hasattr(model_config, "sp"):
         return reason
@@ -86,8 +85,6 @@ def preset_for(model_config: Any) -> "SPConfig":
     Decided by the config, not the model class as in nerfstudio (neus-facto and neus-facto-angelo
     share ``NeuSFactoModel``): ``table.COARSE_TO_FINE_PRESET`` where the host enables Neuralangelo's
     progressive hash encoding (SP then replaces coarse-to-fine), ``table.PRESET`` otherwise."""
-    from sp_plugins.sdfstudio import table
-
     return dataclasses.replace(table.COARSE_TO_FINE_PRESET if replaces_coarse_to_fine(model_config) else table.PRESET)
 
 
