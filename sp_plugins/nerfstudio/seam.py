@@ -28,10 +28,12 @@ half of them. Calls that only place samples go through ``density_fn`` / ``get_de
 networks) or ``get_sdf`` (the NeuS sampler), not ``forward``, and stay plain; so do evaluation,
 rendering and export (the field is not training).
 
-"Reached" means *read*: the copy's frustums record, per field, which of their tensors the field read
-while it ran (:class:`SeamFrustums`). :func:`check_reached` refuses, in one line naming the field
-class and what it read, a field that was handed moved samples and never read their origins (it reads
-positions some other way) and a model where no field was handed any.
+"Reached" means a field *read* positions SP *moved* (the glossary of :mod:`sp_plugins.adapter`): the
+copy's frustums record, per field, which of their tensors the field read while it ran
+(:class:`SeamFrustums`), and the handle keeps the first move. :func:`check_reached` refuses, in one
+line naming the field class and what it read, a field that was handed moved samples and never read
+their origins (it reads positions some other way), samples that did not move, and a model where no
+field was handed any.
 """
 
 from __future__ import annotations

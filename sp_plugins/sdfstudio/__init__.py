@@ -6,7 +6,7 @@ sdfstudio installs as a package named ``nerfstudio`` (0.1.12), so this subpackag
 nerfstudio adapter's:
 
 - :mod:`~sp_plugins.sdfstudio.seam` (fields): where SP enters, the SDF field's scene contraction
-  (``SPSDFField``), which every training query of every sdfstudio SDF method passes;
+  (``SeamSDFField``), which every training query of every sdfstudio SDF method passes;
 - :mod:`~sp_plugins.sdfstudio.model` (models): ``SPModel`` (preconditioner, optimizer group,
   callbacks from :mod:`sp_plugins.adapter`) and ``SDFFieldSPModel``, which hands SP to the seam;
 - :mod:`~sp_plugins.sdfstudio.table`: what is known about methods (refused models, presets,

@@ -3,7 +3,7 @@
 :func:`sp_model_config` turns a host model config (trainer, data, optimizers, schedulers, field
 sizes stay as the host ships them) into the SP variant of its own class
 (:mod:`sp_plugins.sdfstudio.variants`), its ``sdf_field`` an
-:class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig`. ``with_sp``, the refusals, the presets and
+:class:`~sp_plugins.sdfstudio.seam.SeamSDFFieldConfig`. ``with_sp``, the refusals, the presets and
 ``sp_method`` (our four named methods in ``method_configs/sdfstudio``) are in
 :mod:`sp_plugins.sdfstudio.registration`, which imports this module (never the other way round).
 The host loads on use (:func:`sp_model_config`), so importing this module stays cheap.
@@ -40,7 +40,7 @@ def final_fd_step(model: type, max_res: int) -> Optional[float]:
 def sp_model_config(model_config: Any, sp: SPConfig) -> Any:
     """The SP variant of an sdfstudio SDF model config, with ``sp`` (coarse-to-fine replaced where
     the host enables it)."""
-    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig
     from sp_plugins.sdfstudio.variants import variant
 
     model = target_class(model_config)
@@ -53,7 +53,7 @@ def sp_model_config(model_config: Any, sp: SPConfig) -> Any:
         if getattr(model_config, "enable_numerical_gradients_schedule", False) and fd_step is not None:
             model_changes["enable_numerical_gradients_schedule"] = False
             field_changes["fd_step"] = fd_step
-    sdf_field = convert(model_config.sdf_field, SPSDFFieldConfig, **field_changes)
+    sdf_field = convert(model_config.sdf_field, SeamSDFFieldConfig, **field_changes)
     return convert(
         model_config,
         variant("ModelConfig", type(model_config)),

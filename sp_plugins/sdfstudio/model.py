@@ -27,7 +27,7 @@ from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.core import SPConfig
 from sp_plugins.sdfstudio.registration import preset_for
-from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS, SPSDFField, check_reached
+from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS, SeamSDFField, check_reached
 
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
 
@@ -67,16 +67,16 @@ class SPModel(adapter_model.SPModelBase):
 class SDFFieldSPModel(SPModel):
     """:class:`SPModel` for any sdfstudio ``SurfaceModel``: the preconditioner goes to the SDF
     field ``self.field`` that ``SurfaceModel.populate_modules`` builds from ``config.sdf_field``
-    (an :class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig` in every SP model config).
+    (an :class:`~sp_plugins.sdfstudio.seam.SeamSDFFieldConfig` in every SP model config).
     List it before the host model class (the SP model variants of
     :mod:`sp_plugins.sdfstudio.variants` are ``(SDFFieldSPModel, HostModel)``)."""
 
     def attach_sp(self) -> None:
         field = getattr(self, "field", None)
-        if not isinstance(field, SPSDFField):
+        if not isinstance(field, SeamSDFField):
             raise TypeError(
-                f"{type(self).__name__}: SP needs the SDF field built from an SPSDFFieldConfig, got "
-                f"{type(field).__name__} (the model config's sdf_field must be SPSDFFieldConfig)"
+                f"{type(self).__name__}: SP needs the SDF field built from an SeamSDFFieldConfig, got "
+                f"{type(field).__name__} (the model config's sdf_field must be SeamSDFFieldConfig)"
             )
         problem = unsupported_setting(self.sp.config)
         if problem:

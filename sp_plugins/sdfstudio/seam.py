@@ -5,7 +5,7 @@ maps its sample positions through the field's ``spatial_distortion`` before anyt
 then does everything at the result: SDF, geometry feature, the autograd gradient *with respect to
 that tensor*, the 6-point numerical stencil around it (``gradient(..., skip_spatial_distortion=True)``),
 colour and ``points_norm``. So making that mapping ``sp(contraction(x))`` (:class:`PerturbedContraction`
-inside :class:`SPSDFField`) perturbs every sample once, takes the normal where the field was queried,
+inside :class:`SeamSDFField`) perturbs every sample once, takes the normal where the field was queried,
 and gives all six stencil points one offset, for every sdfstudio SDF method, without copying or
 wrapping sdfstudio's ``get_outputs``. The nerfstudio counterpart is
 :mod:`sp_plugins.nerfstudio.seam` (moved ``RaySamples`` handed to every field a model calls with them):
@@ -51,13 +51,15 @@ CONTRACTED_BOUNDS = (-2.0, 2.0)
 
 
 @dataclass
-class SPSDFFieldConfig(SDFFieldConfig):
+class SeamSDFFieldConfig(SDFFieldConfig):
     """``SDFFieldConfig`` plus a fixed finite-difference step and the SP sampler switch."""
 
-    _target: Type = field(default_factory=lambda: SPSDFField)
+    _target: Type = field(default_factory=lambda: SeamSDFField)
     fd_step: Optional[float] = None
-    """Numerical-gradient step in contracted units, fixed for the whole run (SP runs, which
-    drop Neuralangelo's shrinking schedule). None keeps sdfstudio's behaviour."""
+    """Numerical-gradient step in the contracted frame the SDF is queried in (scene units inside the
+    contraction's unit ball, where it is the identity; the nerfstudio adapter's ``fd_step`` is in
+    scene units everywhere), fixed for the whole run (SP runs, which drop Neuralangelo's shrinking
+    schedule). None keeps sdfstudio's behaviour."""
     perturb_sampler_queries: bool = False
     """Let the NeuS up-sampler's ``get_sdf`` and VolSDF's ``get_density`` see the perturbed field."""
 
@@ -106,12 +108,12 @@ def check_reached(model: nn.Module, model_name: str, step: int) -> None:
         )
 
 
-class SPSDFField(SPFieldMixin, SDFField):
+class SeamSDFField(SPFieldMixin, SDFField):
     """``SDFField`` whose training queries go through a :class:`StochasticPreconditioner`."""
 
-    config: SPSDFFieldConfig
+    config: SeamSDFFieldConfig
 
-    def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
+    def __init__(self, config: SeamSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
         super().__init__(config, aabb, num_images, use_average_appearance_embedding, spatial_distortion)
         self.spatial_distortion = PerturbedContraction(spatial_distortion)
         if config.fd_step is not None:
@@ -145,3 +147,9 @@ class SPSDFField(SPFieldMixin, SDFField):
         hidden = self.forward_geonetwork(self._sampler_positions(ray_samples)).view(*ray_samples.frustums.shape, -1)
         sdf, geo_feature = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
         return self.laplace_density(sdf), geo_feature
+
+
+SPSDFFieldConfig = SeamSDFFieldConfig
+SPSDFField = SeamSDFField
+"""The names before issue 45 (nerfstudio's adapter has an unrelated ``SPSDFField``): config.yml files
+saved then name them."""

@@ -3,7 +3,7 @@
 Every sdfstudio SDF method (neus, volsdf, unisurf, bakedsdf, neuralangelo, ...) has a model that
 is a ``SurfaceModel``: it builds its SDF field from ``config.sdf_field`` (an ``SDFFieldConfig``).
 SP enters all of them through the same seam: the field config becomes an
-:class:`~sp_plugins.sdfstudio.seam.SPSDFFieldConfig` and the model config an SP variant of
+:class:`~sp_plugins.sdfstudio.seam.SeamSDFFieldConfig` and the model config an SP variant of
 its own class, made here on demand by a :class:`~sp_plugins.adapter.variants.VariantFactory`
 and named after the host class's path, so that a ``config.yml`` naming it loads in a fresh
 ``ns-eval`` / ``ns-extract-mesh`` / ``eval_setup`` process with no extra step::
@@ -12,7 +12,7 @@ and named after the host class's path, so that a ``config.yml`` naming it loads 
     variant("Model", VolSDFModel)              # SPModel__..._dVolSDFModel: (SDFFieldSPModel, VolSDFModel)
 
 A model config variant adds ``sp`` (``--pipeline.model.sp.*``, default
-:data:`sp_plugins.adapter.presets.NEUS`) and types ``sdf_field`` as ``SPSDFFieldConfig`` (so
+:data:`sp_plugins.adapter.presets.NEUS`) and types ``sdf_field`` as ``SeamSDFFieldConfig`` (so
 ``--pipeline.model.sdf-field.fd-step`` and ``perturb-sampler-queries`` exist); every other field
 and default is the host's. Method configs set the preset per method
 (:func:`sp_plugins.sdfstudio.registration.with_sp`).
@@ -31,21 +31,21 @@ from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import VariantFactory, convert, field_default, subclass
 from sp_plugins.core import SPConfig
 from sp_plugins.sdfstudio.model import SDFFieldSPModel
-from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
+from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig
 
 
 def _model_config(host: type, name: str, module: str) -> type:
     host_model = field_default(host, "_target")
 
-    def sdf_field() -> SPSDFFieldConfig:
-        return convert(field_default(host, "sdf_field"), SPSDFFieldConfig)
+    def sdf_field() -> SeamSDFFieldConfig:
+        return convert(field_default(host, "sdf_field"), SeamSDFFieldConfig)
 
     cls = subclass(
         (SPModelConfig, host),
         name,
         module,
         __doc__=f"sdfstudio's {host.__name__} with stochastic preconditioning of its SDF field (``--pipeline.model.sp.*``).",
-        __annotations__={"_target": Type, "sdf_field": SPSDFFieldConfig, "sp": SPConfig},
+        __annotations__={"_target": Type, "sdf_field": SeamSDFFieldConfig, "sp": SPConfig},
         _target=field(default_factory=lambda: variant("Model", host_model)),
         sdf_field=field(default_factory=sdf_field),
         sp=field(default_factory=lambda: dataclasses.replace(presets.NEUS)),

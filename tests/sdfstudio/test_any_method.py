@@ -61,17 +61,17 @@ def test_every_host_method_is_offered_or_refused():
 
 @pytest.mark.parametrize("method", [*TRAINS, *CUDA_ONLY])
 def test_presets_and_the_one_seam(method):
-    """The model config is the SP variant of the host's own class, the field SPSDFFieldConfig, and
+    """The model config is the SP variant of the host's own class, the field SeamSDFFieldConfig, and
     the preset the host's coarse-to-fine decides."""
     import nerfstudio.configs.method_configs as host
 
     from sp_plugins.adapter import presets
-    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig
     from sp_plugins.sdfstudio.variants import variant
 
     ours, theirs = host.method_configs[f"sp-{method}"].pipeline.model, host.method_configs[method].pipeline.model
     assert type(ours) is variant("ModelConfig", type(theirs)) and ours._target is variant("Model", theirs._target)
-    assert type(ours.sdf_field) is SPSDFFieldConfig
+    assert type(ours.sdf_field) is SeamSDFFieldConfig
     angelo = method in CONTROLS_ANGELO
     assert theirs_enables(theirs) == angelo
     expected = presets.NEURALANGELO if angelo else presets.NEUS
@@ -98,7 +98,7 @@ def test_sp_method_trains_two_steps_with_sp_active(method, scene_with_pairs, tmp
     import nerfstudio.configs.method_configs as host
     import torch
 
-    from sp_plugins.sdfstudio.seam import SPSDFField
+    from sp_plugins.sdfstudio.seam import SeamSDFField
 
     torch.manual_seed(0)
     config = tiny_config(host.method_configs[f"sp-{method}"], scene_with_pairs, tmp_path, steps=3)
@@ -106,7 +106,7 @@ def test_sp_method_trains_two_steps_with_sp_active(method, scene_with_pairs, tmp
     config.pipeline.model.sp = dataclasses.replace(config.pipeline.model.sp, end=1.0)
     trainer = train_in_process(config)
     model = trainer.pipeline.model
-    assert isinstance(model.field, SPSDFField) and model.field.sp is model.sp
+    assert isinstance(model.field, SeamSDFField) and model.field.sp is model.sp
     calls = model.field.sp_handle.perturbed_calls
     assert calls >= 2, f"SP perturbed {calls} field queries in the 2 steps with alpha > 0"
     assert model._sp_reach_checked and float(model.field.sp_handle.first_move) > 0  # the model's own check ran
@@ -205,7 +205,7 @@ def test_cuda_only_sp_method_builds_with_sp(method, sdf_scene, tmp_path, monkeyp
     from nerfstudio.data.dataparsers.sdfstudio_dataparser import SDFStudio
     from nerfstudio.engine.trainer import Trainer
 
-    from sp_plugins.sdfstudio.seam import SPSDFField
+    from sp_plugins.sdfstudio.seam import SeamSDFField
 
     plain = SDFStudio._generate_dataparser_outputs
 
@@ -218,7 +218,7 @@ def test_cuda_only_sp_method_builds_with_sp(method, sdf_scene, tmp_path, monkeyp
     trainer = Trainer(tiny_config(host.method_configs[f"sp-{method}"], sdf_scene, tmp_path), local_rank=0, world_size=0)
     trainer.setup()
     model = trainer.pipeline.model
-    assert isinstance(model.field, SPSDFField) and model.field.sp is model.sp
+    assert isinstance(model.field, SeamSDFField) and model.field.sp is model.sp
 
 
 def test_a_generic_method_end_to_end_and_its_config_loads_by_path(sdf_scene, tmp_path):
@@ -241,7 +241,7 @@ def test_a_generic_method_end_to_end_and_its_config_loads_by_path(sdf_scene, tmp
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip().splitlines()[-1] == (
-        "sp_plugins.sdfstudio.variants SPModel__nerfstudio_dmodels_dvolsdf_dVolSDFModel SPSDFField 1 True"
+        "sp_plugins.sdfstudio.variants SPModel__nerfstudio_dmodels_dvolsdf_dVolSDFModel SeamSDFField 1 True"
     )
 
 

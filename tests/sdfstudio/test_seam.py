@@ -17,9 +17,9 @@ ALPHA = 0.05
 def tiny_field(numerical: bool, **changes):
     from nerfstudio.field_components.spatial_distortions import SceneContraction
 
-    from sp_plugins.sdfstudio.seam import SPSDFFieldConfig
+    from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig
 
-    config = SPSDFFieldConfig(
+    config = SeamSDFFieldConfig(
         use_grid_feature=True, num_layers=2, hidden_dim=32, geo_feat_dim=15, num_layers_color=2, hidden_dim_color=32,
         num_levels=4, log2_hashmap_size=11, base_res=8, max_res=64, inside_outside=False,
         use_numerical_gradients=numerical, **changes,
@@ -131,3 +131,20 @@ def test_fixed_fd_step_wins_over_the_host_schedule_and_checkpoint_keys_match_the
     plain_config = SDFFieldConfig(**{k: v for k, v in vars(host.config).items() if k in SDFFieldConfig.__dataclass_fields__ and k != "_target"})
     plain = plain_config.setup(aabb=host.aabb.data, num_images=2)
     assert set(field.state_dict()) == set(plain.state_dict())
+
+
+def test_a_config_yml_saved_with_the_seams_old_class_names_loads(tmp_path):
+    """Issue 45 renamed the sdfstudio seam's field to ``SeamSDFField`` (nerfstudio's adapter has its own,
+    unrelated ``SPSDFField``); a config.yml saved before names ``SPSDFFieldConfig`` / ``SPSDFField``."""
+    import yaml
+    from nerfstudio.configs.method_configs import method_configs
+
+    from sp_plugins.adapter.safe_config import load_run_config
+    from sp_plugins.sdfstudio.registration import with_sp
+    from sp_plugins.sdfstudio.seam import SeamSDFField, SeamSDFFieldConfig
+
+    text = yaml.dump(with_sp(method_configs["neus"]).config)
+    assert "sp_plugins.sdfstudio.seam.SeamSDFFieldConfig" in text and "SPSDFField" not in text
+    (tmp_path / "config.yml").write_text(text.replace("seam.SeamSDFField", "seam.SPSDFField"))
+    field = load_run_config(tmp_path / "config.yml", "--load-config").pipeline.model.sdf_field
+    assert type(field) is SeamSDFFieldConfig and field._target is SeamSDFField
