@@ -24,15 +24,15 @@ from typing import Any, Optional
 from nerfbaselines.methods.nerfstudio import NerfStudio
 
 from sp_plugins.nerfbaselines import scene_box, specs
+from sp_plugins.nerfbaselines.outputs import with_output_aliases
 from sp_plugins.nerfbaselines.overrides import OverrideError, apply_overrides
 from sp_plugins.patches import registry
 
-__all__ = ["SPNerfStudio", "with_output_aliases"]
+__all__ = ["SPNerfStudio", "seed"]
 
 log = logging.getLogger("sp_plugins.nerfbaselines")
 PASSED = ("method", "pipeline.datamanager.dataparser")
 """Override keys nerfbaselines' wrapper itself interprets (the rest are ours to type and set)."""
-ALIASES = ("rgb", "accumulation", "depth")
 
 
 def refuse(message: str) -> None:
@@ -54,22 +54,6 @@ def seed(value: int) -> None:
     torch.manual_seed(value)
 
 
-def with_output_aliases(model_cls: type) -> type:
-    """``model_cls`` whose camera outputs also carry ``rgb`` / ``accumulation`` / ``depth`` where the
-    model only names them ``*_fine`` (nerfbaselines reads the plain names)."""
-
-    class Aliased(model_cls):  # type: ignore[misc, valid-type]
-        def get_outputs_for_camera_ray_bundle(self, *args: Any, **kwargs: Any):
-            outputs = super().get_outputs_for_camera_ray_bundle(*args, **kwargs)
-            for name in ALIASES:
-                if name not in outputs and f"{name}_fine" in outputs:
-                    outputs[name] = outputs[f"{name}_fine"]
-            return outputs
-
-    Aliased.__name__ = Aliased.__qualname__ = model_cls.__name__
-    return Aliased
-
-
 class SPNerfStudio(NerfStudio):
     """nerfbaselines' nerfstudio wrapper for the nerfstudio method a spec of ours names."""
 
@@ -85,10 +69,12 @@ class SPNerfStudio(NerfStudio):
         # (read by nerfbaselines' __init__; a "method" key it would also try to set as a config field)
         self._default_nerfstudio_name = passed.pop("method", self._sp_entry.nerfstudio_name)
         self._sp_overrides = overrides
-        try:
-            self._sp_box = scene_box.load(checkpoint) if checkpoint else scene_box.dataset_box(train_dataset)
-        except ValueError as err:
-            refuse(str(err))
+        self._sp_box = None  # radiance methods keep the box nerfstudio's parser gives (as under ns-train)
+        if self._sp_entry.sdf:
+            try:
+                self._sp_box = scene_box.load(checkpoint) if checkpoint else scene_box.dataset_box(train_dataset)
+            except ValueError as err:
+                refuse(str(err))
         super().__init__(checkpoint=checkpoint, train_dataset=train_dataset, config_overrides=passed)
 
     def _sp_config(self, config: Any) -> Any:
@@ -107,8 +93,7 @@ class SPNerfStudio(NerfStudio):
         if self._sp_box is not None and self._sp_entry.sdf and type(parser).__name__ != "BlenderDataParserConfig":
             from nerfstudio.configs.dataparser_configs import all_dataparsers
 
-            log.info("%s: the dataset's scene box %s, with nerfstudio's blender-data parser (poses as given)",
-                     self._sp_id, self._sp_box)
+            log.info("%s: nerfstudio's blender-data parser (poses as given), for the dataset's scene box", self._sp_id)
             config.pipeline.datamanager.dataparser = copy.deepcopy(all_dataparsers["blender-data"])
         return config
 
@@ -129,6 +114,7 @@ class SPNerfStudio(NerfStudio):
         identity = config is not None and type(config.pipeline.datamanager.dataparser).__name__ == "BlenderDataParserConfig"
         if self._sp_box is None or not identity:
             return made
+        log.info("%s: scene box %s from the dataset (not nerfbaselines' fixed one)", self._sp_id, self._sp_box)
         return functools.partial(scene_box.scene_box_class(made.func, self._sp_box), *made.args, **made.keywords)
 
     def save(self, path: str):

@@ -5,8 +5,9 @@ nerfbaselines' nerfstudio wrapper gives every model a fixed box (+-1.5 for nerfs
 its box says so in its metadata (``scene_box``: ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``; our
 SDFStudio loader reads it from ``meta_data.json``, ``sp-scene`` writes it in the Blender layout's
 ``nb-info.json``). That box is in the dataset's own coordinates, so it is used where the poses stay
-as given (nerfstudio's Blender parser); SDF methods are put on that parser when the dataset has a box.
-The box is saved beside the checkpoint, so ``render`` and ``evaluate`` rebuild the same model.
+as given (nerfstudio's Blender parser): SDF methods (whose surface lives in the box) are put on that
+parser when the dataset has a box; radiance methods keep the box nerfstudio's parser gives, as under
+``ns-train``. The box is saved beside the checkpoint, so ``render`` rebuilds the same model.
 """
 
 from __future__ import annotations

@@ -32,11 +32,28 @@ SDF = ["--set", "pipeline.model.num_samples=16", "--set", "pipeline.model.num_sa
 SKIPPED = "LPIPS skipped (NaN): the alex backbone weights are not in the torch hub cache"
 
 
-def nb(*args: str, env=None, check: bool = True, timeout: int = 600) -> subprocess.CompletedProcess:
+def nb(*args: str, env=None, expect: int = 0, timeout: int = 600, server=None) -> subprocess.CompletedProcess:
+    """``nerfbaselines ARGS`` as typed: the real script, or (``server``) forked from one interpreter that
+    imported nerfbaselines and nerfstudio once (tests/helpers/forkserver.py)."""
+    if server is not None:
+        return server.call([command("nerfbaselines"), *args], env=env, expect=expect)
     proc = subprocess.run([command("nerfbaselines"), *args], env=env or ENV, capture_output=True, text=True, timeout=timeout)
-    if check:
-        assert proc.returncode == 0, f"nerfbaselines {' '.join(args)}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+    assert proc.returncode == expect, f"nerfbaselines {' '.join(args)}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
     return proc
+
+
+@pytest.fixture(scope="module")
+def nb_server():
+    """The fork server with nerfbaselines' commands, nerfstudio and our wrapper imported once: render,
+    evaluate, the results table, the refused --set and the SDF run each skip 10-20 s of imports (the
+    training fixture runs the real script)."""
+    from tests.helpers.forkserver import ForkServer
+
+    server = ForkServer(["nerfbaselines", "nerfbaselines.cli._train", "nerfbaselines.cli._render", "nerfbaselines.cli._evaluate",
+                         "nerfbaselines.cli._generate_dataset_results", "sp_plugins.nerfbaselines.method",
+                         "nerfstudio.configs.method_configs"], ENV)
+    yield server
+    server.close()
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +104,7 @@ def test_train_writes_checkpoint_renders_results_and_one_lpips_line(trained):
     checkpoint = out / f"checkpoint-{STEPS}"
     assert list((checkpoint / "nerfstudio_models").glob("step-*.ckpt")), "no checkpoint"
     assert "SP" in (checkpoint / "config.yml").read_text() and "enabled: true" in (checkpoint / "config.yml").read_text()
-    assert json.loads((checkpoint / "sp-scene-box.json").read_text())["aabb"] == [[-1, -1, -1], [1, 1, 1]]
+    assert not (checkpoint / "sp-scene-box.json").exists()  # a radiance method keeps nerfstudio's box, as in ns-train
     assert (out / f"predictions-{STEPS}.tar.gz").is_file()
     results = json.loads((out / f"results-{STEPS}.json").read_text())
     assert math.isfinite(results["metrics"]["psnr"]) and math.isfinite(results["metrics"]["ssim"])
@@ -97,7 +114,7 @@ def test_train_writes_checkpoint_renders_results_and_one_lpips_line(trained):
     assert len(lines) == 1 and "alexnet-owt-7be5be79.pth" in lines[0], lines
 
 
-def test_render_and_evaluate_give_our_psnr_and_lpips_with_weights(trained, tmp_path):
+def test_render_and_evaluate_give_our_psnr_and_lpips_with_weights(trained, tmp_path, nb_server):
     """``render`` from the checkpoint, then ``evaluate`` with (stand-in) LPIPS weights in the torch hub
     cache: LPIPS is computed, and PSNR is what our own metric code gives on the same images."""
     import torch
@@ -109,39 +126,40 @@ def test_render_and_evaluate_give_our_psnr_and_lpips_with_weights(trained, tmp_p
     net = torchvision.models.alexnet()  # small stand-in: real features, the classifier as one broadcast value
     state = {k: (v if k.startswith("features") else torch.zeros(1).expand(v.shape)) for k, v in net.state_dict().items()}
     torch.save(state, hub / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth")
-    env = dict(ENV, TORCH_HOME=str(hub))
+    env = {"TORCH_HOME": str(hub)}
     renders = tmp_path / "renders"
     nb("render", "--checkpoint", str(out / f"checkpoint-{STEPS}"), "--data", str(out.parent / "my-scene" / "blender"),
-       "--output", str(renders), "--backend", "python", env=env)
+       "--output", str(renders), "--backend", "python", env=env, server=nb_server)
     assert len(list((renders / "color").rglob("*.png"))) == 2
-    proc = nb("evaluate", str(renders), "-o", str(tmp_path / "results.json"), env=env)
+    proc = nb("evaluate", str(renders), "-o", str(tmp_path / "results.json"), env=env, server=nb_server)
     metrics = json.loads((tmp_path / "results.json").read_text())["metrics"]
     assert math.isfinite(metrics["lpips"]) and "skipped" not in proc.stderr
     assert abs(metrics["psnr"] - our_psnr(renders)) < 1e-3, metrics
 
 
-def test_results_table_from_nerfbaselines_tooling(trained):
+def test_results_table_from_nerfbaselines_tooling(trained, nb_server):
     out, _ = trained
-    proc = nb("generate-dataset-results", "--results", str(out), "--dataset", "sp-scene", "--scenes", "spot")
+    proc = nb("generate-dataset-results", "--results", str(out), "--dataset", "sp-scene", "--scenes", "spot", server=nb_server)
     assert "sp-nerfacto" in proc.stdout and "PSNR" in proc.stdout, proc.stdout
 
 
-def test_unknown_set_key_is_one_line_with_the_keys_that_exist(scene, tmp_path):
+def test_unknown_set_key_is_one_line_with_the_keys_that_exist(scene, tmp_path, nb_server):
     proc = nb("train", "--method", "sp-nerfacto", "--backend", "python", "--data", str(scene / "blender"),
-              "--output", str(tmp_path / "run"), *BUDGET, "--set", "pipeline.model.sp.alpha00=0.1", check=False)
-    assert proc.returncode == 2, proc.stderr[-3000:]
+              "--output", str(tmp_path / "run"), *BUDGET, "--set", "pipeline.model.sp.alpha00=0.1", expect=2,
+              server=nb_server)
     (line,) = [line for line in proc.stderr.splitlines() if "error" in line]
     assert "pipeline.model.sp.alpha00" in line and "alpha0" in line and "enabled" in line, line
     assert "Traceback" not in proc.stderr
 
 
-def test_sdf_method_gets_the_dataset_box_and_scores_as_ours(scene):
+def test_sdf_method_gets_the_dataset_box_and_scores_as_ours(scene, nb_server):
     """sp-neus-hashgrid on the SDFStudio layout (our loader): the box is meta_data.json's, not
     nerfbaselines' fixed one, and the results nerfbaselines wrote match our PSNR on its renders."""
     out = scene.parent / "sp-neus-hashgrid"
-    nb("train", "--method", "sp-neus-hashgrid", "--backend", "python", "--data", str(scene / "sdfstudio"),
-       "--output", str(out), *BUDGET, *SDF)
+    proc = nb("train", "--method", "sp-neus-hashgrid", "--backend", "python", "--data", str(scene / "sdfstudio"),
+              "--output", str(out), *BUDGET, *SDF, server=nb_server)
     box = json.loads((scene / "sdfstudio" / "meta_data.json").read_text())["scene_box"]["aabb"]
+    assert f"sp-neus-hashgrid: scene box {box} from the dataset" in proc.stderr, proc.stderr[-3000:]
     assert json.loads((out / f"checkpoint-{STEPS}" / "sp-scene-box.json").read_text())["aabb"] == box
     results = json.loads((out / f"results-{STEPS}.json").read_text())["metrics"]
     assert abs(results["psnr"] - our_psnr(untar(out / f"predictions-{STEPS}.tar.gz"))) < 1e-3, results

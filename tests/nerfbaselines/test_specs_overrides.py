@@ -67,7 +67,7 @@ def test_a_set_that_cannot_apply_is_one_line(key, value, words):
 
 
 def test_fine_outputs_are_read_as_the_plain_names():
-    from sp_plugins.nerfbaselines.method import with_output_aliases
+    from sp_plugins.nerfbaselines.outputs import with_output_aliases
 
     class TwoPass:
         def get_outputs_for_camera_ray_bundle(self, bundle):
