@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -37,6 +38,7 @@ def ns_train(scene: Path, out: Path, steps: int) -> np.ndarray:
     for key, value in SETTINGS.items():
         flags += ["--" + key.replace("_", "-"), str(value)]
     never = str(10 * steps)
+    shutil.rmtree(out, ignore_errors=True)
     subprocess.run([str(BIN / "ns-train"), "sp-nerfacto", "--vis", "tensorboard", "--max-num-iterations", str(steps),
                     "--logging.steps-per-log", "1", "--steps-per-eval-batch", never, "--steps-per-eval-image", never,
                     "--steps-per-eval-all-images", never, "--steps-per-save", never, "--output-dir", str(out),

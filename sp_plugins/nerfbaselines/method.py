@@ -104,6 +104,18 @@ class SPNerfStudio(NerfStudio):
         seed(self.config.machine.seed)
         with registry.scope("nerfstudio_lpips"):
             super()._setup(train_dataset, config_overrides)
+        if self.checkpoint is not None and self._loaded_step:
+            self._restore_step_state(self._loaded_step - 1)
+
+    def _restore_step_state(self, step: int) -> None:
+        """State that depends on the step and lives outside the state dict (nerfacto's proposal
+        anneal, SP's alpha, coarse-to-fine level masks) is set by the model's before-iteration
+        callbacks: after loading a checkpoint they run for the last step it trained, so a reloaded
+        model renders as the one that was saved (nerfbaselines' wrapper runs none on load)."""
+        from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+        for callback in self._trainer.callbacks:
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
 
     def _patch_model(self, model_cls, *, config):
         return with_output_aliases(super()._patch_model(model_cls, config=config))
