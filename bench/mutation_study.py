@@ -28,8 +28,9 @@ timeout, equivalent, pending, wall time, the survivors' diffs) and the table
 listed with its reason in ``bench/results/mutation_study/equivalent.json`` (module -> list of
 ``{"operator", "line", "reason"}``, ``line`` the original source line, stripped); it is then counted
 as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
-``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh (after the
-module or its covering tests changed, the study does so itself: the session records their hash).
+``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh. After the
+module changed the study does so itself; after only its covering tests (or their list) changed, it
+runs the surviving mutants again and keeps the rest (a test added cannot revive a killed mutant).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import json
 import os
 import re
 import shutil
+import sqlite3
 import subprocess
 import sys
 import time
@@ -57,32 +59,51 @@ COSMIC_RAY = MAIN_PYTHON.parent / "cosmic-ray"
 _TASKS_EXACT = ["tests/tasks/test_pointcloud_exact.py", "tests/tasks/test_image_exact.py", "tests/tasks/test_sdf_exact.py"]
 _NS_SEAM = ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_seam.py"]
 _SDF_SEAM = ["tests/sdfstudio/test_seam_exact.py", "tests/sdfstudio/test_seam.py"]
+_HOST_NEUTRAL = ["tests/adapter/test_extension_points.py"]  # the adapter on a toy host: 1 s, no host import
+_CORE_PROPS = "tests/core/test_properties.py"
 COVERING: Dict[str, Tuple[str, List[str]]] = {
-    # module -> (environment, covering test files), cheapest first (pytest -x stops at the first failure)
+    # module -> (environment, covering test files), cheapest first (pytest -x stops at the first failure).
+    # Seconds (pytest's own, 2 shared cores, 5 Dec 2026) per file: ns seam_exact 11, ns test_seam 14, sdf seam_exact 5,
+    # sdf test_seam 5, sdf test_methods 24, sdf test_any_method ~60, extension_points 1, test_with_sp 65,
+    # test_sp_option_matrix 35, test_divergence 1, tasks *_exact 3 each, test_pointcloud 6, test_image 19,
+    # test_image_modes 14, test_sdf 5, test_syncs 4, test_fields 3, test_fit_resume 36 (+5-7 s of imports per run).
     "sp_plugins/core/schedule.py": ("main", ["tests/core/test_schedule.py",
-                                             "tests/core/test_properties.py::test_schedule_equals_its_formula_and_is_zero_at_and_after_the_end",
-                                             "tests/core/test_properties.py::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
-    "sp_plugins/core/boundary.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
-    "sp_plugins/core/perturb.py": ("main", ["tests/core/test_perturb.py", "tests/core/test_properties.py"]),
+                                             f"{_CORE_PROPS}::test_schedule_equals_its_formula_and_is_zero_at_and_after_the_end",
+                                             f"{_CORE_PROPS}::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
+    "sp_plugins/core/boundary.py": ("main", ["tests/core/test_perturb.py", _CORE_PROPS]),
+    "sp_plugins/core/perturb.py": ("main", ["tests/core/test_perturb.py", _CORE_PROPS]),
     "sp_plugins/core/noise.py": ("main", ["tests/core/test_noise_exact.py", "tests/core/test_perturb.py",
-                                          "tests/core/test_properties.py::test_perturb_equals_the_reference",
-                                          "tests/core/test_properties.py::test_preconditioner_draws_the_configured_noise_kind"]),
+                                          f"{_CORE_PROPS}::test_perturb_equals_the_reference",
+                                          f"{_CORE_PROPS}::test_preconditioner_draws_the_configured_noise_kind"]),
     "sp_plugins/core/stencil.py": ("main", ["tests/core/test_stencil.py"]),
-    "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid.py", "tests/core/test_properties.py"]),
-    "sp_plugins/core/config.py": ("main", ["tests/core/test_preconditioner.py", "tests/core/test_properties.py"]),
-    "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner.py", "tests/core/test_properties.py"]),
+    "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid.py", _CORE_PROPS]),
+    "sp_plugins/core/config.py": ("main", ["tests/core/test_preconditioner.py", _CORE_PROPS]),
+    "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner.py", _CORE_PROPS]),
+    # the seams and the host wiring
     "sp_plugins/nerfstudio/seam.py": ("main", _NS_SEAM),
-    "sp_plugins/nerfstudio/model.py": ("main", ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_with_sp.py",
-                                               "tests/nerfstudio/test_sp_option_matrix.py"]),
     "sp_plugins/sdfstudio/seam.py": ("sdfstudio", _SDF_SEAM),
+    "sp_plugins/nerfstudio/model.py": ("main", [*_NS_SEAM,
+                                               "tests/nerfstudio/test_sp_option_matrix.py", "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/sdfstudio/model.py": ("sdfstudio", ["tests/sdfstudio/test_seam_exact.py", "tests/sdfstudio/test_methods.py"]),
-    "sp_plugins/adapter/field.py": ("main", _NS_SEAM),
-    "sp_plugins/adapter/model.py": ("main", ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_seam.py"]),
-    "sp_plugins/adapter/callbacks.py": ("main", ["tests/nerfstudio/test_seam.py", "tests/nerfstudio/test_neuralangelo_schedule.py"]),
+    "sp_plugins/nerfstudio/variants.py": ("main", ["tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/sdfstudio/variants.py": ("sdfstudio", ["tests/sdfstudio/test_methods.py", "tests/sdfstudio/test_any_method.py"]),
+    # the adapter (host-neutral modules: the toy host first, then nerfstudio's)
+    "sp_plugins/adapter/field.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
+    "sp_plugins/adapter/model.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
+    "sp_plugins/adapter/callbacks.py": ("main", _HOST_NEUTRAL + ["tests/nerfstudio/test_seam.py",
+                                                                "tests/nerfstudio/test_neuralangelo_schedule.py"]),
     "sp_plugins/adapter/presets.py": ("main", ["tests/test_defaults_table.py", "tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/adapter/tables.py": ("main", ["tests/nerfstudio/test_method_table.py", "tests/nerfstudio/test_seam.py",
+                                             "tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/adapter/variants.py": ("main", ["tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/adapter/checks.py": ("main", ["tests/cli/test_device_flags.py", "tests/nerfstudio/test_bad_input_ns.py"]),
+    "sp_plugins/adapter/lpips.py": ("main", ["tests/nerfstudio/test_ns_lpips.py"]),
+    "sp_plugins/adapter/shrink.py": ("main", ["tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_sp_option_matrix.py"]),
+    # the sp-fit tasks
     "sp_plugins/tasks/pointcloud.py": ("main", ["tests/tasks/test_pointcloud_exact.py", "tests/tasks/test_pointcloud.py"]),
     "sp_plugins/tasks/image.py": ("main", ["tests/tasks/test_image_exact.py", "tests/tasks/test_image.py", "tests/tasks/test_image_modes.py"]),
     "sp_plugins/tasks/sdf.py": ("main", ["tests/tasks/test_sdf_exact.py", "tests/tasks/test_sdf.py"]),
+    "sp_plugins/tasks/trainer.py": ("main", _TASKS_EXACT + ["tests/tasks/test_syncs.py", "tests/tasks/test_fit_resume.py"]),
     "sp_plugins/tasks/common.py": ("main", _TASKS_EXACT + ["tests/tasks/test_fit_resume.py"]),
     "sp_plugins/tasks/fields.py": ("main", ["tests/tasks/test_fields.py"] + _TASKS_EXACT),
     "sp_plugins/tasks/checkpoint.py": ("main", ["tests/tasks/test_fit_resume.py"]),
@@ -138,11 +159,24 @@ def test_command(module: str) -> str:
 
 
 def fingerprint(module: str) -> str:
-    """Hash of the module and its covering test files: a session is redone when either changed."""
-    h = hashlib.sha256((ROOT / module).read_bytes())
+    """Hash of the module's source: its session is redone from scratch when it changed."""
+    return hashlib.sha256((ROOT / module).read_bytes()).hexdigest()[:16]
+
+
+def tests_fingerprint(module: str) -> str:
+    """Hash of the covering test files: when only they changed, the survivors are run again."""
+    h = hashlib.sha256()
     for test in dict.fromkeys(t.split("::")[0] for t in covering(module)[1]):
         h.update((ROOT / test).read_bytes())
     return h.hexdigest()[:16]
+
+
+def rerun_survivors(session: Path) -> int:
+    """Forget the results of the surviving mutants (``cosmic-ray exec`` then runs them again);
+    returns how many. Tests that were added or tightened cannot revive a killed mutant, so only
+    the survivors need the new tests (delete the ``.sqlite`` for a full run)."""
+    with sqlite3.connect(session) as db:
+        return db.execute("DELETE FROM work_results WHERE lower(test_outcome) = 'survived'").rowcount
 
 
 def prepare_copy() -> Path:
@@ -162,11 +196,12 @@ def run_module(module: str, timeout_floor: float) -> Optional[dict]:
         return None
     copy = prepare_copy()
     env = environment(copy)
-    source_hash = fingerprint(module)
+    source_hash, tests_hash = fingerprint(module), tests_fingerprint(module)
     session, config, meta_path = (WORK / f"{slug(module)}{ext}" for ext in (".sqlite", ".toml", ".meta.json"))
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
     cmd = test_command(module)
-    if meta.get("source") != source_hash or meta.get("command") != cmd or not session.exists():
+    fresh = meta.get("source") != source_hash or not session.exists()
+    if fresh or meta.get("command") != cmd or meta.get("tests") != tests_hash:
         start = time.perf_counter()
         base = subprocess.run(cmd.split(), cwd=copy, env=env, capture_output=True, text=True)
         baseline_s = time.perf_counter() - start
@@ -179,10 +214,13 @@ def run_module(module: str, timeout_floor: float) -> Optional[dict]:
             f'module-path = "{module}"\ntimeout = {timeout:.0f}\nexcluded-modules = []\n'
             f"test-command = {json.dumps(cmd)}\n\n[cosmic-ray.distributor]\nname = \"local\"\n"
         )
-        session.unlink(missing_ok=True)
-        subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
-        meta = {"source": source_hash, "command": cmd, "baseline_s": round(baseline_s, 1), "timeout_s": round(timeout),
-                "exec_s": 0.0}
+        if fresh:
+            session.unlink(missing_ok=True)
+            subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
+            meta = {"exec_s": 0.0}
+        else:
+            print(f"mutation_study: {module}: its tests changed; running its {rerun_survivors(session)} survivors again", flush=True)
+        meta.update(source=source_hash, tests=tests_hash, command=cmd, baseline_s=round(baseline_s, 1), timeout_s=round(timeout))
         meta_path.write_text(json.dumps(meta))
     start = time.perf_counter()
     try:

@@ -243,3 +243,18 @@ def test_samples_handed_over_unmoved_stop_the_run(monkeypatch):
     assert "origins" in model.field.sp_handle.reads
     with pytest.raises(InputError, match=r"SP reached the fields of Holder in training step 3 but moved no sample"):
         check_reached(model, "Holder", 3)
+
+
+@pytest.mark.parametrize("boundary", ["reflect", "clamp"])
+def test_a_box_boundary_on_a_field_that_contracts_space_is_refused_after_the_first_step(boundary):
+    """Both box boundaries (not only ``reflect``) are refused on a field with a spatial distortion
+    that is not an SDF field. Kills: ``boundary != "none"`` -> ``boundary > "none"`` ("clamp" sorts
+    before "none"), found by the mutation study."""
+    model = Holder()
+    model.field.spatial_distortion = nn.Identity()  # as nerfacto's field with scene contraction on
+    attach_seam(model, preconditioner(alpha=1e-2, boundary=boundary))
+    model.field.forward(samples())
+    check_reached(model, "Holder", 0, "none")  # no box: nothing to refuse
+    with pytest.raises(InputError, match=rf"^--pipeline.model.sp.boundary {boundary} needs a bounded scene, but Probe \(model.field\) "
+                                          r"contracts space \(scene contraction is on\); pass --pipeline.model.sp.boundary none$"):
+        check_reached(model, "Holder", 0, boundary)

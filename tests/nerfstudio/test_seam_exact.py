@@ -177,6 +177,55 @@ def test_k_draws_of_an_sdf_field_recompute_normals_and_alpha_from_the_mean():
     assert (grad.norm(dim=-1) < 0.999).any()  # the mean gradient is not a unit vector: a mean of normals differs
 
 
+class NormalsProbe(Probe):
+    """A radiance field that predicts normals (as nerfacto's ``predict_normals``) and has no gradient
+    head: after K draws its normals are the mean of its K outputs, as for any other head."""
+
+    def forward(self, ray_samples, compute_normals=False):
+        p = ray_samples.frustums.get_positions()
+        return {FieldHeadNames.RGB: torch.sin(p @ self.w.T), FieldHeadNames.NORMALS: F.normalize(p, dim=-1)}
+
+
+def test_k_draws_of_predicted_normals_without_a_gradient_are_the_mean_of_the_draws():
+    """Only fields with a gradient head get their normals recomputed after averaging; a field that
+    predicts normals keeps the mean of its K = 2 draws (not re-normalised, no KeyError). Kills:
+    ``not isinstance(outputs, dict) or GRADIENT not in outputs`` -> ``and`` (found by the mutation study)."""
+    model = Holder(NormalsProbe())
+    attach_seam(model, preconditioner(num_samples=2))
+    rs = samples()
+    x = rs.frustums.get_positions().reshape(-1, 3)
+    out = model.field.forward(rs)
+    qs = [reference(x, 0.4, eps) for eps in draws(x.shape, 2)]
+    normals = torch.stack([F.normalize(q, dim=-1) for q in qs]).mean(0)
+    assert set(out) == {FieldHeadNames.RGB, FieldHeadNames.NORMALS}
+    torch.testing.assert_close(out[FieldHeadNames.NORMALS].reshape(-1, 3).double(), normals, **TOL)
+    torch.testing.assert_close(out[FieldHeadNames.RGB].reshape(-1, 2).double(), torch.stack([probe_reference(q) for q in qs]).mean(0), **TOL)
+
+
+class SDFProbeNoAlpha(SDFProbe):
+    """``SDFProbe`` called without ``return_alphas``: SDF, gradient and normals, no alpha head."""
+
+    def forward(self, ray_samples, compute_normals=False, return_alphas=False):
+        out = super().forward(ray_samples)
+        del out[FieldHeadNames.ALPHA]
+        return out
+
+
+def test_k_draws_of_an_sdf_field_add_no_alpha_it_did_not_return():
+    """Alpha is recomputed from the mean only when the field returned one: the outputs' heads are
+    the field's. Kills: ``ALPHA in outputs and SDF in outputs and hasattr(field, "get_alpha")`` with
+    its last ``and`` -> ``or`` (found by the mutation study)."""
+    model = Holder(SDFProbeNoAlpha())
+    attach_seam(model, preconditioner(alpha=0.3, num_samples=2))
+    rs = samples()
+    s = rs.frustums.get_start_positions().reshape(-1, 3)
+    out = model.field.forward(rs)
+    assert set(out) == {FieldHeadNames.SDF, FieldHeadNames.GRADIENT, FieldHeadNames.NORMALS}
+    qs = [reference(s, 0.3, eps) for eps in draws(s.shape, 2)]
+    grad = torch.stack([q / q.norm(dim=-1, keepdim=True) for q in qs]).mean(0)
+    torch.testing.assert_close(out[FieldHeadNames.NORMALS].reshape(-1, 3).double(), F.normalize(grad, dim=-1), **TOL)
+
+
 def test_gradients_reach_the_input_with_the_folds_sign_and_a_learnable_alpha_grid_exactly():
     """d(w . q)/d origins is ``w`` times +-1 (-1 where the fold mirrored the coordinate), and
     d(w . q)/d (alpha grid) equals the reparameterised ``sum_i w_i * fold'_i * eps_i * d alpha_i / d grid``,
