@@ -13,11 +13,6 @@ import os
 
 __all__ = ["load_sdfstudio_dataset", "refuse_download"]
 
-WORKING_LAYOUTS = ("Blender (transforms_train.json + nb-info.json naming the blender loader, as sp-scene writes "
-                   "my-scene/blender)", "nerfstudio (transforms.json)", "COLMAP (sparse/0)",
-                   "SDFStudio (meta_data.json + meta_data_test.json, as sp-scene writes my-scene/sdfstudio)")
-
-
 def _meta_path(path: str, split: str) -> str:
     return os.path.join(path, "meta_data.json" if split == "train" else f"meta_data_{split}.json")
 
