@@ -110,3 +110,28 @@ def test_sdfstudio_loader_refuses_other_folders_in_one_line(tmp_path):
     (tmp_path / "meta_data.json").write_text("{}")
     with pytest.raises(FileNotFoundError, match=r"meta_data_test.json is missing in .* test split"):
         load_sdfstudio_dataset(str(tmp_path), "test")
+
+
+def test_scenes_load_through_nerfbaselines_loaders(tmp_path):
+    """sp-scene's Blender layout through nerfbaselines' own Blender loader (its nb-info.json; the image
+    size from transforms_*.json, which the loader otherwise takes as 800 px), the SDFStudio layout
+    through ours (with its box), the fox capture through nerfbaselines' nerfstudio loader."""
+    import os
+
+    from nerfbaselines.datasets import load_dataset
+
+    from sp_plugins.data import make_tiny_scene
+    from tests.helpers.fox_crop import FOX, fox_missing
+
+    root = make_tiny_scene(tmp_path / "scene", mesh="sphere").root
+    blender = load_dataset(str(root / "blender"), split="train", load_features=False)
+    assert blender["metadata"]["id"] == "sp-scene" and blender["metadata"]["evaluation_protocol"] == "sp-scene"
+    assert blender["cameras"].image_sizes.tolist() == [[32, 32]] * 8
+    sdf = load_dataset(str(root / "sdfstudio"), split="test", load_features=False)
+    assert len(sdf["image_paths"]) == 2 and sdf["metadata"]["scene_box"] == [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+    why = fox_missing()
+    if why:
+        if os.environ.get("CI") == "true":
+            pytest.fail(why)
+        pytest.skip(why)
+    assert len(load_dataset(str(FOX), split="test", load_features=False)["image_paths"]) == 5
