@@ -137,6 +137,31 @@ def test_k_draws_average_the_field_at_k_exact_offsets():
     assert int(out["count"]) == 1  # integer outputs are taken from the first draw, not summed
 
 
+class ArgsProbe(Probe):
+    """A field that records the arguments it was called with besides its samples."""
+
+    def forward(self, ray_samples, compute_normals=False, *rest, **extra):
+        self.called = (compute_normals, rest, extra)
+        return super().forward(ray_samples)
+
+
+@pytest.mark.parametrize("how", ["positional", "keyword"])
+def test_the_field_gets_the_moved_samples_in_their_place_and_its_other_arguments_as_passed(how):
+    """``forward(samples, True, "x", flag=1)`` or ``forward(ray_samples=samples, ...)``: the field reads the
+    moved samples, exactly, where it was handed the plain ones, and every other argument as given.
+    Kills: the field's second positional argument dropped (``(samples, *args[1:])`` -> ``args[2:]``,
+    which the other tests let pass), the samples put back at the wrong place."""
+    model = Holder(ArgsProbe())
+    attach_seam(model, preconditioner())
+    rs = samples()
+    x = rs.frustums.get_positions().reshape(-1, 3)
+    out = model.field.forward(rs, True, "x", flag=1) if how == "positional" else \
+        model.field.forward(ray_samples=rs, compute_normals=True, flag=1)
+    (eps,) = draws(x.shape)
+    torch.testing.assert_close(out[FieldHeadNames.RGB].reshape(-1, 2).double(), probe_reference(reference(x, 0.4, eps)), **TOL)
+    assert model.field.called == ((True, ("x",), {"flag": 1}) if how == "positional" else (True, (), {"flag": 1}))
+
+
 class SDFProbe(SDFField):
     """An SDF field (the seam moves its starts) with an analytic SDF ``|p| - 0.8``: gradient, normals
     and a NeuS-like alpha computed from them, as nerfstudio's ``SDFField.get_outputs`` does."""
