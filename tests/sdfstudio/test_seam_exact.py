@@ -104,6 +104,31 @@ def test_the_eikonal_gradient_is_taken_at_the_reference_point():
     torch.testing.assert_close(out[FieldHeadNames.GRADIENT].reshape(-1, 3), expected, rtol=1e-4, atol=1e-5)
 
 
+def test_the_reach_record_counts_each_moved_query_and_keeps_the_first_move_exactly():
+    """What the reach check reads: one moved contraction call per training query, and the first
+    query's largest move ``max |fold(c + alpha eps) - c|``, kept (a later query does not replace it);
+    the model's check then passes. Kills: the count not kept (``perturbed_calls += 1`` -> ``*=`` / ``-=``),
+    the first move not recorded or recorded as another quantity (``moved - plain`` -> ``moved + plain``)."""
+    from torch import nn
+
+    from sp_plugins.sdfstudio.seam import check_reached
+
+    field, sp = tiny_field(numerical=False), preconditioner()
+    field.use_preconditioner(sp)
+    field.train()
+    samples = ray_samples()
+    field(samples)
+    c = contract(starts(samples).double())
+    first = float((reference(starts(samples), 0.15) - c).abs().max())
+    assert field.sp_handle.perturbed_calls == 1
+    assert float(field.sp_handle.first_move) == pytest.approx(first, abs=2e-5)
+    field(samples)
+    assert field.sp_handle.perturbed_calls == 2 and float(field.sp_handle.first_move) == pytest.approx(first, abs=2e-5)
+    model = nn.Module()
+    model.field = field
+    check_reached(model, "NeuSModel", 0)
+
+
 def test_the_alpha_grid_gradient_through_the_contraction_is_the_eps_weighted_value():
     """A learnable alpha grid over the contracted range: d(sum sdf)/d(grid) equals autograd through
     ``fold(c + alpha_grid(c) * eps)``, ``c = contract(x)``, on a copy of the grid. Kills: the grid
