@@ -251,6 +251,30 @@ def test_k_draws_of_an_sdf_field_add_no_alpha_it_did_not_return():
     torch.testing.assert_close(out[FieldHeadNames.NORMALS].reshape(-1, 3).double(), F.normalize(grad, dim=-1), **TOL)
 
 
+class SDFProbeOwnNormals(SDFProbe):
+    """An SDF field whose normals are its own head, not the unit gradient (a plugin's field may)."""
+
+    def forward(self, ray_samples, compute_normals=False, return_alphas=False):
+        out = super().forward(ray_samples)
+        out[FieldHeadNames.NORMALS] = F.normalize(ray_samples.frustums.get_start_positions() + 1.0, dim=-1)
+        return out
+
+
+def test_one_draw_leaves_every_head_as_the_field_computed_it():
+    """K = 1: the outputs are the field's own at the exact moved starts; nothing is recomputed after
+    the single draw (the recomputation is for means of K > 1 draws). Kills: ``num_samples > 1`` ->
+    ``> 0`` / ``>= 1`` (found by the mutation study)."""
+    model = Holder(SDFProbeOwnNormals())
+    attach_seam(model, preconditioner(alpha=0.3))
+    rs = samples()
+    s = rs.frustums.get_start_positions().reshape(-1, 3)
+    out = model.field.forward(rs)
+    (eps,) = draws(s.shape)
+    q = reference(s, 0.3, eps)
+    torch.testing.assert_close(out[FieldHeadNames.NORMALS].reshape(-1, 3).double(), F.normalize(q + 1.0, dim=-1), **TOL)
+    torch.testing.assert_close(out[FieldHeadNames.SDF].reshape(-1, 1).double(), q.norm(dim=-1, keepdim=True) - 0.8, **TOL)
+
+
 def test_gradients_reach_the_input_with_the_folds_sign_and_a_learnable_alpha_grid_exactly():
     """d(w . q)/d origins is ``w`` times +-1 (-1 where the fold mirrored the coordinate), and
     d(w . q)/d (alpha grid) equals the reparameterised ``sum_i w_i * fold'_i * eps_i * d alpha_i / d grid``,
