@@ -26,7 +26,8 @@ Per module it writes ``bench/results/mutation_study/<module>.json`` (generated, 
 timeout, equivalent, pending, wall time, the survivors' diffs) and the table
 ``bench/results/mutation_study/summary.md``. A surviving mutant that cannot change behaviour is
 listed with its reason in ``bench/results/mutation_study/equivalent.json`` (module -> list of
-``{"operator", "line", "reason"}``, ``line`` the original source line, stripped); it is then counted
+``{"operator", "line", "reason"}``, ``line`` the original source line, stripped, and optionally
+``occurrence``, cosmic-ray's index of the mutant, where only one of the line's mutants is); it is then counted
 as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
 ``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh. After the
 module changed the study does so itself; after only its covering tests (or their list) changed, it
@@ -243,7 +244,7 @@ def summarise(module: str) -> dict:
     meta = json.loads(meta_path.read_text())
     dump = subprocess.run([str(COSMIC_RAY), "dump", str(session)], capture_output=True, text=True, check=True).stdout
     source = (ROOT / module).read_text().splitlines()
-    known = {(e["operator"], e["line"]): e["reason"] for e in _equivalents().get(module, [])}
+    known = {(e["operator"], e["line"], e.get("occurrence")): e["reason"] for e in _equivalents().get(module, [])}
     counts = dict(generated=0, killed=0, survived=0, timeout=0, equivalent=0, incompetent=0, pending=0)
     survivors, equivalent = [], []
     for row in filter(None, dump.splitlines()):
@@ -261,9 +262,11 @@ def summarise(module: str) -> dict:
             counts["incompetent"] += 1
         elif outcome == "killed":
             counts["timeout" if output == "timeout" else "killed"] += 1
-        elif (entry["operator"], entry["line"]) in known:
+        elif (known.get((entry["operator"], entry["line"], entry["occurrence"]))
+              or known.get((entry["operator"], entry["line"], None))):
             counts["equivalent"] += 1
-            equivalent.append(dict(entry, reason=known[(entry["operator"], entry["line"])]))
+            reason = known.get((entry["operator"], entry["line"], entry["occurrence"])) or known[(entry["operator"], entry["line"], None)]
+            equivalent.append(dict(entry, reason=reason))
         else:
             counts["survived"] += 1
             survivors.append(entry)
