@@ -46,3 +46,30 @@ def test_the_reached_check_waits_for_alpha_above_zero_and_its_refusal_is_one_lin
     with pytest.raises(InputError, match=r"^SP reached no field of the toy host in training step 0$"):
         train_steps(model, 2)
     assert model.reach_checks == [0]
+
+
+def test_the_base_adds_the_alpha_grid_group_and_logs_alpha_only_while_training():
+    """The host's groups plus ``sp_alpha_grid`` holding exactly the grid's parameters (none without a
+    grid); ``sp_alpha`` in the metrics while training, never in evaluation. Kills: the grid's group
+    dropped or added without a grid, ``sp_alpha`` logged in evaluation (``if self.training`` negated;
+    before, only a training run of ``tests/nerfstudio/test_seam.py`` caught it)."""
+    plain = ToySPModel(SimpleNamespace(sp=SPConfig(alpha0=0.1, schedule="constant", boundary="none")))
+    assert list(plain.get_param_groups()) == ["fields"]
+    model = ToySPModel(SimpleNamespace(sp=SPConfig(alpha0=0.1, schedule="constant", boundary="none", alpha_grid=True)))
+    groups = model.get_param_groups()
+    assert list(groups) == ["fields", "sp_alpha_grid"] and groups["sp_alpha_grid"] == list(model.sp.alpha_grid.parameters())
+    train_steps(plain, 1)
+    assert plain.get_metrics_dict({}, {}) == {"sp_alpha": plain.sp.alpha} and plain.sp.alpha == pytest.approx(0.1)
+    plain.eval()
+    assert plain.get_metrics_dict({}, {}) == {}
+
+
+def test_the_handle_says_what_it_holds():
+    """The handle's repr (what a debugging session or a failed check shows)."""
+    model = ToySPModel(SimpleNamespace(sp=SPConfig(alpha0=0.1, schedule="constant", boundary="none")))
+    assert repr(model.field.sp_handle) == "PreconditionerHandle(set, perturbed_calls=0, reads=[])"
+    train_steps(model, 2)
+    model.field.sp_handle.reads.add("origins")
+    assert repr(model.field.sp_handle) == "PreconditionerHandle(set, perturbed_calls=2, reads=['origins'])"
+    model.field.use_preconditioner(None)
+    assert repr(model.field.sp_handle) == "PreconditionerHandle(empty, perturbed_calls=0, reads=[])"
