@@ -258,3 +258,25 @@ def test_a_box_boundary_on_a_field_that_contracts_space_is_refused_after_the_fir
     with pytest.raises(InputError, match=rf"^--pipeline.model.sp.boundary {boundary} needs a bounded scene, but Probe \(model.field\) "
                                           r"contracts space \(scene contraction is on\); pass --pipeline.model.sp.boundary none$"):
         check_reached(model, "Holder", 0, boundary)
+
+
+class BuiltinForward(nn.Module):
+    """A submodule whose ``forward`` is a builtin: ``inspect.signature`` raises ``ValueError``."""
+
+    forward = torch.relu
+
+
+class NoForward(nn.Module):
+    """A submodule whose ``forward`` is not callable: ``inspect.signature`` raises ``TypeError``."""
+
+    forward = None
+
+
+def test_submodules_whose_forward_has_no_readable_signature_are_not_fields():
+    """``attach_seam`` walks every submodule a host built; one whose ``forward`` signature cannot be
+    read is not a field and does not stop it. Kills: either exception of ``except (TypeError,
+    ValueError)`` no longer caught (found by the mutation study)."""
+    model = Holder()
+    model.builtin, model.nothing = BuiltinForward(), NoForward()
+    assert attach_seam(model, preconditioner()) == ["field"]
+    assert type(model.builtin) is BuiltinForward and type(model.nothing) is NoForward
