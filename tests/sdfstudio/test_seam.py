@@ -148,3 +148,27 @@ def test_a_config_yml_saved_with_the_seams_old_class_names_loads(tmp_path):
     (tmp_path / "config.yml").write_text(text.replace("seam.SeamSDFField", "seam.SPSDFField"))
     field = load_run_config(tmp_path / "config.yml", "--load-config").pipeline.model.sdf_field
     assert type(field) is SeamSDFFieldConfig and field._target is SeamSDFField
+
+
+def test_the_reach_check_refuses_a_field_without_sp_and_a_move_that_is_missing_or_not_a_number():
+    """No handle on the field (SP never handed to it), calls counted without a recorded move, and a
+    NaN move: each stops the run with its one line. Kills: ``0 if handle is None`` -> ``1`` (the check
+    then crashes on the missing handle), ``else 0.0`` -> ``1.0`` (no move recorded passes) and
+    ``not move > 0`` -> ``not move != 0`` (a NaN move passes)."""
+    from torch import nn
+
+    from sp_plugins.adapter.errors import InputError
+    from sp_plugins.adapter.field import PreconditionerHandle
+    from sp_plugins.sdfstudio.seam import check_reached
+
+    model = nn.Module()
+    model.field = nn.Module()
+    with pytest.raises(InputError, match=r"^SP reached no SDF query of NeuSModel in training step 2: "):
+        check_reached(model, "NeuSModel", 2)
+    model.field.sp_handle = PreconditionerHandle(None)
+    model.field.sp_handle.perturbed_calls = 3
+    with pytest.raises(InputError, match=r"moved no position \(largest move 0\)"):
+        check_reached(model, "NeuSModel", 2)
+    model.field.sp_handle.first_move = torch.tensor(float("nan"))
+    with pytest.raises(InputError, match=r"moved no position \(largest move nan\)"):
+        check_reached(model, "NeuSModel", 2)

@@ -129,6 +129,37 @@ def test_the_reach_record_counts_each_moved_query_and_keeps_the_first_move_exact
     check_reached(model, "NeuSModel", 0)
 
 
+def test_the_samplers_queries_are_the_hosts_at_the_plain_starts_or_when_asked_at_the_moved_ones():
+    """``get_sdf`` (NeuS up-sampling) and ``get_density`` (VolSDF's sampler) while training: by default
+    exactly sdfstudio's own ``SDFField`` methods; with ``perturb_sampler_queries`` the same computation
+    at ``fold(start + alpha eps)`` (no contraction: the host's samplers query uncontracted starts).
+    Kills: any change to the override's slicing, split or reshape (``get_density`` was called by no
+    test before), and the sampler switch ignored."""
+    from nerfstudio.fields.sdf_field import SDFField
+
+    from tests.helpers.exact import folded_query
+
+    field = tiny_field(numerical=False)
+    field.use_preconditioner(preconditioner())
+    field.train()
+    samples = ray_samples()
+    assert torch.equal(field.get_sdf(samples), SDFField.get_sdf(field, samples))
+    density, feature = field.get_density(samples)
+    host_density, host_feature = SDFField.get_density(field, samples)
+    assert torch.equal(density, host_density) and torch.equal(feature, host_feature)
+
+    field.config.perturb_sampler_queries = True
+    x = starts(samples)
+    q = folded_query(x, 0.15, torch.randn(x.shape, generator=torch.Generator().manual_seed(SEED)).double(), -2.0, 2.0).float()
+    hidden = field.forward_geonetwork(q).view(N_RAYS, N_SAMPLES, -1)
+    field.use_preconditioner(preconditioner())  # a fresh draw of the seed for each query
+    torch.testing.assert_close(field.get_sdf(samples), hidden[..., :1], **TOL)
+    field.use_preconditioner(preconditioner())
+    density, feature = field.get_density(samples)
+    torch.testing.assert_close(density, field.laplace_density(hidden[..., :1]), **TOL)
+    torch.testing.assert_close(feature, hidden[..., 1:], **TOL)
+
+
 def test_the_alpha_grid_gradient_through_the_contraction_is_the_eps_weighted_value():
     """A learnable alpha grid over the contracted range: d(sum sdf)/d(grid) equals autograd through
     ``fold(c + alpha_grid(c) * eps)``, ``c = contract(x)``, on a copy of the grid. Kills: the grid
