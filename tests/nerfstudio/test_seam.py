@@ -272,11 +272,19 @@ class NoForward(nn.Module):
     forward = None
 
 
+class NoArguments(nn.Module):
+    """A submodule whose ``forward`` takes nothing but ``self``."""
+
+    def forward(self):
+        return None
+
+
 def test_submodules_whose_forward_has_no_readable_signature_are_not_fields():
     """``attach_seam`` walks every submodule a host built; one whose ``forward`` signature cannot be
-    read is not a field and does not stop it. Kills: either exception of ``except (TypeError,
-    ValueError)`` no longer caught (found by the mutation study)."""
+    read, or that takes no argument, is not a field and does not stop it. Kills: either exception of
+    ``except (TypeError, ValueError)`` no longer caught, ``if not params: return False`` -> ``True``
+    (found by the mutation study)."""
     model = Holder()
-    model.builtin, model.nothing = BuiltinForward(), NoForward()
+    model.builtin, model.nothing, model.no_arguments = BuiltinForward(), NoForward(), NoArguments()
     assert attach_seam(model, preconditioner()) == ["field"]
-    assert type(model.builtin) is BuiltinForward and type(model.nothing) is NoForward
+    assert type(model.builtin) is BuiltinForward and type(model.nothing) is NoForward and type(model.no_arguments) is NoArguments

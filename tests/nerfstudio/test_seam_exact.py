@@ -162,6 +162,24 @@ def test_the_field_gets_the_moved_samples_in_their_place_and_its_other_arguments
     assert model.field.called == ((True, ("x",), {"flag": 1}) if how == "positional" else (True, (), {"flag": 1}))
 
 
+def test_the_reach_record_keeps_the_first_calls_largest_move_exactly():
+    """What the reach check reads: one moved call counted per field call, and the first call's largest
+    move ``max |q - x|`` (the origins' shift), kept when later calls draw again. Kills: the move
+    recorded as another quantity (``moved - plain`` -> ``moved // plain``, found by the mutation study,
+    which passes the check even when nothing moved)."""
+    model = Holder(Probe())
+    attach_seam(model, preconditioner())
+    rs = samples()
+    x = rs.frustums.get_positions().reshape(-1, 3)
+    model.field.forward(rs)
+    (eps,) = draws(x.shape)
+    first = float((reference(x, 0.4, eps) - x.double()).abs().max())
+    handle = model.field.sp_handle
+    assert handle.perturbed_calls == 1 and float(handle.first_move) == pytest.approx(first, abs=2e-5)
+    model.field.forward(rs)
+    assert handle.perturbed_calls == 2 and float(handle.first_move) == pytest.approx(first, abs=2e-5)
+
+
 class SDFProbe(SDFField):
     """An SDF field (the seam moves its starts) with an analytic SDF ``|p| - 0.8``: gradient, normals
     and a NeuS-like alpha computed from them, as nerfstudio's ``SDFField.get_outputs`` does."""
