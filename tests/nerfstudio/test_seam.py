@@ -288,3 +288,35 @@ def test_submodules_whose_forward_has_no_readable_signature_are_not_fields():
     model.builtin, model.nothing, model.no_arguments = BuiltinForward(), NoForward(), NoArguments()
     assert attach_seam(model, preconditioner()) == ["field"]
     assert type(model.builtin) is BuiltinForward and type(model.nothing) is NoForward and type(model.no_arguments) is NoArguments
+
+
+class FieldLikeModel(Holder):
+    """A model whose own ``forward`` takes ``ray_samples`` (as a field's would)."""
+
+    def forward(self, ray_samples):
+        return self.field(ray_samples)
+
+
+class TensorOrSamples(Probe):
+    """A field that is also called with a tensor of positions (no samples to move)."""
+
+    def forward(self, ray_samples, compute_normals=False):
+        if isinstance(ray_samples, torch.Tensor):
+            return ray_samples * 2.0
+        return super().forward(ray_samples, compute_normals)
+
+
+def test_the_model_itself_is_never_a_seam_field_and_calls_without_samples_are_the_hosts():
+    """``attach_seam`` swaps the classes of the model's fields, never the model's own (even when its
+    forward takes ``ray_samples``); a seam field called with anything but ``RaySamples`` runs the host's
+    forward untouched while training. Kills: ``module is model or ...`` -> ``and``, and
+    ``if args and isinstance(args[0], RaySamples)`` -> ``or`` (found by the mutation study)."""
+    model = FieldLikeModel()
+    model.sp = preconditioner()  # the model owns its preconditioner, as SPModelBase does
+    assert attach_seam(model, model.sp) == ["field"]
+    assert type(model) is FieldLikeModel and type(model.sp) is StochasticPreconditioner
+    holder = Holder()
+    holder.field = TensorOrSamples()
+    attach_seam(holder, preconditioner())
+    x = torch.rand(5, 3)
+    assert torch.equal(holder.field.forward(x), x * 2.0) and holder.field.sp_handle.perturbed_calls == 0
