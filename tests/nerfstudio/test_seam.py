@@ -320,3 +320,24 @@ def test_the_model_itself_is_never_a_seam_field_and_calls_without_samples_are_th
     attach_seam(holder, preconditioner())
     x = torch.rand(5, 3)
     assert torch.equal(holder.field.forward(x), x * 2.0) and holder.field.sp_handle.perturbed_calls == 0
+
+
+def test_a_plain_submodule_does_not_stop_the_fields_after_it():
+    """A plain submodule (one ``table.PLAIN_FIELDS`` names, e.g. a background model) listed before a
+    field: the field after it still gets the seam. Kills: the plain case's ``continue`` -> ``break``
+    (found by the mutation study)."""
+    model = Holder()
+    model.later = Probe()
+    assert attach_seam(model, preconditioner(), plain={"field": "why"}) == ["later"]
+    assert isinstance(model.later, SeamField) and not isinstance(model.field, SeamField)
+
+
+def test_a_move_that_is_not_a_number_stops_the_run():
+    """A first move of NaN (the perturbation produced no number) is no move. Kills: ``m > 0`` ->
+    ``m != 0`` in the reach check (found by the mutation study)."""
+    model = Holder()
+    attach_seam(model, preconditioner(alpha=1e-2, boundary="none"))
+    model.field.forward(samples())
+    model.field.sp_handle.first_move = torch.tensor(float("nan"))
+    with pytest.raises(InputError, match=r"moved no sample \(largest move nan\)"):
+        check_reached(model, "Holder", 0)
