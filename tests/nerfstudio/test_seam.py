@@ -131,9 +131,16 @@ def test_a_field_that_reads_no_position_of_its_samples_is_refused_naming_it():
 
 
 def test_plain_submodules_stay_plain():
+    """Plain names are attribute paths, nested ones too. Kills: ``name == p`` -> ``name is p`` (a
+    path that ``named_modules`` builds is not the table's literal), found by the mutation study."""
     model = Holder()
     assert attach_seam(model, preconditioner(), plain={"field": "why"}) == []
     assert not isinstance(model.field, SeamField)
+    model = Holder()
+    model.outer = nn.Module()
+    model.outer.inner = Probe()
+    assert attach_seam(model, preconditioner(), plain={"outer.inner": "why"}) == ["field"]
+    assert not isinstance(model.outer.inner, SeamField)
 
 
 @pytest.mark.parametrize("name", POSITION_METHODS)
@@ -249,12 +256,12 @@ def test_samples_handed_over_unmoved_stop_the_run(monkeypatch):
 def test_a_box_boundary_on_a_field_that_contracts_space_is_refused_after_the_first_step(boundary):
     """Both box boundaries (not only ``reflect``) are refused on a field with a spatial distortion
     that is not an SDF field. Kills: ``boundary != "none"`` -> ``boundary > "none"`` ("clamp" sorts
-    before "none"), found by the mutation study."""
+    before "none") and ``!=`` -> ``is not`` (a parsed "none" is not the literal), found by the mutation study."""
     model = Holder()
     model.field.spatial_distortion = nn.Identity()  # as nerfacto's field with scene contraction on
     attach_seam(model, preconditioner(alpha=1e-2, boundary=boundary))
     model.field.forward(samples())
-    check_reached(model, "Holder", 0, "none")  # no box: nothing to refuse
+    check_reached(model, "Holder", 0, "".join(["no", "ne"]))  # no box (an equal string, as parsed from a command line)
     with pytest.raises(InputError, match=rf"^--pipeline.model.sp.boundary {boundary} needs a bounded scene, but Probe \(model.field\) "
                                           r"contracts space \(scene contraction is on\); pass --pipeline.model.sp.boundary none$"):
         check_reached(model, "Holder", 0, boundary)
@@ -332,11 +339,15 @@ def test_a_plain_submodule_does_not_stop_the_fields_after_it():
     assert isinstance(model.later, SeamField) and not isinstance(model.field, SeamField)
 
 
-def test_a_move_that_is_not_a_number_stops_the_run():
-    """A first move of NaN (the perturbation produced no number) is no move. Kills: ``m > 0`` ->
-    ``m != 0`` in the reach check (found by the mutation study)."""
+def test_a_move_that_is_not_a_number_or_not_recorded_stops_the_run():
+    """A first move of NaN (the perturbation produced no number) is no move, and neither is none
+    recorded (largest move 0). Kills: ``m > 0`` -> ``m != 0`` in the reach check and the message's
+    ``max(moved, default=0.0)`` -> ``1.0`` / ``-1.0`` (found by the mutation study)."""
     model = Holder()
     attach_seam(model, preconditioner(alpha=1e-2, boundary="none"))
+    model.field.sp_handle.perturbed_calls = 1
+    with pytest.raises(InputError, match=r"moved no sample \(largest move 0\)"):
+        check_reached(model, "Holder", 0)
     model.field.forward(samples())
     model.field.sp_handle.first_move = torch.tensor(float("nan"))
     with pytest.raises(InputError, match=r"moved no sample \(largest move nan\)"):
