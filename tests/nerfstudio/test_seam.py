@@ -352,3 +352,20 @@ def test_a_move_that_is_not_a_number_or_not_recorded_stops_the_run():
     model.field.sp_handle.first_move = torch.tensor(float("nan"))
     with pytest.raises(InputError, match=r"moved no sample \(largest move nan\)"):
         check_reached(model, "Holder", 0)
+
+
+def test_a_field_class_defined_in_a_function_still_gets_the_seam():
+    """A field class no path imports (defined in a function, as a plugin's factory may) gets a local
+    seam subclass, once per class, and is moved like any other. Kills: ``except ValueError`` in
+    ``seam_class`` no longer caught (found by the mutation study)."""
+
+    class LocalProbe(Probe):
+        pass
+
+    model = Holder()
+    model.field, model.other = LocalProbe(), LocalProbe()
+    assert attach_seam(model, preconditioner(alpha=1e-2, boundary="none")) == ["field", "other"]
+    assert type(model.field) is type(model.other) and type(model.field).__name__ == "SPField_LocalProbe"
+    rs = samples()
+    model.field.forward(rs)
+    assert not torch.equal(model.field.seen[-1], rs.frustums.get_positions())
