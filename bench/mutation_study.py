@@ -172,12 +172,19 @@ def tests_fingerprint(module: str) -> str:
     return h.hexdigest()[:16]
 
 
-def rerun_survivors(session: Path) -> int:
-    """Forget the results of the surviving mutants (``cosmic-ray exec`` then runs them again);
-    returns how many. Tests that were added or tightened cannot revive a killed mutant, so only
-    the survivors need the new tests (delete the ``.sqlite`` for a full run)."""
+def rerun_survivors(session: Path, module: str) -> int:
+    """Forget the results of the surviving mutants not listed as equivalent (``cosmic-ray exec``
+    then runs them again); returns how many. Tests that were added or tightened cannot revive a
+    killed mutant, so only the survivors need the new tests (delete the ``.sqlite`` for a full run)."""
+    source = (ROOT / module).read_text().splitlines()
+    known = {(e["operator"], e["line"], e.get("occurrence")) for e in _equivalents().get(module, [])}
     with sqlite3.connect(session) as db:
-        return db.execute("DELETE FROM work_results WHERE lower(test_outcome) = 'survived'").rowcount
+        rows = db.execute("SELECT r.job_id, m.operator_name, m.start_pos_row, m.occurrence FROM work_results r "
+                          "JOIN mutation_specs m ON m.job_id = r.job_id WHERE lower(r.test_outcome) = 'survived'").fetchall()
+        again = [job for job, op, row, occ in rows
+                 if not {(op, source[row - 1].strip(), occ), (op, source[row - 1].strip(), None)} & known]
+        db.executemany("DELETE FROM work_results WHERE job_id = ?", [(job,) for job in again])
+    return len(again)
 
 
 def prepare_copy() -> Path:
@@ -220,7 +227,8 @@ def run_module(module: str, timeout_floor: float) -> Optional[dict]:
             subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
             meta = {"exec_s": 0.0}
         else:
-            print(f"mutation_study: {module}: its tests changed; running its {rerun_survivors(session)} survivors again", flush=True)
+            print(f"mutation_study: {module}: its tests changed; running its {rerun_survivors(session, module)} survivors "
+                  "(not listed as equivalent) again", flush=True)
         meta.update(source=source_hash, tests=tests_hash, command=cmd, baseline_s=round(baseline_s, 1), timeout_s=round(timeout))
         meta_path.write_text(json.dumps(meta))
     start = time.perf_counter()
