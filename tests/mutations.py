@@ -54,6 +54,7 @@ SPARSE_GAP: TestSet = ("main", ("tests/bench/test_sparse_views_gap.py",))
 # issue 44's exact-value tests: what a field reads equals the paper's formula for a fixed draw
 NS_EXACT: TestSet = ("main", ("tests/nerfstudio/test_seam_exact.py",))
 SDF_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam_exact.py",))
+SDF_SEAM: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam.py",))
 POINTCLOUD_EXACT: TestSet = ("main", ("tests/tasks/test_pointcloud_exact.py",))
 IMAGE_EXACT: TestSet = ("main", ("tests/tasks/test_image_exact.py",))
 SDF_TASK_EXACT: TestSet = ("main", ("tests/tasks/test_sdf_exact.py",))
@@ -107,6 +108,9 @@ MUTATIONS: List[Mutation] = [
              "if sp.config.num_samples > 1 else outputs", "if sp.config.num_samples > 0 else outputs", (NS_EXACT,)),
     Mutation("sdfstudio seam: first move recorded as |moved + plain| (an unmoved run passes the reach check)",
              "sp_plugins/sdfstudio/seam.py", "(moved - plain).detach()", "(moved + plain).detach()", (SDF_EXACT,)),
+    Mutation("sdfstudio seam: queries SP does not move recorded (an evaluation first fails the reach check)",
+             "sp_plugins/sdfstudio/seam.py", "if handle is None or handle.sp is None or not handle.sp.active:",
+             "if handle is None or handle.sp is None and not handle.sp.active:", (SDF_SEAM,)),
     Mutation("host wiring: alpha0 not scaled by the diagonal", "sp_plugins/adapter/model.py",
              "scene_diagonal=box_diagonal(aabb)", "scene_diagonal=1.0", (NS_EXACT, SDF_EXACT)),
     Mutation("sdfstudio model: folds into the scene box", "sp_plugins/sdfstudio/model.py",

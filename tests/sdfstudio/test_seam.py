@@ -172,3 +172,22 @@ def test_the_reach_check_refuses_a_field_without_sp_and_a_move_that_is_missing_o
     model.field.sp_handle.first_move = torch.tensor(float("nan"))
     with pytest.raises(InputError, match=r"moved no position \(largest move nan\)"):
         check_reached(model, "NeuSModel", 2)
+
+
+def test_queries_that_sp_does_not_move_leave_no_reach_record():
+    """Evaluation, and a field whose handle holds no preconditioner, query the plain field and leave
+    the reach record empty (no count, no first move of 0 that would fail the check of a later
+    training step). Kills: ``handle.sp is None or not handle.sp.active`` -> ``and`` (found by the
+    mutation study)."""
+    field, sp = tiny_field(numerical=False), preconditioner()
+    field.use_preconditioner(sp)
+    field.eval(), sp.eval()
+    field(ray_samples())
+    assert field.sp_handle.perturbed_calls == 0 and field.sp_handle.first_move is None
+    field.train(), sp.train()
+    field(ray_samples())
+    assert field.sp_handle.perturbed_calls == 1 and float(field.sp_handle.first_move) > 0
+    field.use_preconditioner(None)
+    spy, samples = Spy(field), ray_samples()
+    field(samples)
+    torch.testing.assert_close(spy.calls[0], plain_positions(samples), rtol=0, atol=0)
