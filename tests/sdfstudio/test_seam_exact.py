@@ -88,6 +88,29 @@ def test_the_query_is_the_contracted_start_plus_alpha_eps_folded_into_the_contra
     torch.testing.assert_close(stencil.view(6, -1, 3).double(), ref[None] + steps, **TOL)
 
 
+def test_queries_fold_at_both_walls_of_the_contracted_range():
+    """The same rays mirrored (towards +z): far samples contract towards the upper wall at +2 and
+    fold there, exactly as the reference folds into ``[-2, 2]^3``. Kills: ``CONTRACTED_BOUNDS``'s
+    upper end moved (``(-2.0, 2.0)`` -> ``(-2.0, 3.0)``; the rays towards -z only test the lower
+    wall), found by the mutation study."""
+    import dataclasses
+
+    field, sp = tiny_field(numerical=False), preconditioner()
+    field.use_preconditioner(sp)
+    field.train()
+    samples = ray_samples()
+    f = samples.frustums
+    mirrored = dataclasses.replace(f, origins=f.origins * torch.tensor([1.0, 1.0, -1.0]), directions=f.directions * torch.tensor([1.0, 1.0, -1.0]))
+    samples = dataclasses.replace(samples, frustums=mirrored)
+    spy = Spy(field)
+    field(samples)
+    ref = reference(starts(samples), 0.15)
+    c = contract(starts(samples).double())
+    raw = c + 0.15 * torch.randn(c.shape, generator=torch.Generator().manual_seed(SEED)).double()
+    assert (raw > 2.0).any() and ((raw - ref).abs() > 1e-3).any()  # some queries folded at the upper wall
+    torch.testing.assert_close(spy.calls[0].double(), ref, **TOL)
+
+
 def test_the_eikonal_gradient_is_taken_at_the_reference_point():
     """With autograd normals the field's gradient is d sdf / d q at ``q = fold(contract(x) + alpha eps)``.
     Kills: the gradient taken at the plain contracted point (the perturbation outside the tensor the
