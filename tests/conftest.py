@@ -69,6 +69,7 @@ SLOW_FIRST = (
     "nerfstudio/test_bad_input_ns.py", "nerfstudio/test_safe_config_ns.py", "nerfstudio/test_multiprocess.py",
     "nerfstudio/test_relu_field_thr3ed.py", "nerfstudio/test_real_capture.py", "bench/test_gpu_check.py",
     "cli/test_fuzz_inputs.py", "nerfstudio/test_sp_option_matrix.py", "nerfstudio/test_viewer_walk.py",
+    "nerfbaselines/test_nerfbaselines.py", "nerfstudio/test_method_table.py",
 )
 """Files of half a minute or more (``--durations`` of the CI run, 2026-12-04). ``./run.sh test`` hands whole files to
 pytest-xdist workers in collection order (``--no-loadscope-reorder``: by default xdist starts with the
