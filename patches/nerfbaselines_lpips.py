@@ -15,7 +15,7 @@ import contextlib
 import inspect
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import Patch, swapped
 
 __all__ = ["PATCH", "offline_lpips"]
 
@@ -39,11 +39,8 @@ def offline_lpips() -> Iterator[None]:
         return np.full(a.shape[:-3], np.nan, dtype=np.float32)
 
     offline.real = real  # type: ignore[attr-defined]
-    setattr(metrics, NAME, offline)
-    try:
+    with swapped(metrics, NAME, offline):
         yield
-    finally:
-        setattr(metrics, NAME, real)
 
 
 def _found() -> str:

@@ -15,7 +15,7 @@ import contextlib
 import inspect
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch
+from sp_plugins.patches.registry import Patch, swapped
 
 __all__ = ["PATCH", "offline_lpips"]
 
@@ -30,12 +30,8 @@ def offline_lpips() -> Iterator[None]:
 
     from sp_plugins.adapter.lpips import offline_factory
 
-    real = getattr(lpip_module, NAME)
-    setattr(lpip_module, NAME, offline_factory(real))
-    try:
+    with swapped(lpip_module, NAME, offline_factory(getattr(lpip_module, NAME))):
         yield
-    finally:
-        setattr(lpip_module, NAME, real)
 
 
 def _check(patch: Patch) -> None:

@@ -132,6 +132,18 @@ _MODULE_COMMANDS = {  # ``python -m <module>`` runs the same command
 }
 
 
+@contextlib.contextmanager
+def swapped(module: Any, name: str, replacement: Any) -> Iterator[None]:
+    """``module.name`` is ``replacement`` within the block and what it was again after it (an ``enter``'s
+    usual body: the patch is the replacement, the scope is this block)."""
+    real = getattr(module, name)
+    setattr(module, name, replacement)
+    try:
+        yield
+    finally:
+        setattr(module, name, real)
+
+
 def python_patch(name: str, check: Callable[[Patch], None], enter: Callable[..., ContextManager],
                  guarded: Tuple[Tuple[str, str], ...], **fields: Any) -> Patch:
     """The :class:`Patch` of a change to Python itself (``sys.excepthook``, ``warnings.filters``),
