@@ -191,3 +191,18 @@ def test_queries_that_sp_does_not_move_leave_no_reach_record():
     spy, samples = Spy(field), ray_samples()
     field(samples)
     torch.testing.assert_close(spy.calls[0], plain_positions(samples), rtol=0, atol=0)
+
+
+def test_the_seam_fields_constructor_has_the_hosts_parameters_and_defaults():
+    """``SeamSDFField`` is built wherever sdfstudio builds its ``SDFField``: the same parameters with
+    the same defaults (a caller that leaves one out gets the host's behaviour). Kills:
+    ``use_average_appearance_embedding: bool = False`` -> ``True`` (found by the mutation study)."""
+    import inspect
+
+    from nerfstudio.fields.sdf_field import SDFField
+
+    from sp_plugins.sdfstudio.seam import SeamSDFField
+
+    ours, host = inspect.signature(SeamSDFField.__init__).parameters, inspect.signature(SDFField.__init__).parameters
+    assert [(p.name, p.default) for p in ours.values()] == [(p.name, p.default) for p in host.values()]
+    assert tiny_field(numerical=False).use_average_appearance_embedding is False
