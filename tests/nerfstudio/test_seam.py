@@ -369,3 +369,14 @@ def test_a_field_class_defined_in_a_function_still_gets_the_seam():
     rs = samples()
     model.field.forward(rs)
     assert not torch.equal(model.field.seen[-1], rs.frustums.get_positions())
+
+
+def test_an_sp_model_names_the_host_model_it_is_built_on():
+    """``sp_host_class()`` of an SP model variant is the host's model class (what presets, tables and
+    error lines look up), not one of ours. Kills: its ``not c.__module__.startswith("sp_plugins.")``
+    with the ``not`` dropped (found by the mutation study)."""
+    from nerfstudio.models.vanilla_nerf import NeRFModel
+
+    from sp_plugins.nerfstudio import variants
+
+    assert variants.variant("Model", NeRFModel).sp_host_class() is NeRFModel
