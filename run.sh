@@ -59,11 +59,11 @@ setup() {
   if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then
     echo "[sp-plugins] installing (first time: about 5-6 minutes and 8 GB, mostly torch and nerfstudio)"
     "$venv/bin/python" -m pip install -q --upgrade pip
-    # --no-compile (here and in setup_sdfstudio): byte code is written for what is imported, on first import;
-    # compiling all 24k modules of an environment up front costs about 40 s of CPU each (measured)
+    # not --no-compile: where PYTHONDONTWRITEBYTECODE is set (this CI machine), the byte code pip writes is the
+    # only byte code there is; without it every process compiled nerfstudio and torch again (a run 2x slower)
     # shellcheck disable=SC2086
-    "$venv/bin/python" -m pip install -q --no-compile $torch_spec
-    "$venv/bin/python" -m pip install -q --no-compile -e "$here[nerfstudio,nerfbaselines,sweeps,dev]"
+    "$venv/bin/python" -m pip install -q $torch_spec
+    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev]"
     echo "$want" > "$stamp"
   fi
 }
@@ -100,9 +100,9 @@ setup_sdfstudio() {
   if ! {
     "$sdf_venv/bin/python" -m pip install -q --upgrade pip &&
     # shellcheck disable=SC2086
-    "$sdf_venv/bin/python" -m pip install -q --no-compile $torch_spec &&
-    "$sdf_venv/bin/python" -m pip install -q --no-compile --no-deps "$sdf_src" &&
-    "$sdf_venv/bin/python" -m pip install -q --no-compile -e "$here[sdfstudio,dev]" &&
+    "$sdf_venv/bin/python" -m pip install -q $torch_spec &&
+    "$sdf_venv/bin/python" -m pip install -q --no-deps "$sdf_src" &&
+    "$sdf_venv/bin/python" -m pip install -q -e "$here[sdfstudio,dev]" &&
     "$sdf_venv/bin/python" -c "import sp_plugins.sdfstudio.detect as h; h.require_sdfstudio()" &&
     # opt-in hook: sdfstudio's own ns-train / ns-eval / ns-extract-mesh see our patches and methods
     "$sdf_venv/bin/python" -m sp_plugins.sdfstudio.hook install
