@@ -7,6 +7,8 @@ Each test names the mutation of ``sp_plugins/tasks/pointcloud.py`` / ``common.py
 from __future__ import annotations
 
 import copy
+import math
+import re
 
 import pytest
 import torch
@@ -65,3 +67,196 @@ def test_one_step_queries_x_plus_alpha_eps_in_the_frame_box_and_takes_the_gradie
     (g,) = torch.autograd.grad(f.sum(), xg)
     torch.testing.assert_close(seen["f"], f.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(seen["g"], g, rtol=1e-4, atol=1e-5)
+
+
+# --- the mutation study's survivors in pointcloud.py (issue 44) -------------------------------------
+
+def tiny(grid, **kw) -> PointCloudSDFConfig:
+    base = dict(steps=2, surface_batch=16, space_batch=16, hidden=(16,), encoding=grid)
+    base.update(kw)
+    return PointCloudSDFConfig(**base)
+
+
+def test_the_defaults_are_the_point_cloud_tables_setting():
+    """README: the ``pointcloud`` defaults are the setting of bench/RESULTS.md's point-cloud table (2000 steps,
+    2500 + 2500 points, 200k samples, SIREN weights 3e3 / 1e2 / 5e1 squared / 1e2, lr 1e-3, 2x64 MLP, output
+    bias 0, 192^3 meshing with 4 bisections, 200k metric points, SP 0.03 step to 0 at 20%); the rest as
+    their docs say. Kills: ``surface_batch = 2500`` -> 2499, ``n_points = 200_000`` -> 200001,
+    ``output_bias = 0.0`` -> -1.0, ``w_eikonal = 5e1`` -> 49.0 (and any other default changed)."""
+    c = PointCloudSDFConfig()
+    assert (c.steps, c.seed, c.lr, c.hidden) == (2000, 0, 1e-3, (64, 64))
+    assert (c.surface_batch, c.space_batch, c.n_points) == (2500, 2500, 200_000)
+    assert (c.w_surface, c.w_normal, c.w_eikonal, c.w_offsurface) == (3e3, 1e2, 5e1, 1e2)
+    assert (c.eikonal, c.offsurface_falloff) == ("squared", 100.0)
+    assert (c.output_bias, c.geometric_init, c.include_input, c.init_radius) == (0.0, False, None, 0.5)
+    assert (c.lr_final_ratio, c.grad_clip) == (1.0, 1.0)
+    assert (c.frame_diagonal, c.mesh_resolution, c.refine, c.metric_points) == (1.9, 192, 4, 200_000)
+    assert (c.encoding.levels, c.encoding.log2_table_size, c.encoding.max_resolution) == (16, 16, 1024)
+    assert (c.sp.enabled, c.sp.alpha0, c.sp.schedule, c.sp.end) == (True, 0.03, "step", 0.2)
+    assert (c.sp.noise, c.sp.boundary) == ("gaussian", "reflect")
+
+
+SIZES = "steps, surface_batch, space_batch and n_points must be >= 1"
+
+
+@pytest.mark.parametrize("name, refused, accepted, message", [
+    ("steps", 0, 1, SIZES),
+    ("surface_batch", 0, 1, SIZES),
+    ("space_batch", 0, 1, SIZES),
+    ("n_points", 0, 1, SIZES),
+    ("lr", 0.0, 1e-12, "lr=0.0, lr_final_ratio=1.0: need lr > 0 and 0 < ratio <= 1"),
+    ("lr_final_ratio", 0.0, 1.0, "lr=0.001, lr_final_ratio=0.0: need lr > 0 and 0 < ratio <= 1"),
+    ("lr_final_ratio", 1.5, 1e-6, "lr=0.001, lr_final_ratio=1.5: need lr > 0 and 0 < ratio <= 1"),
+    ("mesh_resolution", 7, 8, "mesh_resolution=7: use at least 8"),
+    ("eikonal", "cubic", "abs", "eikonal='cubic': use 'squared' or 'abs'"),
+])
+def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refused, accepted, message):
+    """Each bound at its edge: the first refused value gives the one line ``sp-fit`` prints (after
+    ``sp-fit: error:``), the boundary value is accepted. Kills: ``surface_batch < 1`` -> ``< 0``,
+    ``n_points < 1`` -> ``< 2``, ``space_batch < 1`` -> ``<= 1``, ``lr > 0`` -> ``>= 0``,
+    ``lr_final_ratio <= 1`` -> ``<= 2``, ``mesh_resolution < 8`` -> ``< 9`` and -> ``< 7``."""
+    with pytest.raises(ValueError) as refused_error:
+        PointCloudSDFConfig(**{name: refused}).validate()
+    assert str(refused_error.value) == message
+    PointCloudSDFConfig(**{name: accepted}).validate()
+
+
+def test_the_siren_terms_are_the_papers_formulas_for_both_eikonal_penalties():
+    """A hand-made batch: mean |f| on the surface, mean(1 - cos(grad, n)), the mean squared or absolute
+    (|grad| - 1) over surface and space points, mean exp(-falloff |f|) off the surface. Kills:
+    ``eikonal == "squared"`` -> ``<= "squared"`` ("abs" sorts first: the abs penalty was squared), the
+    function's default ``falloff = 100.0`` (SIREN's, as the config's) -> 99.0."""
+    d = dict(dtype=torch.float64)
+    f_surface = torch.tensor([0.1, -0.3], **d)
+    g_surface = torch.tensor([[3.0, 0.0, 4.0], [0.0, 0.0, 2.0]], **d)  # |g| 5 and 2
+    normals = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], **d)  # cos 0.8 and 0
+    f_space = torch.tensor([0.01, -0.02], **d)
+    g_space = torch.tensor([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0]], **d)  # |g| 1 and 0.5
+    # |g| - 1 = 4, 1, 0, -0.5
+    for eikonal, expected in (("squared", (16 + 1 + 0 + 0.25) / 4), ("abs", (4 + 1 + 0 + 0.5) / 4)):
+        terms = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space, 50.0, eikonal)
+        assert float(terms["surface"]) == pytest.approx(0.2, rel=1e-12)
+        assert float(terms["normal"]) == pytest.approx(((1 - 0.8) + (1 - 0.0)) / 2, rel=1e-12)
+        assert float(terms["eikonal"]) == pytest.approx(expected, rel=1e-12), eikonal
+        assert float(terms["offsurface"]) == pytest.approx((math.exp(-0.5) + math.exp(-1.0)) / 2, rel=1e-12)
+    by_default = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space)
+    assert float(by_default["eikonal"]) == pytest.approx((16 + 1 + 0 + 0.25) / 4, rel=1e-12)  # squared
+    assert float(by_default["offsurface"]) == pytest.approx((math.exp(-1.0) + math.exp(-2.0)) / 2, rel=1e-12)
+
+
+def test_the_loss_is_the_weighted_sum_of_the_four_terms(blob_points, tiny_grid):
+    """Each step's loss equals w_surface * surface + w_normal * normal + w_eikonal * eikonal + w_offsurface
+    * offsurface of the unweighted terms it reports (distinct weights, so no term can stand in for another).
+    Kills: the sum's ``+`` -> ``-`` / ``*`` / ``**`` and a weight's ``*`` -> ``+`` / ``-`` / ``**``."""
+    w = dict(w_surface=7.0, w_normal=3.0, w_eikonal=5.0, w_offsurface=11.0)
+    trainer = tiny(tiny_grid, steps=2, output_bias=0.2, offsurface_falloff=5.0, **w).setup(blob_points)  # no term ~0
+    trainer.fit()
+    h = trainer.history
+    for i in range(2):
+        expected = sum(w[f"w_{t}"] * h[t][i] for t in ("surface", "normal", "eikonal", "offsurface"))
+        assert h["loss"][i] == pytest.approx(expected, rel=1e-6)
+    assert min(h[t][0] for t in ("surface", "normal", "eikonal", "offsurface")) > 1e-3  # every term counts
+
+
+@pytest.mark.parametrize("steps", [2, 5])
+def test_the_learning_rate_decays_exponentially_to_exactly_lr_times_the_final_ratio(steps, blob_points, tiny_grid):
+    """Step k (0-based) runs at ``lr * ratio ** (k / (steps - 1))``: the first at lr, the last at lr *
+    ratio. Kills every mutant of ``gamma = ratio ** (1.0 / max(steps - 1, 1))`` that survived: ``-`` ->
+    ``<<`` / ``%`` / ``*`` / ``//``, ``/`` -> ``-`` / ``+``, ``**`` -> ``+`` and ``max(..., 1)`` -> 2 (at 2 steps)."""
+    trainer = tiny(tiny_grid, steps=steps, lr=1e-2, lr_final_ratio=0.1).setup(blob_points)
+    lrs = []
+    trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs: lrs.append(opt.param_groups[0]["lr"]))
+    trainer.fit()
+    assert lrs == pytest.approx([1e-2 * 0.1 ** (k / (steps - 1)) for k in range(steps)], rel=1e-12)
+    assert lrs[-1] == pytest.approx(1e-3, rel=1e-12)
+
+
+def grads_at_the_optimizer_step(grid, points, grad_clip):
+    trainer = tiny(grid, steps=1, grad_clip=grad_clip).setup(points)
+    seen = []
+    trainer.optimizer.register_step_pre_hook(
+        lambda opt, args, kwargs: seen.append([p.grad.detach().clone() for p in trainer.field.parameters()]))
+    trainer.step()
+    return seen[0]
+
+
+def test_gradient_clipping_scales_the_field_gradient_to_grad_clip_and_0_turns_it_off(blob_points, tiny_grid):
+    """``--grad-clip 0`` leaves the gradient as backward made it (the same as a bound far above it); a
+    positive bound below its norm scales it to that norm (torch's clip_grad_norm_: by
+    ``bound / (norm + 1e-6)``). Kills: ``grad_clip > 0`` -> ``== 0`` and -> ``not grad_clip > 0``
+    (clipping at 0 zeroes the gradient, and no clipping where it was asked for)."""
+    off = grads_at_the_optimizer_step(tiny_grid, blob_points, 0.0)
+    far = grads_at_the_optimizer_step(tiny_grid, blob_points, 1e12)
+    clipped = grads_at_the_optimizer_step(tiny_grid, blob_points, 0.01)
+    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in off]))
+    assert norm > 1.0  # the weights (3e3 ...) make it large
+    for a, b, c in zip(off, far, clipped):
+        assert torch.equal(a, b)
+        torch.testing.assert_close(c, a * (0.01 / (norm + 1e-6)), rtol=1e-5, atol=1e-12)
+
+
+def test_the_learned_alpha_grid_is_left_alone_once_sp_has_ended(blob_points, tiny_grid):
+    """After the schedule's end SP no longer reads the alpha grid, so it gets no gradient and Adam must not
+    move it (``zero_grad(set_to_none=True)``: a parameter without a gradient is skipped; zeroed
+    gradients would let Adam's momentum drift it). Kills: ``zero_grad(set_to_none=True)`` -> ``False``."""
+    sp = SPConfig(alpha0=0.05, schedule="step", end=0.5, alpha_grid=True, alpha_grid_resolution=4)
+    trainer = tiny(tiny_grid, steps=4, sp=sp).setup(blob_points)
+    grids = []
+    for _ in range(4):
+        trainer.step()
+        grids.append([p.detach().clone() for p in trainer.sp.alpha_grid.parameters()])
+    assert trainer.history["alpha"] == [0.05, 0.05, 0.0, 0.0]
+    assert any(not torch.equal(a, b) for a, b in zip(grids[0], grids[1]))  # it learns while SP is on
+    for later in grids[2:]:
+        assert all(torch.equal(a, b) for a, b in zip(grids[1], later))
+
+
+def test_the_output_bias_applies_without_geometric_init_and_the_sphere_keeps_its_own(blob_points, tiny_grid):
+    """``output_bias`` sets the MLP's last bias; with geometric init it is ignored (the sphere's
+    ``-init_radius``); None keeps PyTorch's default (uniform in +-1/sqrt(width)). Kills:
+    ``output_bias is not None and not geometric_init`` -> ``or`` (the sphere's bias overwritten by 0)."""
+    def last_bias(**kw):
+        return tiny(tiny_grid, **kw).setup(blob_points).field.mlp[-1].bias.detach()
+
+    assert torch.equal(last_bias(output_bias=0.25), torch.tensor([0.25]))
+    assert torch.equal(last_bias(geometric_init=True, init_radius=0.3), torch.tensor([-0.3]))
+    assert torch.equal(last_bias(geometric_init=True, init_radius=0.3, output_bias=0.25), torch.tensor([-0.3]))
+    default = float(last_bias(output_bias=None))
+    assert 0 < abs(default) <= 1 / math.sqrt(16)
+
+
+def test_a_diverged_fit_stops_in_one_line_naming_lr_and_grad_clip(blob_points, tiny_grid):
+    """An absurd learning rate: the fit stops with the README's one line for a diverged ``sp-fit``, plus the
+    point-cloud task's own hint. Kills: ``_diverged``'s ``+ " or clip harder (--grad-clip)"`` -> ``//`` /
+    ``%`` (a TypeError traceback instead of the line)."""
+    trainer = tiny(tiny_grid, steps=3, lr=1e30).setup(blob_points)
+    with pytest.raises(FloatingPointError) as stopped:
+        trainer.fit()
+    assert re.fullmatch(r"step [12]: the loss became (nan|inf); the fit diverged: lower --lr \(now 1e\+30, e\.g\. "
+                        r"10x smaller\) or clip harder \(--grad-clip\)", str(stopped.value)), str(stopped.value)
+
+
+def test_device_and_the_evaluation_options_are_keyword_only(blob_points, blob_mesh, tiny_grid):
+    """``PointCloudSDFTrainer(config, data, *, device)`` and ``evaluate(gt_mesh, *, resolution, ...)``: a
+    positional third argument is refused, not read as the device or the grid resolution. Kills: either
+    ``*`` -> ``/`` (which makes the options positional)."""
+    config = tiny(tiny_grid)
+    with pytest.raises(TypeError):
+        pointcloud.PointCloudSDFTrainer(config, blob_points, "cpu")
+    trainer = config.setup(blob_points, device="cpu")
+    with pytest.raises(TypeError):
+        trainer.evaluate(blob_mesh, 8)
+
+
+def test_the_metrics_count_the_meshs_parts_and_zero_for_an_empty_mesh(blob_points, blob_mesh, tiny_grid):
+    """``components`` in the metrics (metrics.json) is the number of the mesh's connected parts: 1 for the
+    geometric init's sphere, 0 (not a negative count) for a field positive everywhere (output bias 5), which
+    meshes to nothing. Kills: ``... if len(mesh.faces) else 0`` -> ``else -1`` and -> ``if not len(...)``."""
+    sphere = tiny(tiny_grid, steps=1, geometric_init=True).setup(blob_points)
+    mesh, metrics = sphere.evaluate(blob_mesh, resolution=12, refine=0, metric_points=100)
+    assert len(mesh.faces) > 0
+    assert metrics["components"] == 1
+    positive = tiny(tiny_grid, steps=1, output_bias=5.0).setup(blob_points)
+    mesh, metrics = positive.evaluate(blob_mesh, resolution=8, refine=0, metric_points=100)
+    assert len(mesh.faces) == 0
+    assert metrics["components"] == 0
