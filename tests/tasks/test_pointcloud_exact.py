@@ -105,6 +105,7 @@ SIZES = "steps, surface_batch, space_batch and n_points must be >= 1"
     ("space_batch", 0, 1, SIZES),
     ("n_points", 0, 1, SIZES),
     ("lr", 0.0, 1e-12, "lr=0.0, lr_final_ratio=1.0: need lr > 0 and 0 < ratio <= 1"),
+    ("lr", -1e-3, 1e-12, "lr=-0.001, lr_final_ratio=1.0: need lr > 0 and 0 < ratio <= 1"),
     ("lr_final_ratio", 0.0, 1.0, "lr=0.001, lr_final_ratio=0.0: need lr > 0 and 0 < ratio <= 1"),
     ("lr_final_ratio", 1.5, 1e-6, "lr=0.001, lr_final_ratio=1.5: need lr > 0 and 0 < ratio <= 1"),
     ("mesh_resolution", 7, 8, "mesh_resolution=7: use at least 8"),
@@ -124,8 +125,9 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refu
 def test_the_siren_terms_are_the_papers_formulas_for_both_eikonal_penalties():
     """A hand-made batch: mean |f| on the surface, mean(1 - cos(grad, n)), the mean squared or absolute
     (|grad| - 1) over surface and space points, mean exp(-falloff |f|) off the surface. Kills:
-    ``eikonal == "squared"`` -> ``<= "squared"`` ("abs" sorts first: the abs penalty was squared), the
-    function's default ``falloff = 100.0`` (SIREN's, as the config's) -> 99.0."""
+    ``eikonal == "squared"`` -> ``<= "squared"`` ("abs" sorts first: the abs penalty was squared) and -> ``is
+    "squared"`` (a name parsed from the command line is an equal string, not the literal), the function's
+    default ``falloff = 100.0`` (SIREN's, as the config's) -> 99.0."""
     d = dict(dtype=torch.float64)
     f_surface = torch.tensor([0.1, -0.3], **d)
     g_surface = torch.tensor([[3.0, 0.0, 4.0], [0.0, 0.0, 2.0]], **d)  # |g| 5 and 2
@@ -139,6 +141,10 @@ def test_the_siren_terms_are_the_papers_formulas_for_both_eikonal_penalties():
         assert float(terms["normal"]) == pytest.approx(((1 - 0.8) + (1 - 0.0)) / 2, rel=1e-12)
         assert float(terms["eikonal"]) == pytest.approx(expected, rel=1e-12), eikonal
         assert float(terms["offsurface"]) == pytest.approx((math.exp(-0.5) + math.exp(-1.0)) / 2, rel=1e-12)
+    parsed = "".join(["squ", "ared"])  # equal to "squared", not the same object
+    assert parsed is not "squared"  # noqa: F632
+    terms = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space, 50.0, parsed)
+    assert float(terms["eikonal"]) == pytest.approx((16 + 1 + 0 + 0.25) / 4, rel=1e-12)
     by_default = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space)
     assert float(by_default["eikonal"]) == pytest.approx((16 + 1 + 0 + 0.25) / 4, rel=1e-12)  # squared
     assert float(by_default["offsurface"]) == pytest.approx((math.exp(-1.0) + math.exp(-2.0)) / 2, rel=1e-12)
@@ -158,17 +164,17 @@ def test_the_loss_is_the_weighted_sum_of_the_four_terms(blob_points, tiny_grid):
     assert min(h[t][0] for t in ("surface", "normal", "eikonal", "offsurface")) > 1e-3  # every term counts
 
 
-@pytest.mark.parametrize("steps", [2, 5])
+@pytest.mark.parametrize("steps", [1, 2, 5])
 def test_the_learning_rate_decays_exponentially_to_exactly_lr_times_the_final_ratio(steps, blob_points, tiny_grid):
     """Step k (0-based) runs at ``lr * ratio ** (k / (steps - 1))``: the first at lr, the last at lr *
-    ratio. Kills every mutant of ``gamma = ratio ** (1.0 / max(steps - 1, 1))`` that survived: ``-`` ->
+    ratio (one step: at lr). Kills every mutant of ``gamma = ratio ** (1.0 / max(steps - 1, 1))`` that survived: ``-`` ->
     ``<<`` / ``%`` / ``*`` / ``//``, ``/`` -> ``-`` / ``+``, ``**`` -> ``+`` and ``max(..., 1)`` -> 2 (at 2 steps)."""
     trainer = tiny(tiny_grid, steps=steps, lr=1e-2, lr_final_ratio=0.1).setup(blob_points)
     lrs = []
     trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs: lrs.append(opt.param_groups[0]["lr"]))
     trainer.fit()
-    assert lrs == pytest.approx([1e-2 * 0.1 ** (k / (steps - 1)) for k in range(steps)], rel=1e-12)
-    assert lrs[-1] == pytest.approx(1e-3, rel=1e-12)
+    assert lrs == pytest.approx([1e-2 * 0.1 ** (k / max(steps - 1, 1)) for k in range(steps)], rel=1e-12)
+    assert lrs[-1] == pytest.approx(1e-3 if steps > 1 else 1e-2, rel=1e-12)  # one step: at lr
 
 
 def grads_at_the_optimizer_step(grid, points, grad_clip):
@@ -260,3 +266,57 @@ def test_the_metrics_count_the_meshs_parts_and_zero_for_an_empty_mesh(blob_point
     mesh, metrics = positive.evaluate(blob_mesh, resolution=8, refine=0, metric_points=100)
     assert len(mesh.faces) == 0
     assert metrics["components"] == 0
+
+
+def test_the_normal_and_eikonal_terms_train_the_field(blob_points, tiny_grid):
+    """The gradient terms depend on the field's parameters through grad f (``create_graph=True``): with only
+    w_normal, or only w_eikonal, non-zero, the field still gets a gradient. Kills: ``create_graph=True`` ->
+    ``False`` (those two terms became constants: the field learned from f alone)."""
+    for weights in (dict(w_normal=1.0), dict(w_eikonal=1.0)):
+        w = dict(w_surface=0.0, w_normal=0.0, w_eikonal=0.0, w_offsurface=0.0)
+        w.update(weights)
+        trainer = tiny(tiny_grid, steps=1, grad_clip=0.0, **w).setup(blob_points)
+        seen = []
+        trainer.optimizer.register_step_pre_hook(
+            lambda opt, args, kwargs: seen.append([p.grad.detach().clone() for p in trainer.field.parameters()]))
+        trainer.step()
+        assert max(float(g.abs().max()) for g in seen[0]) > 1e-6, weights
+
+
+def test_include_input_feeds_the_coordinates_to_the_mlp_by_default_only_with_geometric_init(blob_points, tiny_grid):
+    """The MLP's first layer reads the encoding's features, and 3 more inputs (the coordinates) when
+    ``include_input`` is True, or when it is None (the default) with geometric init. Kills:
+    ``config.include_input is None`` -> ``is not None`` / ``not (... is None)`` (an explicit True ignored)."""
+    def inputs(**kw):
+        return tiny(tiny_grid, **kw).setup(blob_points).field.mlp[0].in_features
+
+    features = inputs()
+    assert inputs(include_input=False) == features
+    assert inputs(include_input=True) == features + 3
+    assert inputs(geometric_init=True) == features + 3
+
+
+def test_evaluate_reads_the_ground_truth_in_input_coordinates_unless_told_and_prints_nothing(blob_points, blob_mesh, tiny_grid, capfd):
+    """``evaluate(gt)`` moves ``gt`` into the frame first (the same metrics as the moved mesh with
+    ``gt_in_frame=True``, not those of the mesh as given); ``evaluate`` and ``fit`` show no progress unless
+    asked. Kills: the defaults ``gt_in_frame = False`` and both ``progress = False`` -> True."""
+    trainer = tiny(tiny_grid, steps=2, geometric_init=True).setup(blob_points)
+    trainer.fit()
+    options = dict(resolution=12, refine=0, metric_points=200)
+    _, default = trainer.evaluate(blob_mesh, **options)
+    _, moved = trainer.evaluate(trainer.frame.mesh_to_frame(blob_mesh), gt_in_frame=True, **options)
+    _, as_given = trainer.evaluate(blob_mesh, gt_in_frame=True, **options)
+    assert default == moved
+    assert default["chamfer"] != as_given["chamfer"]
+    out, err = capfd.readouterr()
+    assert (out, err) == ("", "")
+
+
+def test_components_counts_open_parts_too(blob_points, blob_mesh, tiny_grid):
+    """A sphere larger than the box (the geometric init at radius 1.2) meshes to one open surface (cut by the
+    box's walls): ``components`` is 1, not only the watertight parts. Kills: ``mesh.split(only_watertight=False)``
+    -> ``True``."""
+    trainer = tiny(tiny_grid, steps=1, geometric_init=True, init_radius=1.2).setup(blob_points)
+    mesh, metrics = trainer.evaluate(blob_mesh, resolution=12, refine=0, metric_points=100)
+    assert not mesh.is_watertight
+    assert metrics["components"] == 1
