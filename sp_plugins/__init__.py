@@ -3,9 +3,25 @@
 The public API is deliberately small::
 
     from sp_plugins import perturb, AlphaSchedule, AlphaGrid, StochasticPreconditioner, SPConfig
+
+The names are loaded on first use (PEP 562), so that ``import sp_plugins.<module>`` of a module
+that does not need torch (the sweep's trial runner in each Ray worker, the spec, the report) does
+not import torch: 2-5 s and some hundred MB per process.
 """
 
-from sp_plugins.core import AlphaGrid, AlphaSchedule, SPConfig, StochasticPreconditioner, perturb
+from importlib import import_module
 
 __version__ = "0.2.0"
 __all__ = ["AlphaGrid", "AlphaSchedule", "SPConfig", "StochasticPreconditioner", "perturb", "__version__"]
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        value = getattr(import_module("sp_plugins.core"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'sp_plugins' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

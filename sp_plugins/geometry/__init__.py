@@ -12,11 +12,30 @@
 - I/O: :func:`load_mesh`, :func:`load_oriented_points`, :func:`save_mesh`, :class:`Frame`.
 """
 
-from sp_plugins.geometry.cleanup import largest_component
-from sp_plugins.geometry.io import Frame, OrientedPoints, estimate_normals, load_mesh, load_oriented_points, save_mesh
-from sp_plugins.geometry.marching_cubes import evaluate_grid, extract_mesh, mesh_from_grid, refine_vertices
-from sp_plugins.geometry.sparse_marching_cubes import sparse_extract_mesh
-from sp_plugins.geometry.metrics import directed_distances, mesh_metrics, sample_surface
+from importlib import import_module
+
+_WHERE = {
+    "largest_component": "cleanup",
+    **dict.fromkeys(["Frame", "OrientedPoints", "estimate_normals", "load_mesh", "load_oriented_points", "save_mesh"], "io"),
+    **dict.fromkeys(["evaluate_grid", "extract_mesh", "mesh_from_grid", "refine_vertices"], "marching_cubes"),
+    "sparse_extract_mesh": "sparse_marching_cubes",
+    **dict.fromkeys(["directed_distances", "mesh_metrics", "sample_surface"], "metrics"),
+}
+"""Where each public name lives: loaded on first use (PEP 562), so that mesh I/O and metrics (a
+sweep's soundness check, in every trial's Ray worker) do not import torch with marching cubes."""
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        value = getattr(import_module(f"sp_plugins.geometry.{_WHERE[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'sp_plugins.geometry' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "Frame",

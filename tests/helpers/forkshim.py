@@ -25,8 +25,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Dict, Iterator
 
-SCRIPTS = ("ns-train", "ns-eval", "ns-render", "ns-export", "sp-train", "sp-export-mesh")
-"""Console scripts that import nerfstudio at start-up: the ones worth a fork."""
+SCRIPTS = ("ns-train", "ns-eval", "ns-render", "ns-export", "sp-train", "sp-export-mesh", "sp-fit", "sp-scene",
+           "nerfbaselines")
+"""Console scripts that import nerfstudio or torch at start-up (``nerfbaselines`` with our specs imports
+nerfstudio when it loads the method): the ones worth a fork."""
 
 SHIM = """#!{python} -S
 import json, os, socket, sys

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Optional
 
 import pytest
 
@@ -47,13 +48,48 @@ def env() -> dict:
     return e
 
 
-def run(args, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    """Run a console script of this venv as a user would; fail with its output's tail."""
+FORKED = ("sp-sdfstudio-train", "sp-sdfstudio-extract-mesh", "ns-train", "ns-eval", "ns-extract-mesh")
+"""Console scripts :func:`run` forks from one import of them (tests/helpers/forkserver.py): each start
+of an sdfstudio command paid 10-20 s of imports (sdfstudio, its methods, our patches through the
+opt-in hook) before a few seconds of work. A real start of each stays in the suite: the README
+section's blocks (tests/sdfstudio/test_readme_sdfstudio.py), the hostile-config commands
+(test_safe_config_sdf.py), ``ns-train --help`` through the opt-in hook and the kill/resume run."""
+_server = None
+
+
+def fork_server():
+    """The session's fork server for :data:`FORKED` (started on first use, stopped by
+    tests/sdfstudio/conftest.py at the end of the session)."""
+    global _server
+    if _server is None:
+        from tests.helpers.forkserver import ForkServer
+
+        _server = ForkServer(list(FORKED), env())
+    return _server
+
+
+def close_fork_server() -> None:
+    global _server
+    if _server is not None:
+        _server.close()
+        _server = None
+
+
+def run(args, cwd: Path, timeout: float = 300, expect: int = 0, extra_env: Optional[dict] = None) -> subprocess.CompletedProcess:
+    """Run a console script of this venv as a user would, with its command line, folder and
+    environment (forked from the session's server when it is one of :data:`FORKED`); fail with its
+    output's tail unless it exits ``expect``."""
     cmd = [str(BIN / args[0]), *map(str, args[1:])]
-    proc = subprocess.run(cmd, cwd=cwd, env=env(), capture_output=True, text=True, timeout=timeout)
-    if proc.returncode != 0:
+    variables = {**env(), **(extra_env or {})}
+    if args[0] in FORKED:
+        case = {"name": "run", "script": args[0], "args": cmd[1:], "cwd": str(cwd), "env": variables, "timeout": timeout}
+        result = fork_server().run([case])["run"]
+        proc = subprocess.CompletedProcess(cmd, result["rc"], result["stdout"], result["stderr"])
+    else:
+        proc = subprocess.run(cmd, cwd=cwd, env=variables, capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != expect:
         tail = "\n".join((proc.stdout + proc.stderr).splitlines()[-40:])
-        pytest.fail(f"{' '.join(cmd[:2])} exited {proc.returncode}:\n{tail}", pytrace=False)
+        pytest.fail(f"{' '.join(cmd[:2])} exited {proc.returncode} (expected {expect}):\n{tail}", pytrace=False)
     return proc
 
 

@@ -64,3 +64,11 @@ def patched():
     from sp_plugins.sdfstudio.registration import add_methods
 
     add_methods()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Stop the fork server :func:`tests.helpers.sdf_configs.run` started (if it did)."""
+    if HERE:
+        from tests.helpers.sdf_configs import close_fork_server
+
+        close_fork_server()

@@ -246,8 +246,7 @@ def test_a_generic_method_end_to_end_and_its_config_loads_by_path(sdf_scene, tmp
 
 
 def test_a_method_without_sdf_field_is_refused_in_one_line(tmp_path):
-    proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), "sp-nerfacto", "--machine.num-gpus", "0"], cwd=tmp_path,
-                          env=env(), capture_output=True, text=True, timeout=300)
+    proc = run(["sp-sdfstudio-train", "sp-nerfacto", "--machine.num-gpus", "0"], cwd=tmp_path, expect=2)
     last = refused(proc, "sp-sdfstudio-train", others=True)
     assert last.startswith("sp-sdfstudio-train: error: SP cannot be put on nerfacto: its model (NerfactoModel) has no SDF field")
 
@@ -256,9 +255,8 @@ def test_more_than_one_draw_is_refused_in_one_line_before_anything_is_written(tm
     """``--pipeline.model.sp.num-samples 2`` cannot act in sdfstudio (its seam perturbs each query once):
     ``sp-sdfstudio-train`` refuses it in one line, exit status 2, before a run folder exists (it was a
     traceback from inside the trainer, after ``config.yml``)."""
-    proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), "sp-neus", "--machine.num-gpus", "0",
-                           "--pipeline.model.sp.num-samples", "2", "sdfstudio-data", "--data", str(tmp_path)],
-                          cwd=tmp_path, env=env(), capture_output=True, text=True, timeout=300)
+    proc = run(["sp-sdfstudio-train", "sp-neus", "--machine.num-gpus", "0", "--pipeline.model.sp.num-samples", "2",
+                "sdfstudio-data", "--data", str(tmp_path)], cwd=tmp_path, expect=2)
     last = refused(proc, "sp-sdfstudio-train", others=True)
     assert last.startswith("sp-sdfstudio-train: error: --pipeline.model.sp.num-samples 2 cannot apply to sdfstudio"), last
     assert not (tmp_path / "outputs").exists()
@@ -269,9 +267,8 @@ def test_a_missing_data_folder_or_index_file_is_one_line_before_anything_is_writ
     ``FileNotFoundError`` traceback, after the run folder was made)."""
     (tmp_path / "empty").mkdir()
     for data, says in [(tmp_path / "none", "data folder not found"), (tmp_path / "empty", "meta_data.json: file not found")]:
-        proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), "sp-neus", "--machine.num-gpus", "0",
-                               "sdfstudio-data", "--data", str(data)], cwd=tmp_path, env=env(), capture_output=True,
-                              text=True, timeout=300)
+        proc = run(["sp-sdfstudio-train", "sp-neus", "--machine.num-gpus", "0", "sdfstudio-data", "--data", str(data)],
+                   cwd=tmp_path, expect=2)
         last = refused(proc, "sp-sdfstudio-train", others=True)
         assert says in last and str(data) in last, last
     assert not (tmp_path / "outputs").exists()

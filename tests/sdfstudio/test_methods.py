@@ -134,13 +134,11 @@ def test_both_hosts_have_the_same_adapter_names():
 
 
 def test_a_schedule_that_does_not_fit_is_one_clear_line(sdf_scene, tmp_path):
-    import subprocess
-
     from tests.helpers.errors import refused
-    from tests.helpers.sdf_configs import BIN, env, train_args
+    from tests.helpers.sdf_configs import run, train_args
 
     args = train_args("sp-neus-facto", "neus-facto", sdf_scene, tmp_path, 3, "--pipeline.model.sp.end", "50")
-    proc = subprocess.run([str(BIN / "sp-sdfstudio-train"), *map(str, args)], env=env(), capture_output=True, text=True, timeout=300)
+    proc = run(["sp-sdfstudio-train", *args], cwd=tmp_path, expect=2)
     last = refused(proc, "sp-sdfstudio-train", others=True)
     assert last.startswith("sp-sdfstudio-train: error: --pipeline.model.sp.end 50 does not fit --trainer.max-num-iterations 3")
 

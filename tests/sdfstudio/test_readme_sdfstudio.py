@@ -28,12 +28,13 @@ def test_readme_sdfstudio_blocks_run_as_a_user_types_them(tmp_path, record_prope
     assert all(o.detail for o in outcomes if o.status == "skipped"), text
 
 
-def test_every_flag_the_sdfstudio_section_names_exists():
+def test_every_flag_the_sdfstudio_section_names_exists(tmp_path):
     """The section's prose names flags too (a resume, the geo-* methods, meshing): each is a flag of
     sdfstudio's commands as sp-sdfstudio-train / ns-extract-mesh print them (the README once named
     ``--max-num-iterations``, which sdfstudio spells ``--trainer.max-num-iterations``)."""
     import re
-    import subprocess
+
+    from tests.helpers.sdf_configs import run
 
     text = (rr.REPO / "README.md").read_text()
     section = text[text.index(rr.SDFSTUDIO_SECTION):]
@@ -45,9 +46,6 @@ def test_every_flag_the_sdfstudio_section_names_exists():
     helps = ""
     for args in (["sp-sdfstudio-train", "sp-neus-facto", "--help"], ["sp-sdfstudio-train", "sp-neus-facto", "sdfstudio-data", "--help"],
                  ["sp-sdfstudio-extract-mesh", "--help"], ["ns-extract-mesh", "--help"]):
-        proc = subprocess.run([str(rr.BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=300,
-                              env={**__import__("os").environ, "COLUMNS": "200"})
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        helps += proc.stdout
+        helps += run(args, cwd=tmp_path, extra_env={"COLUMNS": "200"}).stdout  # (forked: tests/helpers/sdf_configs.py)
     known = set(re.findall(r"--[a-z][\w.-]*[a-z]", helps))
     assert named and named <= known, f"flags the sdfstudio section names that sdfstudio's commands lack: {sorted(named - known)}"

@@ -42,17 +42,18 @@ def sp_sweep() -> str:
 
 @pytest.fixture
 def run_sweep(sp_sweep, tmp_path):
-    """``sp-sweep SPEC --out OUT`` on a local Ray of 2 CPUs, as a user runs it; asserts it exits 0
+    """``sp-sweep SPEC --out OUT [EXTRA...]`` on a local Ray of 2 CPUs, as a user runs it; asserts it exits 0
     and leaves no Ray process or temporary folder behind. Returns the finished process."""
 
-    def run(spec: dict, out: Path) -> subprocess.CompletedProcess:
+    def run(spec: dict, out: Path, *extra: str) -> subprocess.CompletedProcess:
         path = tmp_path / "spec.yaml"
         path.write_text(yaml.safe_dump(spec))
         ray_tmp = Path(tempfile.mkdtemp(prefix="spt-", dir="/tmp"))  # short: Ray's socket paths are limited
+        ray_tmp.rmdir()  # a fresh name: sp-sweep makes the folder when it starts Ray and removes it at the end
         env = dict(os.environ, OMP_NUM_THREADS="1")
         try:
             proc = subprocess.run([sp_sweep, str(path), "--out", str(out), "--num-cpus", "2", "--cpus-per-trial", "1",
-                                   "--ray-temp-dir", str(ray_tmp), "--timeout", "400"],
+                                   "--ray-temp-dir", str(ray_tmp), "--timeout", "400", *extra],
                                   capture_output=True, text=True, timeout=1500, env=env, cwd=tmp_path)
             left = [p.pid for p in psutil.process_iter(["cmdline"]) if any(str(ray_tmp) in a for a in (p.info["cmdline"] or []))]
             assert not left, f"Ray processes left running: {left}"

@@ -1,8 +1,10 @@
-"""``sp-sweep`` of a tiny ``sp-fit`` task as a user runs it: a local Ray with 2 CPUs, a sweep that
-finishes, then a restart that grows the grid by a failing point, runs only the new trials and
-records their failure; no Ray processes or temporary files left behind (see ``run_sweep``). The
-README's cluster line (``--address auto --gpus-per-trial 1``) on that folder of CPU trials is refused
-in one line before any Ray is reached: they are not its finished trials."""
+"""``sp-sweep`` of a tiny ``sp-fit`` task as a user runs it: a local Ray with 2 CPUs, a sweep of a
+grid point that fits and one that ``sp-fit`` refuses, which records the failure and goes on; then a
+rerun that starts nothing (every trial has finished), and a grown grid whose plan (``--dry-run``,
+the same pending list a run hands to Ray) holds only the new point; no Ray processes or temporary
+files left behind (see ``run_sweep``). The README's cluster line (``--address auto --gpus-per-trial
+1``) on that folder of CPU trials is refused in one line before any Ray is reached: they are not its
+finished trials. (One Ray start here: the README's two sweeps start Ray again, ``tests/test_readme.py``.)"""
 
 from __future__ import annotations
 
@@ -22,22 +24,14 @@ def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials
                                                                                  sp_sweep):
     out = tmp_path / "sweep"
     # With --geometric-init the 8 steps leave a sphere (normal consistency about 0.84-0.96, Chamfer
-    # 0.03-0.09 for seeds 0 and 1); without a mesh the rule fails (consistency 0, Chamfer null)
+    # 0.03-0.09 for seeds 0 and 1); without a mesh the rule fails (consistency 0, Chamfer null).
+    # Grid point 4 is one sp-fit refuses (max 4 < base 8): recorded as failed, the sweep goes on.
     spec = {"command": f"sp-fit pointcloud {sweep_mesh} {FIT_TINY} --geometric-init",
-            "grid": {"encoding.max-resolution": [32]},
+            "grid": {"encoding.max-resolution": [32, 4]},
             "success": [NC_RULE, CHAMFER_RULE], "metric": "fscore"}
     proc = run_sweep(spec, out)
-    assert "2 trials: 0 finished already (skipped), 2 to run" in proc.stdout
-    assert "2 of 2 trials finished, 0 failed" in proc.stdout
-    done = {p: p.stat().st_mtime_ns for p in out.glob("trials/*/result.json")}
-    assert len(done) == 2
-
-    # the sweep grows by one grid point that sp-fit refuses (max 4 < base 8): only it runs
-    spec["grid"]["encoding.max-resolution"].append(4)
-    proc = run_sweep(spec, out)
-    assert "4 trials: 2 finished already (skipped), 2 to run" in proc.stdout
+    assert "4 trials: 0 finished already (skipped), 4 to run" in proc.stdout
     assert "4 of 4 trials finished, 2 failed" in proc.stdout
-    assert {p: p.stat().st_mtime_ns for p in done} == done, "a finished trial was run again"
     table = rows(out)
     assert len(table) == 4 and sorted(r["sp"] for r in table) == ["SP", "SP", "baseline", "baseline"]
     for r in table:
@@ -51,6 +45,23 @@ def test_sp_fit_sweep_records_a_failed_trial_and_a_restart_skips_finished_trials
     assert all(md.count(r["trial"]) == 1 for r in table)  # one row per trial
     assert f"success ({NC_RULE} and {CHAMFER_RULE}): baseline 1/2 (50%), SP 1/2 (50%)" in md
     assert (out / "histogram.png").stat().st_size > 1000
+
+    # the same sweep again: every trial (the failed ones too) has finished, nothing runs, no Ray starts
+    done = {p: p.stat().st_mtime_ns for p in out.glob("trials/*/result.json")}
+    assert len(done) == 4
+    proc = run_sweep(spec, out)
+    assert "4 trials: 4 finished already (skipped), 0 to run" in proc.stdout, proc.stdout
+    assert {p: p.stat().st_mtime_ns for p in done} == done, "a finished trial was run again"
+    assert len(list((out / "ray").glob("run-*"))) == 1, "a second Ray run was started with nothing to run"
+
+    # the grid grows by one point: the plan holds only its two trials, beside the four finished ones
+    spec["grid"]["encoding.max-resolution"].append(16)
+    proc = run_sweep(spec, out, "--dry-run")
+    assert "6 trials: 4 finished already (skipped), 2 to run" in proc.stdout, proc.stdout
+    plan = [line.split() for line in proc.stdout.splitlines() if line.startswith("  ")]
+    assert sorted(p[1] for p in plan) == ["done"] * 4 + ["pending"] * 2, plan
+    assert all(p[0] in {r["trial"] for r in table} for p in plan if p[1] == "done"), plan
+    assert {p: p.stat().st_mtime_ns for p in done} == done
 
     # the same study on GPUs into this folder of CPU trials (it used to skip all four as finished)
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
