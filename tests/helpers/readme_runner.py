@@ -20,9 +20,11 @@ What may differ from the text, all declared here and nothing else:
   the plugin example imports from, and a one-step training run of the method it registers).
 
 * ``Runner(env=...)``: ``tests/test_readme.py`` puts the fork shims first on ``PATH``
-  (:mod:`tests.helpers.forkshim`): each ``ns-*`` / ``sp-train`` / ``sp-export-mesh`` command the shell
-  starts is forked from one interpreter that imported nerfstudio once, with the command line, folder,
-  environment and output streams of the shell's; the real scripts run everywhere else (``sp-sweep``'s trials).
+  (:mod:`tests.helpers.forkshim`): each ``ns-*`` / ``sp-train`` / ``sp-export-mesh`` / ``sp-fit`` /
+  ``sp-scene`` / ``nerfbaselines`` command the shell starts is forked from one interpreter that imported
+  nerfstudio once, with the command line, folder, environment and output streams of the shell's; the real
+  scripts run everywhere else (``sp-sweep``'s trials, which start the console scripts of the sweep's own
+  environment).
 
 A block that cannot run here carries ``<!-- readme-runner: skip (reason) -->`` on the line before
 its fence; a block with no language (a directory tree) is not a command. Every other ``bash`` /
