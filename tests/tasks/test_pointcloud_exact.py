@@ -108,6 +108,7 @@ SIZES = "steps, surface_batch, space_batch and n_points must be >= 1"
     ("lr", -1e-3, 1e-12, "lr=-0.001, lr_final_ratio=1.0: need lr > 0 and 0 < ratio <= 1"),
     ("lr_final_ratio", 0.0, 1.0, "lr=0.001, lr_final_ratio=0.0: need lr > 0 and 0 < ratio <= 1"),
     ("lr_final_ratio", 1.5, 1e-6, "lr=0.001, lr_final_ratio=1.5: need lr > 0 and 0 < ratio <= 1"),
+    ("lr_final_ratio", -0.5, 1e-6, "lr=0.001, lr_final_ratio=-0.5: need lr > 0 and 0 < ratio <= 1"),
     ("mesh_resolution", 7, 8, "mesh_resolution=7: use at least 8"),
     ("eikonal", "cubic", "abs", "eikonal='cubic': use 'squared' or 'abs'"),
 ])
@@ -115,7 +116,9 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refu
     """Each bound at its edge: the first refused value gives the one line ``sp-fit`` prints (after
     ``sp-fit: error:``), the boundary value is accepted. Kills: ``surface_batch < 1`` -> ``< 0``,
     ``n_points < 1`` -> ``< 2``, ``space_batch < 1`` -> ``<= 1``, ``lr > 0`` -> ``>= 0``,
-    ``lr_final_ratio <= 1`` -> ``<= 2``, ``mesh_resolution < 8`` -> ``< 9`` and -> ``< 7``."""
+    ``lr_final_ratio <= 1`` -> ``<= 2``, ``0 < lr_final_ratio`` -> ``0 != ...`` (a negative ratio: a complex
+    gamma), ``mesh_resolution < 8`` -> ``< 9`` and -> ``< 7``, and every other comparison, number and
+    ``or`` / ``and`` of the two lines that the study left alive."""
     with pytest.raises(ValueError) as refused_error:
         PointCloudSDFConfig(**{name: refused}).validate()
     assert str(refused_error.value) == message
