@@ -144,8 +144,8 @@ def test_the_siren_terms_are_the_papers_formulas_for_both_eikonal_penalties():
         assert float(terms["normal"]) == pytest.approx(((1 - 0.8) + (1 - 0.0)) / 2, rel=1e-12)
         assert float(terms["eikonal"]) == pytest.approx(expected, rel=1e-12), eikonal
         assert float(terms["offsurface"]) == pytest.approx((math.exp(-0.5) + math.exp(-1.0)) / 2, rel=1e-12)
-    parsed = "".join(["squ", "ared"])  # equal to "squared", not the same object
-    assert parsed is not "squared"  # noqa: F632
+    literal, parsed = "squared", "".join(["squ", "ared"])  # equal strings, not the same object
+    assert parsed == literal and parsed is not literal
     terms = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space, 50.0, parsed)
     assert float(terms["eikonal"]) == pytest.approx((16 + 1 + 0 + 0.25) / 4, rel=1e-12)
     by_default = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space)
