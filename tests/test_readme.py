@@ -11,6 +11,7 @@ honours and requires reasons, lowers only the declared flags and fills ``outputs
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from pathlib import Path
@@ -21,15 +22,21 @@ from tests.helpers import forkshim
 from tests.helpers import readme_runner as rr
 
 
+@pytest.fixture(scope="module")
+def shim_env(tmp_path_factory):
+    """ns-* / sp-train / sp-fit ... as typed, each started once, but forked from one interpreter that
+    imported nerfstudio (tests/helpers/forkshim.py): their 8-20 s import each was most of the README
+    run's time. One server for this module's tests (its own start imports every shimmed command)."""
+    with forkshim.shims(tmp_path_factory.mktemp("shims"), rr.block_env()) as env:
+        yield env
+
+
 @pytest.mark.timeout(1800)  # about 4 minutes on 2 idle cores (the README's commands, lowered); a loaded machine takes longer
-def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property):
+def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property, shim_env):
     start = time.monotonic()
-    # ns-* / sp-train as typed, each started once, but forked from one interpreter that imported nerfstudio
-    # (tests/helpers/forkshim.py): their 8-20 s import each was most of this test's time
-    with forkshim.shims(tmp_path.parent / f"{tmp_path.name}-shims", rr.block_env()) as env:
-        runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION, env=env)
-        for document in rr.documents():
-            runner.run(document)
+    runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION, env=shim_env)
+    for document in rr.documents():
+        runner.run(document)
     text = f"{rr.summary(runner.outcomes)}\nwall time {time.monotonic() - start:.0f} s"
     record_property("readme_runner", text)
     print(text)
@@ -126,18 +133,18 @@ def test_readme_chamfer_claims_match_bench_results():
     assert least == "bunny" and "Spot is the mesh where SP's raw Chamfer gain is" not in readme, ratio
 
 
-def test_the_fork_shims_pass_on_the_exit_status_and_the_output_of_the_command(tmp_path):
+def test_the_fork_shims_pass_on_the_exit_status_and_the_output_of_the_command(tmp_path, shim_env):
     """A shimmed command fails as the real one does (the README run relies on it to turn red): its
     exit status and its stderr reach the shell, in the shell's folder."""
     import subprocess
 
-    with forkshim.shims(tmp_path / "shims", rr.block_env()) as extra:
-        env = dict(rr.block_env(), **extra)
-        proc = subprocess.run(["bash", "-c", "command -v sp-train; sp-train nerfacto --machine.device-type cuda"],
-                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
-        assert proc.stdout.splitlines()[0] == str(tmp_path / "shims" / "sp-train"), proc.stdout[:500]
-        assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith(
-            "sp-train: error: --machine.device-type cuda: CUDA is not available"), proc.stderr[-2000:]
-        proc = subprocess.run(["bash", "-c", "ns-eval --load-config missing.yml"], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 1 and "missing.yml" in proc.stderr and "Traceback" in proc.stderr, proc.stderr[-2000:]
+    env = dict(rr.block_env(), **shim_env)
+    shims = Path(shim_env["PATH"].split(os.pathsep)[0])
+    proc = subprocess.run(["bash", "-c", "command -v sp-train; sp-train nerfacto --machine.device-type cuda"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.stdout.splitlines()[0] == str(shims / "sp-train"), proc.stdout[:500]
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith(
+        "sp-train: error: --machine.device-type cuda: CUDA is not available"), proc.stderr[-2000:]
+    proc = subprocess.run(["bash", "-c", "ns-eval --load-config missing.yml"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1 and "missing.yml" in proc.stderr and "Traceback" in proc.stderr, proc.stderr[-2000:]
