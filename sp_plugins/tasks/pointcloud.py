@@ -81,6 +81,8 @@ class PointCloudSDFConfig(MeshedFitSettings):
             raise ValueError("steps, surface_batch, space_batch and n_points must be >= 1")
         if not (self.lr > 0 and 0 < self.lr_final_ratio <= 1):
             raise ValueError(f"lr={self.lr}, lr_final_ratio={self.lr_final_ratio}: need lr > 0 and 0 < ratio <= 1")
+        if not self.grad_clip >= 0:  # clip_grad_norm_ with a negative bound flips the gradient's sign
+            raise ValueError(f"grad_clip={self.grad_clip}: use 0 (off) or a positive gradient norm")
         if self.eikonal not in ("squared", "abs"):
             raise ValueError(f"eikonal={self.eikonal!r}: use 'squared' or 'abs'")
         if self.mesh_resolution < 8:

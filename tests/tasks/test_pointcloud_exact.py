@@ -111,6 +111,8 @@ SIZES = "steps, surface_batch, space_batch and n_points must be >= 1"
     ("lr_final_ratio", -0.5, 1e-6, "lr=0.001, lr_final_ratio=-0.5: need lr > 0 and 0 < ratio <= 1"),
     ("mesh_resolution", 7, 8, "mesh_resolution=7: use at least 8"),
     ("eikonal", "cubic", "abs", "eikonal='cubic': use 'squared' or 'abs'"),
+    ("grad_clip", -1.0, 0.0, "grad_clip=-1.0: use 0 (off) or a positive gradient norm"),
+    ("grad_clip", float("nan"), 0.5, "grad_clip=nan: use 0 (off) or a positive gradient norm"),
 ])
 def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refused, accepted, message):
     """Each bound at its edge: the first refused value gives the one line ``sp-fit`` prints (after
@@ -118,7 +120,9 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refu
     ``n_points < 1`` -> ``< 2``, ``space_batch < 1`` -> ``<= 1``, ``lr > 0`` -> ``>= 0``,
     ``lr_final_ratio <= 1`` -> ``<= 2``, ``0 < lr_final_ratio`` -> ``0 != ...`` (a negative ratio: a complex
     gamma), ``mesh_resolution < 8`` -> ``< 9`` and -> ``< 7``, and every other comparison, number and
-    ``or`` / ``and`` of the two lines that the study left alive."""
+    ``or`` / ``and`` of the two lines that the study left alive. A negative ``--grad-clip`` was accepted
+    and, through ``clip_grad_norm_``, turned every step into gradient ascent (the study's last survivor,
+    ``grad_clip > 0`` -> ``!= 0``, found it); it is refused now."""
     with pytest.raises(ValueError) as refused_error:
         PointCloudSDFConfig(**{name: refused}).validate()
     assert str(refused_error.value) == message
