@@ -92,6 +92,16 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(name, refu
     SDFFitConfig(**{name: accepted}).validate()
 
 
+def test_a_mesh_resolution_below_8_is_refused_before_training():
+    """``sp-fit sdf --mesh-resolution 1`` trained every step and only then failed with a message naming
+    no flag (``resolution=1: need at least 2 grid points per axis``); it is refused before anything runs,
+    with ``sp-fit pointcloud``'s line, and 8 is accepted."""
+    with pytest.raises(ValueError) as refused_error:
+        SDFFitConfig(mesh_resolution=7).validate()
+    assert str(refused_error.value) == "mesh_resolution=7: use at least 8"
+    SDFFitConfig(mesh_resolution=8).validate()
+
+
 def test_a_mesh_without_faces_is_refused_and_one_face_is_enough(tiny_grid):
     """Kills: ``len(mesh.faces) == 0`` -> ``!= 0`` / ``< 0`` / ``== 1`` (and the message's text)."""
     triangle = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False)
