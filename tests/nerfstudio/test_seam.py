@@ -380,3 +380,27 @@ def test_an_sp_model_names_the_host_model_it_is_built_on():
     from sp_plugins.nerfstudio import variants
 
     assert variants.variant("Model", NeRFModel).sp_host_class() is NeRFModel
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_sp_training_callbacks_run_at_every_iteration_where_named(where):
+    """The host hook SP's schedule and first-step check ride on: nerfstudio runs it at every step, at the
+    named place. Kills (the mutation study of ``nerfstudio/model.py``): ``update_every_num_iters=1`` -> ``2``
+    (the schedule would advance every other step) and ``where == "before"`` -> ``!=`` (the place swapped).
+    (``== "before"`` -> ``>=`` is equivalent: of the two places only "before" sorts at or after "before".)"""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
+
+    from sp_plugins.nerfstudio.model import SPModel
+
+    calls = []
+
+    def record(step: int) -> None:
+        calls.append(step)
+
+    callback = SPModel.sp_training_callback(None, where, record)  # (it reads nothing of the model)
+    here, there = (At.BEFORE_TRAIN_ITERATION, At.AFTER_TRAIN_ITERATION)[:: 1 if where == "before" else -1]
+    for step in range(5):
+        callback.run_callback_at_location(step, there)
+        assert calls == list(range(step)), f"asked for {where} the iteration, it ran at the other place"
+        callback.run_callback_at_location(step, here)
+    assert calls == [0, 1, 2, 3, 4]
