@@ -37,20 +37,4 @@ def __dir__():
     return sorted(set(globals()) | set(__all__))
 
 
-__all__ = [
-    "Frame",
-    "OrientedPoints",
-    "directed_distances",
-    "estimate_normals",
-    "evaluate_grid",
-    "extract_mesh",
-    "largest_component",
-    "load_mesh",
-    "load_oriented_points",
-    "mesh_from_grid",
-    "mesh_metrics",
-    "refine_vertices",
-    "sample_surface",
-    "save_mesh",
-    "sparse_extract_mesh",
-]
+__all__ = sorted(_WHERE)

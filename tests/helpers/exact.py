@@ -45,3 +45,17 @@ def fold_sign(x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float) -
     u = torch.remainder((x.double() + alpha * eps - lo) / (hi - lo), 2.0)
     inside = (x >= lo) & (x <= hi)
     return torch.where(inside & (u > 1.0), -1.0, 1.0).double()
+
+
+def assert_alpha_grid_frozen_once_sp_ends(trainer) -> None:
+    """Four steps of a task trainer whose SP (alpha grid on) ends after two: the grid learns while SP is
+    on, then no step moves it (SP no longer reads it, so it has no gradient and the optimizer must skip
+    it: ``zero_grad(set_to_none=True)``; zeroed gradients would let Adam's momentum drift it)."""
+    grids = []
+    for _ in range(4):
+        trainer.step()
+        grids.append([p.detach().clone() for p in trainer.sp.alpha_grid.parameters()])
+    assert trainer.history["alpha"] == [0.05, 0.05, 0.0, 0.0]
+    assert any(not torch.equal(a, b) for a, b in zip(grids[0], grids[1]))  # it learns while SP is on
+    for later in grids[2:]:
+        assert all(torch.equal(a, b) for a, b in zip(grids[1], later))

@@ -17,9 +17,21 @@ from sp_plugins import SPConfig
 from sp_plugins.geometry import sample_surface
 from sp_plugins.tasks import sdf
 from sp_plugins.tasks.sdf import SDFFitConfig, mape, signed_distance
-from tests.helpers.exact import Recorder, folded_query
+from tests.helpers.exact import Recorder, assert_alpha_grid_frozen_once_sp_ends, folded_query
 
 SP_SEED = 4
+
+
+def plain_batch(trainer, seed: int, sizes):
+    """The step's plain points and their distances, drawn as the task does from the batch generator
+    seeded ``seed``: ``sizes`` points of each group (surface, near, uniform) in turn."""
+    g = torch.Generator().manual_seed(seed)
+    xs, ds = [], []
+    for (pts, dist), n in zip(trainer.groups, sizes):
+        idx = torch.randint(len(pts), (n,), generator=g)
+        xs.append(pts[idx])
+        ds.append(dist[idx])
+    return torch.cat(xs), torch.cat(ds)
 
 
 @pytest.mark.parametrize("k", [1, 3])
@@ -35,13 +47,7 @@ def test_one_step_queries_x_plus_alpha_eps_and_fits_the_mean_to_the_plain_distan
     trainer.field = Recorder(trainer.field)
     trainer.step()
 
-    g = torch.Generator().manual_seed(config.seed)
-    xs, ds = [], []
-    for (pts, dist), n in zip(trainer.groups, (20, 10, 10)):
-        idx = torch.randint(len(pts), (n,), generator=g)
-        xs.append(pts[idx])
-        ds.append(dist[idx])
-    x, d = torch.cat(xs), torch.cat(ds)
+    x, d = plain_batch(trainer, config.seed, (20, 10, 10))
     shape = ((k,) if k > 1 else ()) + x.shape
     eps = torch.randn(shape, generator=torch.Generator().manual_seed(SP_SEED)).double()
     q = folded_query(x, 0.3, eps, -1.0, 1.0)
@@ -169,13 +175,7 @@ def test_an_odd_batch_is_split_half_quarter_rest_and_the_field_reads_the_encodin
     field = copy.deepcopy(trainer.field)
     trainer.field = Recorder(trainer.field)
     trainer.step()
-    g = torch.Generator().manual_seed(config.seed)
-    xs, ds = [], []
-    for (pts, dist), n in zip(trainer.groups, (4, 2, 3)):
-        idx = torch.randint(len(pts), (n,), generator=g)
-        xs.append(pts[idx])
-        ds.append(dist[idx])
-    x, d = torch.cat(xs), torch.cat(ds)
+    x, d = plain_batch(trainer, config.seed, (4, 2, 3))
     (read,) = trainer.field.inputs
     assert torch.equal(read, x)
     with torch.no_grad():
@@ -188,14 +188,7 @@ def test_the_learned_alpha_grid_is_left_alone_once_sp_has_ended(blob_mesh, tiny_
     without a gradient is skipped). Kills: ``zero_grad(set_to_none=True)`` -> ``False``."""
     sp = SPConfig(alpha0=0.05, schedule="step", end=0.5, alpha_grid=True, alpha_grid_resolution=4)
     trainer = tiny(tiny_grid, steps=4, sp=sp).setup(blob_mesh)
-    grids = []
-    for _ in range(4):
-        trainer.step()
-        grids.append([p.detach().clone() for p in trainer.sp.alpha_grid.parameters()])
-    assert trainer.history["alpha"] == [0.05, 0.05, 0.0, 0.0]
-    assert any(not torch.equal(a, b) for a, b in zip(grids[0], grids[1]))  # it learns while SP is on
-    for later in grids[2:]:
-        assert all(torch.equal(a, b) for a, b in zip(grids[1], later))
+    assert_alpha_grid_frozen_once_sp_ends(trainer)
 
 
 def test_evaluate_measures_against_the_input_mesh_and_the_near_samples_quietly(blob_mesh, tiny_grid, capfd):
