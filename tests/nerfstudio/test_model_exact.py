@@ -1,0 +1,103 @@
+"""The host wiring of SP in our nerfstudio models (sp_plugins.nerfstudio.model), exactly: which losses
+the non-finite watch reads and at which step, which optimizer groups its message names, which SP
+options a baseline refuses. Each test names the mutants of the study (``bench/mutation_study.py``)
+it was written for; each was shown failing on them."""
+
+from __future__ import annotations
+
+from typing import Dict
+
+import pytest
+import torch
+from torch import nn
+
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP
+from sp_plugins.adapter.errors import InputError
+from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio.divergence import NonFiniteWatch
+from sp_plugins.nerfstudio.model import SPModel, refuse_inert_options
+
+NAN = float("nan")
+
+
+class _Host(nn.Module):
+    """The part of a nerfstudio ``Model`` the wiring calls: its losses and its optimizer groups."""
+
+    losses: Dict[str, torch.Tensor] = {}
+    groups: Dict[str, list] = {}
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None):
+        return dict(self.losses)
+
+    def get_param_groups(self):
+        return dict(self.groups)
+
+
+class _Model(SPModel, _Host):
+    """SP's model mixin over the stand-in host, built without ``populate_modules`` (no field, no scene):
+    only the watch and the preconditioner the wiring reads."""
+
+
+def _model(step: int = 0) -> _Model:
+    model = _Model.__new__(_Model)
+    nn.Module.__init__(model)
+    model._sp_watch = NonFiniteWatch()
+    model.sp = SPConfig(alpha0=0.1, boundary="none").setup(scene_diagonal=1.0, dim=3)
+    model.sp.set_step(step, 100)
+    return model
+
+
+def test_the_watch_reads_training_losses_at_sp_s_step_and_never_evaluation_losses():
+    """A NaN training loss is recorded at the step SP is at; an evaluation loss, NaN or not, is never
+    recorded (``ns-eval`` and the trainer's eval steps must not stop a run). Kills: ``if self.training``
+    -> ``if not self.training`` in ``get_loss_dict``."""
+    model = _model(step=7)
+    model.losses = {"rgb_loss": torch.tensor(NAN), "interlevel_loss": torch.tensor(0.5)}
+    model.eval()
+    assert model.get_loss_dict({}, {}) is not None and model._sp_watch.first is None  # evaluation: not read
+    model.train()
+    losses = model.get_loss_dict({}, {})
+    assert set(losses) == {"rgb_loss", "interlevel_loss"}  # the host's losses, handed on unchanged
+    assert int(model._sp_watch.first) == 7 and bool(model._sp_watch.bad["rgb_loss"]) and not bool(model._sp_watch.bad["interlevel_loss"])
+    with pytest.raises(InputError, match=r"^training step 7: the loss became NaN or infinite \(rgb_loss\)"):
+        model._sp_watch.raise_if_diverged(9, model._lr_groups)
+
+
+def test_finite_training_losses_record_no_divergence():
+    model = _model(step=3)
+    model.losses = {"rgb_loss": torch.tensor(0.25)}
+    model.train()
+    model.get_loss_dict({}, {})
+    assert int(model._sp_watch.first) == -1
+    model._sp_watch.raise_if_diverged(3, model._lr_groups)  # nothing to raise
+
+
+def test_the_divergence_line_names_every_group_but_sp_s_alpha_grid_in_the_host_s_order():
+    """The learning rates a diverged run is told to lower are the host's groups, never SP's alpha grid
+    (its own lr flag is ``--pipeline.model.sp.alpha-grid-lr``). The group name compared is an equal
+    string that is not the constant itself, as a name read back from a config would be. Kills:
+    ``g != ALPHA_GRID_GROUP`` -> ``is not``, ``>``, ``<``, ``>=``, ``<=``, ``==``, ``is``."""
+    model = _model()
+    grid_name = "".join(["sp_alpha", "_grid"])
+    assert grid_name == ALPHA_GRID_GROUP and grid_name is not ALPHA_GRID_GROUP
+    # names on both sides of the grid's in sort order: no ordering comparison stands in for inequality
+    model.groups = {"proposal_networks": [], grid_name: [], "fields": [], "temporal_distortion": [], "camera_opt": []}
+    assert model._lr_groups() == ["proposal_networks", "fields", "temporal_distortion", "camera_opt"]
+    model.groups = {"fields": []}
+    assert model._lr_groups() == ["fields"]
+
+
+@pytest.mark.parametrize("num_samples", [1, 2, 4])
+def test_a_baseline_refuses_exactly_the_options_that_act_only_through_sp(num_samples):
+    """With SP off, ``num_samples`` 1 (the default: one draw) is no option at all and is accepted; 2 or
+    more (averaged draws) would be silently ignored and is refused, naming the value. Kills:
+    ``config.num_samples > 1`` -> ``> 0`` (every baseline refused) and -> ``> 2``."""
+    config = SPConfig(enabled=False, num_samples=num_samples)
+    if num_samples == 1:
+        refuse_inert_options(config)
+    else:
+        with pytest.raises(InputError, match=rf"^--pipeline\.model\.sp\.num-samples {num_samples} has no effect with SP off"):
+            refuse_inert_options(config)
+    refuse_inert_options(SPConfig(enabled=True, num_samples=num_samples, alpha_grid=True))  # SP on: both act
+    with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.alpha-grid True has no effect with SP off"):
+        refuse_inert_options(SPConfig(enabled=False, num_samples=num_samples, alpha_grid=True))  # the grid named first
