@@ -32,6 +32,10 @@ from sp_plugins.tasks.image import ImageFitConfig, _image_sp
 from sp_plugins.tasks.pointcloud import PointCloudSDFConfig, _pointcloud_sp
 from sp_plugins.tasks.sdf import SDFFitConfig, _sdf_sp
 
+# A bool flag written only as ``--flag``. tyro < 0.9.2 (sdfstudio's environment pins 0.9.1) has no
+# FlagCreatePairsOff: there the flag also gets its ``--no-flag`` twin, and ``--flag`` means the same.
+Flag = tyro.conf.FlagCreatePairsOff[bool] if hasattr(tyro.conf, "FlagCreatePairsOff") else bool
+
 
 @dataclass
 class _SPFlags(SPConfig):
@@ -53,9 +57,9 @@ class _Output:
     """Folder for the results."""
     overwrite: bool = False
     """Replace results already in --out."""
-    no_sp: tyro.conf.FlagCreatePairsOff[bool] = False
+    no_sp: Flag = False
     """Train the baseline: no stochastic preconditioning (same as --sp.no-enabled)."""
-    quiet: tyro.conf.FlagCreatePairsOff[bool] = False
+    quiet: Flag = False
     """No progress output."""
     device: str = "auto"
     """Where to train: auto (CUDA when available, else the CPU), cpu, cuda, cuda:N or mps. The hash
@@ -64,7 +68,7 @@ class _Output:
     """Write --out/checkpoint.pt every N steps and after the last one (atomically: a killed run
     leaves the previous checkpoint intact), for --resume. Default: none for a new run; a resumed
     run keeps its checkpoint's interval. 0: none."""
-    resume: tyro.conf.FlagCreatePairsOff[bool] = False
+    resume: Flag = False
     """Continue the run whose checkpoint is in --out, with the same settings (refused, naming the
     flag, when they differ); it ends as the uninterrupted run would have (on the CPU: the same
     parameters and losses, the same metrics.json apart from the timings)."""
@@ -81,7 +85,7 @@ class PointCloudCommand(PointCloudSDFConfig, _Output):
     """Stochastic preconditioning (as in the nerfstudio methods' ``--pipeline.model.sp.*``)."""
     gt: Optional[Path] = None
     """Ground-truth mesh for the metrics (default: the input, when it is a mesh)."""
-    estimate_normals: tyro.conf.FlagCreatePairsOff[bool] = False
+    estimate_normals: Flag = False
     """Estimate missing normals of a point cloud (PCA, oriented away from the centroid)."""
 
 
