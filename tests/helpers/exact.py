@@ -59,3 +59,23 @@ def assert_alpha_grid_frozen_once_sp_ends(trainer) -> None:
     assert any(not torch.equal(a, b) for a, b in zip(grids[0], grids[1]))  # it learns while SP is on
     for later in grids[2:]:
         assert all(torch.equal(a, b) for a, b in zip(grids[1], later))
+
+
+def check_runs_every_iteration_where_named(make, where: str) -> None:
+    """``make(record)``: a host training callback (nerfstudio's ``TrainingCallback``, either host) asked
+    to call ``record(step)`` ``where`` ("before" or "after") every iteration; it must run at every step,
+    at that place and never at the other."""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
+
+    calls: list = []
+
+    def record(step: int) -> None:
+        calls.append(step)
+
+    callback = make(record)
+    here, there = (At.BEFORE_TRAIN_ITERATION, At.AFTER_TRAIN_ITERATION)[:: 1 if where == "before" else -1]
+    for step in range(5):
+        callback.run_callback_at_location(step, there)
+        assert calls == list(range(step)), f"asked for {where} the iteration, it ran at the other place"
+        callback.run_callback_at_location(step, here)
+    assert calls == [0, 1, 2, 3, 4]

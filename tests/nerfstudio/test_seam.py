@@ -388,19 +388,8 @@ def test_sp_training_callbacks_run_at_every_iteration_where_named(where):
     named place. Kills (the mutation study of ``nerfstudio/model.py``): ``update_every_num_iters=1`` -> ``2``
     (the schedule would advance every other step) and ``where == "before"`` -> ``!=`` (the place swapped).
     (``== "before"`` -> ``>=`` is equivalent: of the two places only "before" sorts at or after "before".)"""
-    from nerfstudio.engine.callbacks import TrainingCallbackLocation as At
-
     from sp_plugins.nerfstudio.model import SPModel
+    from tests.helpers.exact import check_runs_every_iteration_where_named
 
-    calls = []
-
-    def record(step: int) -> None:
-        calls.append(step)
-
-    callback = SPModel.sp_training_callback(None, where, record)  # (it reads nothing of the model)
-    here, there = (At.BEFORE_TRAIN_ITERATION, At.AFTER_TRAIN_ITERATION)[:: 1 if where == "before" else -1]
-    for step in range(5):
-        callback.run_callback_at_location(step, there)
-        assert calls == list(range(step)), f"asked for {where} the iteration, it ran at the other place"
-        callback.run_callback_at_location(step, here)
-    assert calls == [0, 1, 2, 3, 4]
+    # (sp_training_callback reads nothing of the model)
+    check_runs_every_iteration_where_named(lambda record: SPModel.sp_training_callback(None, where, record), where)
