@@ -101,9 +101,12 @@ def siren_sdf_losses(
     f_space: Float[Tensor, "o"],
     g_space: Float[Tensor, "o 3"],
     falloff: float = 100.0,
-    eikonal: str = "squared",
+    eikonal: Literal["squared", "abs"] = "squared",
 ) -> dict[str, Tensor]:
-    """The four unweighted SIREN terms (each a scalar)."""
+    """The four unweighted SIREN terms (each a scalar). ``eikonal``: the penalty on ``|grad f| - 1``,
+    squared or absolute; any other name is refused (a library call is not validated by a config)."""
+    if eikonal not in ("squared", "abs"):
+        raise ValueError(f"eikonal={eikonal!r}: use 'squared' or 'abs'")
     grads = torch.cat([g_surface, g_space])
     excess = grads.norm(dim=-1) - 1.0
     return dict(

@@ -155,6 +155,9 @@ def test_the_siren_terms_are_the_papers_formulas_for_both_eikonal_penalties():
     by_default = pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space)
     assert float(by_default["eikonal"]) == pytest.approx((16 + 1 + 0 + 0.25) / 4, rel=1e-12)  # squared
     assert float(by_default["offsurface"]) == pytest.approx((math.exp(-1.0) + math.exp(-2.0)) / 2, rel=1e-12)
+    for unknown in ("L1", "Squared", ""):  # a library call is not validated by a config: no silent "abs"
+        with pytest.raises(ValueError, match=rf"^eikonal={unknown!r}: use 'squared' or 'abs'$"):
+            pointcloud.siren_sdf_losses(f_surface, g_surface, normals, f_space, g_space, 50.0, unknown)
 
 
 def test_the_loss_is_the_weighted_sum_of_the_four_terms(blob_points, tiny_grid):
