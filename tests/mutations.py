@@ -59,6 +59,8 @@ POINTCLOUD_EXACT: TestSet = ("main", ("tests/tasks/test_pointcloud_exact.py",))
 IMAGE_EXACT: TestSet = ("main", ("tests/tasks/test_image_exact.py",))
 SDF_TASK_EXACT: TestSet = ("main", ("tests/tasks/test_sdf_exact.py",))
 NOISE_EXACT: TestSet = ("main", ("tests/core/test_noise_exact.py",))
+NS_MODEL_EXACT: TestSet = ("main", ("tests/nerfstudio/test_model_exact.py",))
+SDF_MODEL_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_model_exact.py",))
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,16 @@ MUTATIONS: List[Mutation] = [
     Mutation("point cloud task: NaN --grad-clip accepted", "sp_plugins/tasks/pointcloud.py",
              "if not self.grad_clip >= 0:", "if self.grad_clip < 0:",
              (("main", ("tests/tasks/test_pointcloud_exact.py::test_validation_refuses_exactly_the_documented_values_in_one_line",)),)),
+    # the host wiring (survivors of the study of nerfstudio/model.py, and sdfstudio/model.py's tests written ahead)
+    Mutation("nerfstudio model: SP's schedule advances every other step", "sp_plugins/nerfstudio/model.py",
+             "return TrainingCallback([at], func, update_every_num_iters=1)",
+             "return TrainingCallback([at], func, update_every_num_iters=2)", (NS_SEAM,)),
+    Mutation("nerfstudio model: the divergence watch reads evaluation losses, not training ones", "sp_plugins/nerfstudio/model.py",
+             "        if self.training:  # type: ignore[attr-defined]\n            self._sp_watch",
+             "        if not self.training:  # type: ignore[attr-defined]\n            self._sp_watch", (NS_MODEL_EXACT,)),
+    Mutation("sdfstudio model: SP's schedule advances every other step", "sp_plugins/sdfstudio/model.py",
+             "return TrainingCallback([at], func, update_every_num_iters=1)",
+             "return TrainingCallback([at], func, update_every_num_iters=2)", (SDF_MODEL_EXACT,)),
     Mutation("image task: field queried plain", "sp_plugins/tasks/image.py",
              "pred = self.sp.blurred(self.rgb, self.positions[idx])", "pred = self.rgb(self.positions[idx])", (IMAGE_EXACT,)),
     Mutation("sdf task: field queried plain", "sp_plugins/tasks/sdf.py",
