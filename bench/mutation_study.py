@@ -91,7 +91,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     # the adapter (host-neutral modules: the toy host first, then nerfstudio's)
     "sp_plugins/adapter/field.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
     "sp_plugins/adapter/model.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
-    "sp_plugins/adapter/callbacks.py": ("main", _HOST_NEUTRAL + ["tests/nerfstudio/test_seam.py",
+    "sp_plugins/adapter/callbacks.py": ("main", ["tests/adapter/test_callbacks_exact.py", *_HOST_NEUTRAL, "tests/nerfstudio/test_seam.py",
                                                                 "tests/nerfstudio/test_neuralangelo_schedule.py"]),
     "sp_plugins/adapter/presets.py": ("main", ["tests/test_defaults_table.py", "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/adapter/tables.py": ("main", ["tests/nerfstudio/test_method_table.py", "tests/nerfstudio/test_seam.py",

@@ -49,9 +49,8 @@ def start_step(attributes: Any) -> Optional[int]:
 def schedule_problem(config: SPConfig, total_steps: int, steps_flag: str = "--max-num-iterations") -> Optional[str]:
     """None when ``config``'s schedule fits a run of ``total_steps``; else the message to show,
     naming the flags a user typed."""
-    try:
-        AlphaSchedule.resolve(config.schedule, config.alpha0, end=config.end, total_steps=total_steps,
-                              scene_diagonal=1.0 if config.relative_to_diagonal else None, final_ratio=config.final_ratio)
+    try:  # only the end is checked against the run (alpha0, its units and final_ratio: SPConfig's own validation)
+        AlphaSchedule.resolve(config.schedule, config.alpha0, end=config.end, total_steps=total_steps)
     except ValueError as err:
         return (f"--pipeline.model.sp.end {config.end:g} does not fit {steps_flag} {total_steps} ({err}); "
                 f"give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= {steps_flag}")
