@@ -1,0 +1,36 @@
+"""The host method tables' lookups (sp_plugins.adapter.tables), exactly: ``lookup`` takes the most derived
+class a table names, ``merged`` lets a base's entry win over a subclass's (a host fact, e.g. a plain
+submodule of a host model, cannot be undone by a subclass). Kills (``bench/mutation_study.py``
+``sp_plugins/adapter/tables.py``): the MRO walked the other way, ``in`` -> ``not in``, the ``None`` guard."""
+
+from __future__ import annotations
+
+from sp_plugins.adapter.tables import lookup, merged
+from sp_plugins.adapter.variants import class_path
+
+
+class Base:
+    pass
+
+
+class Middle(Base):
+    pass
+
+
+class Leaf(Middle):
+    pass
+
+
+def test_lookup_takes_the_most_derived_class_the_table_names():
+    table = {class_path(Base): "base", class_path(Middle): "middle"}
+    assert lookup(table, Leaf) == (class_path(Middle), "middle")
+    assert lookup(table, Base) == (class_path(Base), "base")
+    assert lookup({class_path(Leaf): 1}, Middle) is None  # a subclass's entry does not apply to its base
+    assert lookup(table, None) is None and lookup({}, Leaf) is None
+
+
+def test_merged_gathers_every_class_and_a_base_wins_over_a_subclass():
+    table = {class_path(Base): {"field": "base's", "a": 1}, class_path(Leaf): {"field": "leaf's", "b": 2}}
+    assert merged(table, Leaf) == {"field": "base's", "a": 1, "b": 2}
+    assert merged(table, Middle) == {"field": "base's", "a": 1}
+    assert merged({}, Leaf) == {}
