@@ -83,10 +83,15 @@ class VariantFactory:
         builders: for each kind (``"Model"``, ``"ModelConfig"``, ``"Field"``...), a function
             ``(host_class, name, module) -> class`` that makes the subclass under that name.
         providers: kind -> the module that registers that kind's mixin when it is imported.
+
+    A kind is an identifier without ``__`` (the separator), so a name starts with at most one kind's head.
     """
 
     def __init__(self, module: str, builders: Dict[str, Callable[[type, str, str], type]],
                  providers: Optional[Dict[str, str]] = None) -> None:
+        bad = [kind for kind in builders if SEPARATOR in kind or not kind.isidentifier()]
+        if bad:
+            raise ValueError(f"variant kinds must be identifiers without {SEPARATOR!r}: {bad}")
         self.module = module
         self.builders = builders
         self.providers = dict(providers or {})
@@ -135,7 +140,7 @@ class VariantFactory:
     def resolve(self, name: str) -> type:
         """The variant a name written by :meth:`name` stands for (AttributeError otherwise, as
         ``getattr`` on a module expects)."""
-        for kind in sorted(self.builders, key=len, reverse=True):
+        for kind in self.builders:
             head = f"{PREFIX}{kind}{SEPARATOR}"
             if name.startswith(head):
                 try:
