@@ -63,7 +63,8 @@ def test_text_the_encoder_could_not_have_written_is_refused(text):
 def test_class_paths_import_back_to_the_same_class():
     """``module.qualname``, nested classes too; the longest importable module prefix wins. Kills: the cut's
     range (``len - 1`` -> ``len - 2``, stop ``0`` -> ``1``), either ``continue`` -> ``break``, the type check
-    dropped. (``len - 1`` -> ``len`` is equivalent: a whole path importable as a module is not a type.)"""
+    dropped, the step ``-1`` -> ``-2``. (``len - 1`` -> ``len`` is equivalent: a whole path importable as a
+    module is not a type.)"""
     assert v.class_path(HostModel) == f"{__name__}.HostModel"
     assert v.import_class(v.class_path(HostModel)) is HostModel
     assert v.import_class(v.class_path(Outer.NestedModel)) is Outer.NestedModel
@@ -76,6 +77,11 @@ def test_class_paths_import_back_to_the_same_class():
         package.sub = types.SimpleNamespace(Model=HostModel)
         assert v.import_class("_sp_variants_pkg.sub.Model") is HostModel
         assert submodule is sys.modules["_sp_variants_pkg.sub"]
+        # a nested class in a submodule its package does not expose as an attribute: only the cut just
+        # before the class's qualname finds it (every cut is tried, not every other one)
+        submodule.Outer = Outer
+        del package.sub
+        assert v.import_class("_sp_variants_pkg.sub.Outer.NestedModel") is Outer.NestedModel
     finally:
         del sys.modules["_sp_variants_pkg"], sys.modules["_sp_variants_pkg.sub"]
     for missing in (f"{__name__}.NoSuchModel", "no_such_module.Model", f"{__name__}.HostModel.__doc__", "os.sep"):
