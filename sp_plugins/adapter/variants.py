@@ -54,7 +54,7 @@ def class_path(cls: type) -> str:
 def import_class(path: str) -> type:
     """The class at ``module.qualname`` (the longest importable module prefix wins)."""
     parts = path.split(".")
-    for cut in range(len(parts) - 1, 0, -1):
+    for cut in reversed(range(1, len(parts))):  # every module prefix, the longest first
         try:
             obj = importlib.import_module(".".join(parts[:cut]))
         except ImportError:

@@ -61,10 +61,9 @@ def test_text_the_encoder_could_not_have_written_is_refused(text):
 
 
 def test_class_paths_import_back_to_the_same_class():
-    """``module.qualname``, nested classes too; the longest importable module prefix wins. Kills: the cut's
-    range (``len - 1`` -> ``len - 2``, stop ``0`` -> ``1``), either ``continue`` -> ``break``, the type check
-    dropped, the step ``-1`` -> ``-2``. (``len - 1`` -> ``len`` is equivalent: a whole path importable as a
-    module is not a type.)"""
+    """``module.qualname``, nested classes too; the longest importable module prefix wins, and every shorter
+    one is tried after it. Kills: the cuts' range (its start ``1`` -> ``0`` / ``2``, every other cut), either
+    ``continue`` -> ``break``, the type check dropped."""
     assert v.class_path(HostModel) == f"{__name__}.HostModel"
     assert v.import_class(v.class_path(HostModel)) is HostModel
     assert v.import_class(v.class_path(Outer.NestedModel)) is Outer.NestedModel
@@ -77,6 +76,8 @@ def test_class_paths_import_back_to_the_same_class():
         package.sub = types.SimpleNamespace(Model=HostModel)
         assert v.import_class("_sp_variants_pkg.sub.Model") is HostModel
         assert submodule is sys.modules["_sp_variants_pkg.sub"]
+        submodule.Model = Mixin  # both resolve: the longest importable prefix (the submodule) wins
+        assert v.import_class("_sp_variants_pkg.sub.Model") is Mixin
         # a nested class in a submodule its package does not expose as an attribute: only the cut just
         # before the class's qualname finds it (every cut is tried, not every other one)
         submodule.Outer = Outer
