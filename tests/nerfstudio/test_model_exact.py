@@ -101,3 +101,61 @@ def test_a_baseline_refuses_exactly_the_options_that_act_only_through_sp(num_sam
     refuse_inert_options(SPConfig(enabled=True, num_samples=num_samples, alpha_grid=True))  # SP on: both act
     with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.alpha-grid True has no effect with SP off"):
         refuse_inert_options(SPConfig(enabled=False, num_samples=num_samples, alpha_grid=True))  # the grid named first
+
+
+class _PositionField(nn.Module):
+    """A field (takes ``ray_samples``) whose output is a function of the positions it reads; ``mode``
+    "detach" reads them detached (no gradient reaches SP's offset), "zero" multiplies them by 0 (a
+    gradient of exactly zero reaches it)."""
+
+    def __init__(self, mode: str = "read") -> None:
+        super().__init__()
+        self.linear = nn.Linear(3, 1)
+        self.mode = mode
+
+    def forward(self, ray_samples):
+        x = ray_samples.frustums.get_positions()
+        x = x.detach() if self.mode == "detach" else x * 0.0 if self.mode == "zero" else x
+        return {"out": self.linear(x)}
+
+
+# SP's model mixin over a stand-in host model holding one field, in the module the real variants live in
+# (sp_host_class: the first base not of sp_plugins, here _Host)
+_FieldModel = type("_FieldModel", (SPModel, _Host), {"__module__": "sp_plugins.nerfstudio.variants"})
+
+
+def _grid_model(mode: str):
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    model = _FieldModel.__new__(_FieldModel)
+    nn.Module.__init__(model)
+    model.field = _PositionField(mode)
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    model.sp = SPConfig(alpha0=0.05, boundary="reflect", alpha_grid=True, alpha_grid_init=0.05).setup(bounds=box, dim=3)
+    model.sp.set_step(0, 100)
+    model.attach_sp()
+    model.train()
+    n = 6
+    origins = torch.zeros(4, n, 3)
+    directions = torch.tensor([0.0, 0.0, 1.0]).expand(4, n, 3)
+    starts = torch.linspace(0.1, 0.8, n).view(1, n, 1).expand(4, n, 1)
+    samples = RaySamples(Frustums(origins=origins, directions=directions, starts=starts, ends=starts + 0.05,
+                                  pixel_area=torch.full((4, n, 1), 1e-4)))
+    model.field.forward(samples)["out"].sum().backward()
+    return model
+
+
+@pytest.mark.parametrize("mode", ["detach", "zero"])
+def test_an_alpha_grid_that_got_no_gradient_or_a_zero_one_is_refused_after_the_first_step(mode):
+    """A learnable alpha grid on a field that detaches the positions it reads (no gradient: ``grad`` None)
+    or whose output does not depend on them (a zero gradient) cannot learn: refused in one line after the
+    first step, naming the host model and the flag; a field that reads them passes. Kills: ``p.grad is
+    None or not bool(p.grad.any())`` -> ``and`` (a zero gradient passed; None crashed), ``grid is not None
+    and`` -> ``or``."""
+    ok = _grid_model("read")
+    assert any(p.grad is not None and bool(p.grad.any()) for p in ok.sp.alpha_grid.parameters())
+    ok.check_sp_reached(0)
+    model = _grid_model(mode)
+    with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.alpha-grid True cannot learn on tests\.nerfstudio\.test_model_exact\._Host: "
+                                         r"no gradient reached the alpha grid in the first training step"):
+        model.check_sp_reached(0)
