@@ -194,3 +194,168 @@ def test_level_masking_needs_a_hash_grid():
         ImageFitConfig(adaptive_alpha=True, level_masking=True, encoding=EncodingConfig(kind="fourier")).validate()
     assert str(refused.value) == "--level-masking masks hash-grid levels: use --encoding.kind hashgrid (got 'fourier')"
     ImageFitConfig(encoding=EncodingConfig(kind="fourier")).validate()
+
+
+@pytest.mark.parametrize("bad", [np.zeros((H, W)), np.zeros((H, W, 4)), np.zeros((1, H, W, 3)),
+                                 np.full((H, W, 3), np.nan), np.full((H, W, 3), np.inf)])
+def test_the_trainer_refuses_an_image_that_is_not_a_finite_h_w_3_array(bad):
+    """Kills: ``image.ndim != 3`` -> ``!= 2`` / ``!= 4``, ``image.shape[2] != 3`` -> ``!= 4`` / ``shape[1]`` /
+    ``shape[3]``, ``not np.isfinite(...)`` dropped and each ``or`` -> ``and`` (a 2-D array then fails on
+    ``shape[2]`` with an IndexError, not the line)."""
+    with pytest.raises(ValueError) as refused:
+        tiny().setup(bad)
+    assert str(refused.value) == "image: need a finite [H, W, 3] array"
+    trainer = tiny().setup(picture())
+    assert (trainer.height, trainer.width) == (H, W)
+
+
+def test_the_device_is_keyword_only_and_setup_passes_it_on():
+    """``ImageFitTrainer(config, image, *, device)``; ``config.setup(image, device=...)``. Kills: the ``*`` of the
+    signature -> ``/`` (a positional third argument read as the device) and ``**kwargs`` -> ``*kwargs`` in
+    ``setup`` (the keyword passed on as a positional string)."""
+    with pytest.raises(TypeError):
+        image_task.ImageFitTrainer(tiny(), picture(), "cpu")
+    trainer = tiny().setup(picture(), device="cpu")
+    assert trainer.device == torch.device("cpu") and trainer.positions.device.type == "cpu"
+
+
+def test_the_field_is_the_seeded_2d_rgb_field_on_the_image_square_and_adam_is_instant_ngps():
+    """The field is ``NeuralField(encoding, dim=2, out_dim=3, relu, features only, bounds (0, 1))`` initialised
+    from ``config.seed`` (built here independently: the same parameters and the same outputs), with
+    ``sigmoid`` on top; Adam has Instant-NGP's betas (0.9, 0.99) and eps 1e-15, the field's lr, and the fused
+    kernel on a CPU. Kills: ``dim=2`` / ``out_dim=3`` +-1, ``include_input=False`` -> True, each number of
+    ``bounds=(0.0, 1.0)``, Adam's numbers, ``fused=... in`` -> ``not in``, and the positions and colours'
+    layout (``reshape(-1, 3)``)."""
+    config = tiny(seed=3, hidden=(8, 8))
+    trainer = config.setup(picture())
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        reference = NeuralField(GRID, dim=2, out_dim=3, hidden=(8, 8), activation="relu", include_input=False,
+                                bounds=(0.0, 1.0))
+    assert trainer.field.mlp[0].in_features == GRID.levels * GRID.features_per_level
+    own, ref = trainer.field.state_dict(), reference.state_dict()
+    assert own.keys() == ref.keys() and all(torch.equal(own[k], ref[k]) for k in own)
+    p = pixel_centres()
+    assert torch.equal(trainer.positions, p)
+    assert torch.equal(trainer.colours, torch.from_numpy(picture().reshape(-1, 3)))
+    with torch.no_grad():
+        assert torch.equal(trainer.rgb(p), torch.sigmoid(reference(p)))
+    (group,) = trainer.optimizer.param_groups
+    assert (group["betas"], group["eps"], group["lr"], group["fused"]) == ((0.9, 0.99), 1e-15, config.lr, True)
+    assert [id(q) for q in group["params"]] == [id(q) for q in trainer.field.parameters()]
+
+
+def test_the_alpha_map_has_one_cell_per_downscale_pixels_at_least_two_starts_at_alpha0_and_has_its_own_lr():
+    """6x8 pixels: ``alpha_map_downscale`` 2 -> a 4 (x) by 3 (y) map, 4 -> 2 by 2 (8 // 4 = 2, 6 // 4 = 1 raised to
+    the grid's minimum 2), every cell at ``sp.alpha0``; the map is SP's alpha grid over the image square and
+    its Adam group runs at ``alpha_map_lr``, the field's at ``lr``. Kills: ``width // d`` -> ``/`` / ``%`` /
+    ``*`` / ``>>`` ..., width and height swapped, ``max(2, ...)`` -> ``max(1, ...)`` / ``max(3, ...)``,
+    ``init=sp_config.alpha0`` and the map's group lr."""
+    for downscale, shape in ((2, (3, 4)), (4, (2, 2))):
+        trainer = tiny(lr=0.02, adaptive_alpha=True, alpha_map_downscale=downscale, alpha_map_lr=0.03,
+                       sp=SPConfig(alpha0=0.07, schedule="constant")).setup(picture())
+        values = trainer.sp.alpha_grid.values()
+        assert tuple(values.shape) == shape
+        torch.testing.assert_close(values, torch.full(shape, 0.07), rtol=1e-6, atol=0)
+        field_group, map_group = trainer.optimizer.param_groups
+        assert (field_group["lr"], map_group["lr"]) == (0.02, 0.03)
+        assert [id(q) for q in map_group["params"]] == [id(q) for q in trainer.sp.alpha_grid.parameters()]
+    assert tiny().setup(picture()).sp.alpha_grid is None
+
+
+def alpha_at(values: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """The map's alpha at points of [0, 1]^2: cell centres at the grid's corners (cell ``i`` of ``R`` at
+    ``i / (R - 1)``), bilinear in log alpha between them (the log parameterisation), in float64."""
+    rows, cols = values.shape
+    logs = values.double().log()
+    gx, gy = p[:, 0].double() * (cols - 1), p[:, 1].double() * (rows - 1)
+    x0, y0 = gx.floor().long().clamp(max=cols - 2), gy.floor().long().clamp(max=rows - 2)
+    fx, fy = gx - x0, gy - y0
+    top = logs[y0, x0] * (1 - fx) + logs[y0, x0 + 1] * fx
+    bottom = logs[y0 + 1, x0] * (1 - fx) + logs[y0 + 1, x0 + 1] * fx
+    return (top * (1 - fy) + bottom * fy).exp()
+
+
+def test_the_alpha_map_covers_the_image_square():
+    """A map that is not constant, read at the pixel centres, equals the bilinear (log) interpolation over
+    [0, 1]^2 computed here; ``pixel_alpha`` reads it without a gradient even while the map learns. Kills:
+    each number of the map's ``bounds=(0.0, 1.0)``, ``[:, 0]`` -> ``[:, 1]`` and the decorator
+    ``@torch.no_grad()`` of ``pixel_alpha`` removed."""
+    trainer = tiny(adaptive_alpha=True, alpha_map_downscale=2, sp=SPConfig(alpha0=0.1, schedule="constant")).setup(picture())
+    values = 0.01 + 0.2 * torch.rand(3, 4, generator=torch.Generator().manual_seed(2))
+    trainer.sp.alpha_grid.set_values(values)
+    read = trainer.pixel_alpha()
+    assert trainer.sp.alpha_grid.param.requires_grad and not read.requires_grad
+    assert read.shape == (H * W,)
+    torch.testing.assert_close(read.double(), alpha_at(values, pixel_centres()), rtol=1e-5, atol=0)
+
+
+@pytest.mark.parametrize("sp, refused", [
+    (SPConfig(enabled=False), True), (SPConfig(alpha0=0.0, schedule="constant"), True),
+    (SPConfig(alpha0=1e-9, schedule="constant"), False),
+])
+def test_the_alpha_map_needs_sp_on_with_a_positive_alpha0(sp, refused):
+    """Kills: ``not sp_config.enabled`` -> ``enabled``, ``alpha0 <= 0`` -> ``< 0`` / ``<= 1`` / ``<= -1`` and the
+    ``or`` -> ``and``."""
+    config = tiny(adaptive_alpha=True, sp=sp)
+    if not refused:
+        assert config.setup(picture()).sp.alpha_grid is not None
+        return
+    with pytest.raises(ValueError) as refused_error:
+        config.setup(picture())
+    assert str(refused_error.value) == "adaptive_alpha needs SP on with alpha0 > 0 (its initial value)"
+
+
+@pytest.mark.parametrize("technique", ["importance_sampling", "level_masking"])
+def test_phase_2_needs_sp_to_end_before_the_last_step(technique):
+    """10 steps: SP ending at step 8 leaves phase 2 two steps, accepted; ending at step 9 (the last) or never
+    (constant) is refused in one line naming the schedule, its end and the last step. Kills: ``end >= steps -
+    1`` -> ``>`` / ``steps - 2`` / ``steps - 0``, ``end is None`` -> ``is not None``, both ``or`` -> ``and``,
+    the message's ``steps - 1``."""
+    def config(sp):
+        masking = dict(level_mask_min_levels=2.0) if technique == "level_masking" else {}
+        return tiny(steps=10, adaptive_alpha=True, **{technique: True}, **masking, sp=sp)
+
+    assert config(SPConfig(alpha0=0.05, schedule="step", end=0.8)).setup(picture()).sp.schedule.end_step == 8
+    for sp, described in ((SPConfig(alpha0=0.05, schedule="step", end=0.9), "step, end=0.9"),
+                          (SPConfig(alpha0=0.05, schedule="constant"), "constant, end=0.2")):
+        with pytest.raises(ValueError) as refused:
+            config(sp).setup(picture())
+        assert str(refused.value) == (
+            "--importance-sampling / --level-masking start when SP ends, but the SP schedule "
+            f"({described}) never ends before the last step (9): give --sp.end < 1")
+    tiny(steps=10, adaptive_alpha=True, sp=SPConfig(alpha0=0.05, schedule="constant")).setup(picture())  # no phase 2 asked
+
+
+def test_level_masking_wraps_the_encoding_inactive_until_phase_2():
+    """With ``--level-masking`` the encoding is a :class:`PerPointLevelMask` with no levels function yet (the
+    field as without it); without it, the plain encoding. Kills: ``if config.level_masking`` negated."""
+    from sp_plugins.encodings.level_mask import PerPointLevelMask
+
+    plain = adaptive().setup(picture())
+    masked = adaptive(level_masking=True, level_mask_min_levels=2.0).setup(picture())
+    assert not isinstance(plain.field.encoding, PerPointLevelMask)
+    assert isinstance(masked.field.encoding, PerPointLevelMask) and masked.field.encoding.levels_fn is None
+    with torch.no_grad():
+        assert torch.equal(masked.rgb(masked.positions), plain.rgb(plain.positions))
+
+
+def test_one_step_without_sp_reads_every_pixel_in_order_or_a_seeded_batch_and_fits_the_mean_squared_error():
+    """SP off: a batch of at least the image reads every pixel centre in order; a smaller one reads
+    ``randint(n, (batch,))`` from the batch generator seeded ``config.seed``; the loss is the mean squared
+    error of ``sigmoid(field)`` against those pixels' colours. Kills: ``c.batch >= n`` -> ``>`` (at batch ==
+    n), the draw's size or generator, ``pred - colours`` -> ``+``, ``.square()`` / ``.mean()`` and the
+    colours' indexing."""
+    n = H * W
+    for batch, seed in ((n, 0), (n - 1, 5)):
+        trainer = tiny(batch=batch, seed=seed, sp=SPConfig(enabled=False)).setup(picture())
+        field = copy.deepcopy(trainer.field)
+        trainer.field = Recorder(trainer.field)
+        trainer.step()
+        idx = torch.arange(n) if batch == n else torch.randint(n, (batch,), generator=torch.Generator().manual_seed(seed))
+        (read,) = trainer.field.inputs
+        assert torch.equal(read, pixel_centres()[idx])
+        with torch.no_grad():
+            loss = (torch.sigmoid(field(pixel_centres()[idx])) - torch.from_numpy(picture().reshape(-1, 3))[idx]).square().mean()
+        assert trainer.history["loss"][0] == pytest.approx(float(loss), rel=1e-6)
+        assert trainer.history["alpha"] == [0.0]
