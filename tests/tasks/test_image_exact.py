@@ -359,3 +359,169 @@ def test_one_step_without_sp_reads_every_pixel_in_order_or_a_seeded_batch_and_fi
             loss = (torch.sigmoid(field(pixel_centres()[idx])) - torch.from_numpy(picture().reshape(-1, 3))[idx]).square().mean()
         assert trainer.history["loss"][0] == pytest.approx(float(loss), rel=1e-6)
         assert trainer.history["alpha"] == [0.0]
+
+
+def lrs_of_a_fit(config) -> list:
+    """Each group's learning rate at each optimizer step of a whole fit."""
+    trainer = config.setup(picture())
+    lrs = []
+    trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs: lrs.append([g["lr"] for g in opt.param_groups]))
+    trainer.fit()
+    return lrs
+
+
+@pytest.mark.parametrize("decay", [0.5, 1.5])
+def test_the_field_lr_is_multiplied_by_lr_decay_once_at_round_lr_decay_at_times_steps(decay):
+    """7 steps, ``lr_decay_at`` 0.5: steps 0-3 at lr (round(3.5) = 4), steps 4-6 at exactly ``lr * lr_decay`` (also a
+    factor above 1), the alpha map's group untouched; by default (2/3 of 9 steps) from step 6. Kills: ``step_index ==
+    round(...)`` -> ``>=`` / ``!=``, ``lr_decay_at * steps`` -> ``/`` / ``+``, ``lr_decay != 1.0`` -> ``<`` / ``==``,
+    the ``and`` -> ``or``, ``param_groups[0]`` -> ``[1]`` / ``[-1]`` and ``*=`` -> ``/=``."""
+    sp = SPConfig(alpha0=0.05, schedule="constant")
+    lrs = lrs_of_a_fit(tiny(steps=7, lr=0.02, lr_decay=decay, lr_decay_at=0.5, adaptive_alpha=True, alpha_map_lr=0.03, sp=sp))
+    assert lrs == [[0.02, 0.03]] * 4 + [[0.02 * decay, 0.03]] * 3
+    assert lrs_of_a_fit(tiny(steps=9, lr=0.02, lr_decay=0.6)) == [[0.02]] * 6 + [[0.02 * 0.6]] * 3
+
+
+def test_phase_2_starts_at_the_first_step_at_alpha_0_and_freezes_the_map():
+    """SP (step schedule) ends at step 1: step 0 is phase 1 (alpha0, the map learns), step 1 starts phase 2 and
+    it stays the step it started (not restarted); the map no longer requires a gradient and no later step moves
+    it (``zero_grad(set_to_none=True)``: Adam skips it); each step records the map's mean. Without the map the
+    same schedule has no phase 2. Kills: ``step_index > 0`` -> ``> 1``, ``alpha == 0.0`` -> ``!=`` / ``== 1.0``,
+    ``phase2_step is None`` -> ``is not None``, each ``and`` of that line -> ``or``, ``requires_grad_(False)`` ->
+    True, ``set_to_none=True`` -> False, ``alpha_grid is not None`` -> ``is None`` and ``start_phase2``'s
+    ``step is None`` -> ``is not None``."""
+    trainer = adaptive(steps=4).setup(picture())
+    start = trainer.sp.alpha_grid.values().clone()
+    trainer.step()
+    assert trainer.phase2_step is None and trainer.sp.alpha_grid.param.requires_grad
+    learned = trainer.sp.alpha_grid.values().clone()
+    assert not torch.equal(learned, start)
+    means = [float(learned.mean())]
+    for step in (1, 2, 3):
+        trainer.step()
+        assert trainer.phase2_step == 1 and not trainer.sp.alpha_grid.param.requires_grad
+        assert torch.equal(trainer.sp.alpha_grid.values(), learned)
+        means.append(float(learned.mean()))
+    assert trainer.history["alpha"] == [0.05, 0.0, 0.0, 0.0]
+    assert trainer.history["alpha_map_mean"] == pytest.approx(means, rel=1e-6)
+    plain = tiny(steps=4, sp=SPConfig(alpha0=0.05, schedule="step", end=0.25)).setup(picture())
+    plain.fit()
+    assert plain.phase2_step is None and "alpha_map_mean" not in plain.history
+
+
+def draws(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Inverse-CDF draws: pixel ``i`` owns ``[cdf[i-1], cdf[i])``, so ``u`` draws the number of entries ``<= u``."""
+    return (cdf[None, :] <= u[:, None]).sum(1)
+
+
+def test_importance_weights_are_the_mixture_of_inverse_alpha_and_uniform():
+    """``(1 - u) * (1/alpha) / sum(1/alpha) + u / n``, alpha clamped at 1e-12 (a zero alpha takes all the inverse
+    share). Kills: every operator and number of ``importance_weights`` (``1.0 - u`` -> ``+`` / ``2.0 - u``, ``/ inv.sum()``
+    -> ``*``, ``u / n`` -> ``*``, ``clamp_min(1e-12)`` -> ``1 + 1e-12`` / ``-1 + 1e-12``)."""
+    alpha = torch.tensor([0.1, 0.2, 0.4, 0.5], dtype=torch.float64)
+    inv = torch.tensor([10.0, 5.0, 2.5, 2.0], dtype=torch.float64)
+    expected = 0.7 * inv / 19.5 + 0.3 / 4
+    torch.testing.assert_close(image_task.importance_weights(alpha, 0.3), expected, rtol=1e-14, atol=0)
+    assert float(image_task.importance_weights(alpha, 0.3).sum()) == pytest.approx(1.0, rel=1e-14)
+    zero = image_task.importance_weights(torch.tensor([0.0, 0.5], dtype=torch.float64), 0.2)
+    torch.testing.assert_close(zero, torch.tensor([0.8 * 1e12 / (1e12 + 2) + 0.1, 0.8 * 2 / (1e12 + 2) + 0.1],
+                                                  dtype=torch.float64), rtol=1e-14, atol=0)
+
+
+def test_draw_pixels_is_inverse_cdf_sampling_of_the_cdfs_total_that_skips_zero_weight_pixels():
+    """``u = rand * cdf[-1]`` (a total that is not 1), pixel ``i`` drawn for ``u`` in ``[cdf[i-1], cdf[i])``: a
+    pixel of zero weight (cdf[2] = cdf[1]) is never drawn, even for a ``u`` exactly at its edge (here the first
+    draw, put there); the last pixel is drawn. Kills: ``cdf[-1]`` -> ``cdf[0]`` / ``cdf[-2]`` / ``cdf[1]``,
+    ``* cdf[-1]`` -> ``/`` / ``+``, ``right=True`` -> False, ``clamp_max(len(cdf) - 1)`` -> ``- 2``."""
+    r = torch.rand(64, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    cdf = torch.tensor([r[0] / 2, r[0], r[0], 0.9, 1.0], dtype=torch.float64) * 3.0
+    idx = image_task.draw_pixels(cdf, 64, torch.Generator().manual_seed(7))
+    expected = draws(cdf, r * 3.0)
+    assert expected[0] == 3 and (expected == 4).any() and not (expected == 2).any()
+    assert torch.equal(idx, expected)
+
+
+def test_phase_2_draws_pixels_from_the_frozen_maps_inverse_alpha_mixture():
+    """At phase 2 the pixel CDF is the cumulative ``importance_weights`` of the map's alpha at every pixel centre
+    (computed here from the map's values); the step then reads ``positions[idx]`` (SP is off) for ``idx`` drawn
+    by inverse CDF from the batch generator after step 0's ``randint``. Kills: ``importance_uniform`` not passed
+    on, ``cumsum`` of another order, ``_pixel_cdf is not None`` -> ``is None``, ``if c.importance_sampling``
+    negated, the batch's size."""
+    n, batch = H * W, 20
+    trainer = adaptive(batch=batch, seed=4, importance_sampling=True, importance_uniform=0.3).setup(picture())
+    trainer.step()  # phase 1: randint(n, (batch,)) from the batch generator
+    assert trainer._pixel_cdf is None
+    values = 0.01 + 0.2 * torch.rand(3, 4, generator=torch.Generator().manual_seed(2))
+    trainer.sp.alpha_grid.set_values(values)
+    trainer.field = Recorder(trainer.field)
+    trainer.step()
+    a = alpha_at(values, pixel_centres())
+    weights = 0.7 * (1 / a) / (1 / a).sum() + 0.3 / n
+    torch.testing.assert_close(trainer._pixel_cdf, weights.cumsum(0), rtol=1e-5, atol=0)
+    g = torch.Generator().manual_seed(4)
+    torch.randint(n, (batch,), generator=g)
+    idx = draws(trainer._pixel_cdf, torch.rand(batch, generator=g, dtype=torch.float64) * trainer._pixel_cdf[-1])
+    (read,) = trainer.field.inputs
+    assert torch.equal(read, pixel_centres()[idx])
+    assert len(set(idx.tolist())) > 1
+
+
+def masked_rgb(trainer, p: torch.Tensor, alpha: torch.Tensor, lo: float, hi: float, min_levels: float) -> torch.Tensor:
+    """The field with level masking, from its parts: levels ``L - t (L - m)`` with ``t`` the clamped position of
+    log alpha between log lo and log hi, level ``l`` weighted ``clamp(levels - l, 0, 1)`` (coarsest first, 2
+    features each), then the MLP and a sigmoid. The hash grid reads [0, 1]^2 as given."""
+    levels_n = GRID.levels
+    t = ((alpha.log() - math.log(lo)) / (math.log(hi) - math.log(lo))).clamp(0.0, 1.0)
+    levels = levels_n - t * (levels_n - min_levels)
+    weights = (levels[:, None] - torch.arange(levels_n, dtype=torch.float64)).clamp(0.0, 1.0).repeat_interleave(2, dim=1)
+    grid = trainer.field.encoding.encoding
+    with torch.no_grad():
+        feats = grid(p) * weights.float()
+        return torch.sigmoid(trainer.field.mlp(feats)).double()
+
+
+def quantile(values: torch.Tensor, q: float) -> float:
+    """Linear interpolation between order statistics (torch's and numpy's default)."""
+    v = sorted(values.reshape(-1).double().tolist())
+    pos = q * (len(v) - 1)
+    i = min(int(math.floor(pos)), len(v) - 2)
+    return v[i] + (pos - i) * (v[i + 1] - v[i])
+
+
+def test_phase_2_masks_levels_per_pixel_from_the_maps_quantiles_and_render_uses_the_mask():
+    """At phase 2 the map's ``level_mask_quantiles`` (0.3, 0.7) give its low and high ends; each query then uses all
+    3 levels at alpha <= low, 1.5 at alpha >= high, log-linear between: ``render`` equals the field built here
+    from its parts with that mask, at every pixel (some pixels at each end, some between). Kills: the quantiles
+    not the config's, ``reshape(-1)``, ``levels_fn`` not set, ``[:, 0]`` -> ``[:, 1]`` in ``levels_at``, the
+    ``levels`` / ``min_levels`` passed, ``if c.level_masking`` negated."""
+    config = adaptive(level_masking=True, level_mask_min_levels=1.5, level_mask_quantiles=(0.3, 0.7))
+    trainer = config.setup(picture())
+    trainer.step()
+    values = torch.tensor([[0.01, 0.02, 0.04, 0.08], [0.16, 0.32, 0.64, 0.05], [0.03, 0.5, 0.015, 0.2]])
+    trainer.sp.alpha_grid.set_values(values)
+    trainer.step()
+    float_values = trainer.sp.alpha_grid.values()
+    lo, hi = quantile(float_values, 0.3), quantile(float_values, 0.7)
+    assert trainer.level_mask_alpha_range == pytest.approx((lo, hi), rel=1e-6)
+    with torch.no_grad():  # features of order 1 (not the initial 1e-4): the mask's effect well above float error
+        table = trainer.field.encoding.encoding.table
+        table.copy_(torch.rand(table.shape, generator=torch.Generator().manual_seed(3)) * 2 - 1)
+    p = pixel_centres()
+    a = alpha_at(values, p)
+    assert (a <= lo).any() and (a >= hi).any() and ((a > lo) & (a < hi)).any()
+    expected = masked_rgb(trainer, p, a, lo, hi, 1.5)
+    torch.testing.assert_close(torch.from_numpy(trainer.render()).double(), expected.reshape(H, W, 3), rtol=1e-5, atol=1e-6)
+    with torch.no_grad():
+        plain = torch.sigmoid(trainer.field.mlp(trainer.field.encoding.encoding(p))).double()
+    assert (plain - expected).abs().max() > 0.01  # the mask changes what is rendered
+
+
+def test_a_constant_map_gives_a_level_range_just_above_its_value():
+    """All quantiles of a constant map are its value: the high end is put a relative 1e-6 above the low one (a
+    span for the log-linear levels). Kills: ``lo * (1 + 1e-6)`` -> ``1 - 1e-6`` / ``1 + 1.000001`` / ``lo / ...``."""
+    trainer = adaptive(level_masking=True, level_mask_min_levels=1.5).setup(picture())
+    trainer.step()
+    trainer.sp.alpha_grid.set_values(torch.full((3, 4), 0.03))
+    trainer.step()
+    a = float(trainer.sp.alpha_grid.values()[0, 0])
+    assert trainer.level_mask_alpha_range == (a, a * (1 + 1e-6))
