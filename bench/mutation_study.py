@@ -86,8 +86,8 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/nerfstudio/model.py": ("main", ["tests/nerfstudio/test_model_exact.py", "tests/nerfstudio/test_divergence.py", *_NS_SEAM,
                                                "tests/nerfstudio/test_sp_option_matrix.py", "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/sdfstudio/model.py": ("sdfstudio", ["tests/sdfstudio/test_model_exact.py", "tests/sdfstudio/test_seam_exact.py", "tests/sdfstudio/test_methods.py"]),
-    "sp_plugins/nerfstudio/variants.py": ("main", ["tests/nerfstudio/test_with_sp.py"]),
-    "sp_plugins/sdfstudio/variants.py": ("sdfstudio", ["tests/sdfstudio/test_methods.py", "tests/sdfstudio/test_any_method.py"]),
+    "sp_plugins/nerfstudio/variants.py": ("main", ["tests/nerfstudio/test_variants_exact.py", "tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/sdfstudio/variants.py": ("sdfstudio", ["tests/sdfstudio/test_variants_exact.py", "tests/sdfstudio/test_methods.py", "tests/sdfstudio/test_any_method.py"]),
     # the adapter (host-neutral modules: the toy host first, then nerfstudio's)
     "sp_plugins/adapter/field.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
     "sp_plugins/adapter/model.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
