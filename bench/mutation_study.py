@@ -32,6 +32,10 @@ as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
 ``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh. After the
 module changed the study does so itself; after only its covering tests (or their list) changed, it
 runs the surviving mutants again and keeps the rest (a test added cannot revive a killed mutant).
+
+Two studies at once (one per core): give each its own ``SP_MUTATION_DIR`` (its own scratch copy and
+sessions) and different modules; one process per directory. ``--report`` reads the default directory:
+copy the other's ``<module>.sqlite``, ``.toml`` and ``.meta.json`` files there first.
 """
 
 from __future__ import annotations
