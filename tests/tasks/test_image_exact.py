@@ -65,6 +65,7 @@ def test_one_step_queries_p_plus_the_maps_alpha_eps_and_the_map_gets_the_eps_wei
 # --- ahead of the mutation study of image.py (issue 44) ---------------------------------------------
 import math
 import re
+import sys
 
 from sp_plugins.tasks import image as image_task
 from sp_plugins.tasks.fields import NeuralField
@@ -525,3 +526,134 @@ def test_a_constant_map_gives_a_level_range_just_above_its_value():
     trainer.step()
     a = float(trainer.sp.alpha_grid.values()[0, 0])
     assert trainer.level_mask_alpha_range == (a, a * (1 + 1e-6))
+
+
+def test_a_resumed_fit_restarts_phase_2_at_its_saved_step_on_the_saved_map():
+    """A state saved in phase 2 (started at step 1, saved at step 2) loads into a fresh trainer with phase 2 at
+    step 1, the map frozen and the same pixel CDF; a state saved before phase 2 loads without it. Kills:
+    ``state.get("phase2_step") is not None`` -> ``is None`` and ``start_phase2``'s ``step is None`` -> ``is not
+    None`` (the step the fit resumed at taken instead)."""
+    config = adaptive(importance_sampling=True, batch=20)
+    trainer = config.setup(picture())
+    trainer.step()
+    before = trainer.state_dict()
+    trainer.step()
+    trainer.step()
+    during = trainer.state_dict()
+    assert (during["step"], during["phase2_step"]) == (3, 1)
+    resumed = config.setup(picture())
+    resumed.load_state_dict(during)
+    assert (resumed.step_index, resumed.phase2_step) == (3, 1)
+    assert not resumed.sp.alpha_grid.param.requires_grad
+    assert torch.equal(resumed._pixel_cdf, trainer._pixel_cdf)
+    early = config.setup(picture())
+    early.load_state_dict(before)
+    assert (early.step_index, early.phase2_step, early._pixel_cdf) == (1, None, None)
+    assert early.sp.alpha_grid.param.requires_grad
+
+
+def test_render_is_the_plain_field_at_every_pixel_in_chunks_and_psnr_compares_it_with_the_image():
+    """``render`` (any chunk size) is ``sigmoid(field)`` at the pixel centres as an [H, W, 3] array, the field left in
+    training mode; ``psnr()`` is ``-10 log10(mse)`` of it against the image. Kills: the chunk loop's start, stride and
+    slice (``s + chunk`` -> ``s - chunk`` ...), ``reshape(height, width, 3)`` numbers and ``@torch.no_grad()`` of
+    ``render`` removed (``numpy()`` of a tensor that needs a gradient)."""
+    trainer = tiny().setup(picture())
+    with torch.no_grad():
+        expected = torch.sigmoid(trainer.field(pixel_centres())).reshape(H, W, 3).numpy()
+    for chunk in (5, 48, 65536):
+        np.testing.assert_allclose(trainer.render(chunk=chunk) if chunk != 65536 else trainer.render(), expected,
+                                   rtol=0, atol=1e-6)  # the matmul's rounding may depend on the chunk's size
+    assert trainer.field.training
+    mse = float(np.mean((expected.astype(np.float64) - picture().astype(np.float64)) ** 2))
+    assert trainer.psnr() == pytest.approx(-10.0 * math.log10(mse), rel=1e-6)
+
+
+def test_psnr_is_minus_ten_log10_of_the_mean_squared_error_and_infinite_for_equal_images():
+    """Squared differences 0.01 and 0.04, mean 0.025. Kills: ``-10.0`` -> ``-9.0`` / ``10.0``, ``** 2`` -> ``** 3``,
+    ``mean`` of the squares, ``mse == 0`` -> ``!=`` / ``== 1``."""
+    assert image_task.psnr(np.array([0.0, 0.5]), np.array([0.1, 0.3])) == pytest.approx(-10.0 * math.log10(0.025), rel=1e-12)
+    assert image_task.psnr(np.full((2, 2, 3), 0.25, np.float32), np.full((2, 2, 3), 0.5, np.float32)) == pytest.approx(
+        -10.0 * math.log10(0.0625), rel=1e-12)
+    assert image_task.psnr(picture(), picture()) == float("inf")
+
+
+def test_save_image_rounds_to_the_nearest_8_bit_value_and_clips(tmp_path):
+    """``[0, 1]`` -> round(255 v) (0.5 -> 127.5 -> 128, 0.1 -> 25.5 -> 26, 0.2 -> 51), values outside clipped to 0 and
+    255; the path written is returned. Kills: ``* 255.0`` -> 254 / 256, ``+ 0.5`` -> ``+ 1.5`` / ``- 0.5``, the clip's
+    bounds +-1."""
+    from PIL import Image
+
+    rgb = np.array([[[0.0, 1.0, 0.5], [0.1, 0.2, -0.3]], [[1.7, 0.25, 0.75], [2.0, -1.0, 0.004]]], dtype=np.float32)
+    path = image_task.save_image(rgb, str(tmp_path / "out.png"))
+    assert path == tmp_path / "out.png"
+    with Image.open(path) as im:
+        assert np.asarray(im).tolist() == [[[0, 255, 128], [26, 51, 0]], [[255, 64, 191], [255, 0, 1]]]
+
+
+def test_a_diverged_fit_stops_in_one_line_naming_lr_and_with_the_map_its_lr():
+    """An absurd lr: the README's one line for a diverged ``sp-fit``, plus ``or --alpha-map-lr`` with the map
+    (only then). Kills: the ``+`` of ``_diverged`` -> ``-`` / ``*`` (a TypeError) and the condition negated."""
+    for config, tail in ((tiny(lr=1e30, steps=6), ""), (adaptive(lr=1e30, steps=6), " or --alpha-map-lr")):
+        trainer = config.setup(picture())
+        with pytest.raises(FloatingPointError) as stopped:
+            trainer.fit()
+        assert re.fullmatch(r"step [1-5]: the loss became (nan|inf); the fit diverged: lower --lr \(now 1e\+30, e\.g\. "
+                            r"10x smaller\)" + re.escape(tail), str(stopped.value)), str(stopped.value)
+
+
+def test_fit_runs_the_remaining_steps_quietly_calling_back_after_each(capfd):
+    """Kills: ``fit(..., progress=False)`` -> True (a progress bar on stderr by default) and the callback not passed."""
+    trainer = tiny(steps=3).setup(picture())
+    trainer.step()
+    seen = []
+    trainer.fit(lambda t, record: seen.append((t.step_index, record["loss"])))
+    assert [s for s, _ in seen] == [2, 3] and trainer.done
+    assert capfd.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize("size", [(3, 1), (1, 3)])
+def test_an_image_one_pixel_wide_or_high_is_refused_naming_its_size(tmp_path, size):
+    """3x1 and 1x3 (width x height): refused, as 1x1 is. Kills: ``shape[0] < 2 or shape[1] < 2`` -> ``and`` and
+    either index changed, in the test or in the message."""
+    from PIL import Image
+
+    Image.new("RGB", size, (10, 20, 30)).save(tmp_path / "thin.png")
+    with pytest.raises(ValueError) as refused:
+        image_task.load_image(tmp_path / "thin.png")
+    assert str(refused.value) == f"{tmp_path / 'thin.png'}: the image is {size[0]}x{size[1]}; need at least 2x2 pixels"
+
+
+def test_a_32_bit_integer_tiff_is_refused_even_with_16_bit_values(tmp_path):
+    """PIL's mode ``I`` is 16-bit grey only when read from a PNG; from a TIFF it is 32-bit integers, refused whatever
+    its values. Kills: ``mode == "I" and fmt == "PNG"`` -> ``or``."""
+    from PIL import Image
+
+    Image.fromarray(np.array([[5, 1000], [0, 65535]], dtype=np.int32), "I").save(tmp_path / "i32.tif")
+    with pytest.raises(ValueError) as refused:
+        image_task.load_image(tmp_path / "i32.tif")
+    assert str(refused.value) == (f"{tmp_path / 'i32.tif'}: a I image (TIFF); expected 8- or 16-bit grey, palette, RGB "
+                                  "or RGBA")
+
+
+def test_without_opencv_a_16_bit_colour_png_is_read_to_its_high_byte_with_a_warning_at_the_caller(tmp_path, monkeypatch):
+    """No OpenCV (``import cv2`` fails): a 16-bit RGB or RGBA PNG is read to 1/255, its high byte, alpha composited on
+    white (transparent: white), with a warning attributed to the caller of ``load_image``. Kills: the fallback's
+    ``except ImportError`` replaced, ``stacklevel=3`` -> 2 / 4, its background's numbers and ``/ 255.0``."""
+    from tests.tasks.test_image_modes import write_png16
+
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    rgb16 = np.array([[[65535, 0, 30000], [1000, 1001, 40000]], [[12345, 54321, 256], [0, 0, 0]]], dtype=np.uint16)
+    high = (rgb16 >> 8) / 255.0
+    for name, pixels, expected in (
+        ("rgb.png", rgb16, high),
+        ("rgba.png", np.concatenate([rgb16, np.array([[65535, 0], [65535, 65535]], np.uint16)[..., None]], axis=2),
+         np.where(np.array([[1, 0], [1, 1]], bool)[..., None], high, 1.0)),
+    ):
+        path = write_png16(tmp_path / name, pixels)
+        with pytest.warns(UserWarning) as caught:
+            rgb = image_task.load_image(path)
+        (warning,) = caught
+        assert str(warning.message) == (f"{path}: a 16-bit colour PNG, read to 1/255 (its high byte): install "
+                                        "opencv-python-headless to read all 16 bits")
+        assert warning.filename == __file__
+        np.testing.assert_allclose(rgb, expected, rtol=0, atol=1e-7)
