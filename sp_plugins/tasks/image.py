@@ -129,8 +129,8 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
 
     8-bit images (bilevel, grey, palette, RGB, CMYK, ...) are divided by 255; 16-bit grey (PIL's
     ``I;16`` modes, or ``I`` read from a PNG, whose only source is 16-bit grey) by 65535. PIL reads
-    16-bit RGB(A) PNGs as their high byte, so those are read with OpenCV instead (all 16 bits; without
-    OpenCV, to 1/255 with a warning). Grey is replicated; an alpha
+    16-bit RGB(A) and grey + alpha PNGs as their high byte, so those are read with OpenCV instead (all
+    16 bits; without OpenCV, to 1/255 with a warning). Grey is replicated; an alpha
     channel (or a palette's transparency) is composited on white. 32-bit integer and float images,
     and images smaller than 2x2, are refused with a ValueError naming the file.
     """
@@ -148,7 +148,7 @@ def load_image(path: Union[str, Path]) -> Float[np.ndarray, "h w 3"]:
                 if grey.ndim != 2 or grey.min() < 0 or grey.max() > 65535:
                     raise ValueError(f"{path}: a {mode} image with values outside 0..65535; expected 8- or 16-bit pixels")
                 rgb = np.repeat((grey / 65535.0).astype(np.float32)[..., None], 3, axis=2)
-            elif fmt == "PNG" and _png_bit_depth_and_colour(path) in ((16, 2), (16, 6)):
+            elif fmt == "PNG" and _png_bit_depth_and_colour(path) in ((16, 2), (16, 4), (16, 6)):  # RGB, grey + alpha, RGBA
                 rgb = _sixteen_bit_colour_png(path, im)
             elif mode in _EIGHT_BIT:
                 if mode in ("LA", "La", "P", "PA", "RGBA", "RGBa") or "transparency" in im.info:
@@ -175,7 +175,8 @@ def _png_bit_depth_and_colour(path: Path):
 
 
 def _sixteen_bit_colour_png(path: Path, fallback) -> np.ndarray:
-    """A 16-bit RGB(A) PNG at full precision (OpenCV: BGR(A) uint16), alpha composited on white."""
+    """A 16-bit RGB(A) or grey + alpha PNG at full precision (OpenCV: BGR(A) uint16, grey + alpha as
+    BGRA), alpha composited on white."""
     try:
         import cv2
     except ImportError:

@@ -657,3 +657,17 @@ def test_without_opencv_a_16_bit_colour_png_is_read_to_its_high_byte_with_a_warn
                                         "opencv-python-headless to read all 16 bits")
         assert warning.filename == __file__
         np.testing.assert_allclose(rgb, expected, rtol=0, atol=1e-7)
+
+
+def test_a_16_bit_grey_and_alpha_png_loads_all_16_bits(tmp_path):
+    """A 16-bit grey + alpha PNG (colour type 4) was read by PIL to its high byte (1000 and 1001 both 3/255), without
+    the warning the 16-bit colour PNGs get; it is read with OpenCV as they are: grey replicated, alpha composited on
+    white. Kills: ``(16, 4)`` -> ``(16, 3)`` / ``(17, 4)`` / ``(16, 5)`` in the list of PNGs read by OpenCV."""
+    from tests.tasks.test_image_modes import write_png16
+
+    grey = np.array([[1000, 1001], [30000, 65535]], dtype=np.uint16)
+    alpha = np.array([[65535, 65535], [0, 32768]], dtype=np.uint16)
+    rgb = image_task.load_image(write_png16(tmp_path / "la.png", np.stack([grey, alpha], axis=2)))
+    a = alpha / 65535.0
+    np.testing.assert_allclose(rgb, np.repeat((grey / 65535.0 * a + (1 - a))[..., None], 3, axis=2), rtol=0, atol=1e-6)
+    assert rgb[0, 1, 0] > rgb[0, 0, 0]

@@ -13,11 +13,11 @@ from sp_plugins.tasks.image import load_image
 
 
 def write_png16(path, pixels):
-    """A 16-bit PNG (grey for [h, w], RGB for [h, w, 3], RGBA for [h, w, 4]) written byte by byte, so no
-    library's 16-bit support is assumed."""
+    """A 16-bit PNG (grey for [h, w], grey + alpha for [h, w, 2], RGB for [h, w, 3], RGBA for [h, w, 4])
+    written byte by byte, so no library's 16-bit support is assumed."""
     pixels = np.asarray(pixels, dtype=">u2")
     h, w = pixels.shape[:2]
-    colour = 0 if pixels.ndim == 2 else {3: 2, 4: 6}[pixels.shape[2]]
+    colour = 0 if pixels.ndim == 2 else {2: 4, 3: 2, 4: 6}[pixels.shape[2]]
     raw = b"".join(b"\x00" + pixels[y].tobytes() for y in range(h))  # filter 0 on every row
 
     def chunk(kind, data):
