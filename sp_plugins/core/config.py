@@ -78,6 +78,8 @@ class SPConfig:
             raise ValueError(f"alpha0={self.alpha0!r}: must be a finite number >= 0")
         if not (math.isfinite(self.end) and self.end > 0):
             raise ValueError(f"end={self.end!r}: give a fraction of training in (0, 1] or an absolute end step > 1")
+        if not 0.0 < self.final_ratio < 1.0:  # NaN too; checked here, not first when the schedule is built mid-setup
+            raise ValueError(f"final_ratio={self.final_ratio!r}: must lie in (0, 1)")
         if self.num_samples < 1:
             raise ValueError(f"num_samples={self.num_samples}: must be >= 1")
         if self.alpha_grid_init is not None and not (math.isfinite(self.alpha_grid_init) and self.alpha_grid_init > 0):
