@@ -159,3 +159,36 @@ def test_an_alpha_grid_that_got_no_gradient_or_a_zero_one_is_refused_after_the_f
     with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.alpha-grid True cannot learn on tests\.nerfstudio\.test_model_exact\._Host: "
                                          r"no gradient reached the alpha grid in the first training step"):
         model.check_sp_reached(0)
+
+
+def _plugin_config(host, **flags):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(_target=host, sp=SPConfig(boundary="reflect"), **flags)
+
+
+def test_a_box_boundary_on_a_contracting_model_is_refused_from_its_config_unless_contraction_is_off():
+    """Known from the config before the run writes anything: a model whose field contracts space (nerfacto and
+    a plugin's subclass of it) gets no box boundary while contraction is on; off (its flag True) it may. A
+    plugin's config without the flag is taken as contraction on (what its nerfacto model does). Kills:
+    ``getattr(model_config, flag, False)`` -> ``True`` (a plugin's contracting model passed), ``flag is None or``
+    -> ``and``, ``boundary != "none"`` -> ``==``; and the way out named only where a flag exists."""
+    from nerfstudio.models.nerfacto import NerfactoModel
+    from nerfstudio.models.semantic_nerfw import SemanticNerfWModel
+
+    from sp_plugins.nerfstudio.model import refuse_unreachable_settings
+
+    class PluginModel(NerfactoModel):  # a third-party model built on nerfacto, with its own config class
+        pass
+
+    line = (r"^--pipeline\.model\.sp\.boundary reflect needs a bounded scene, but NerfactoModel contracts space \(scene "
+            r"contraction is on\); pass --pipeline\.model\.sp\.boundary none")
+    for config in (_plugin_config(PluginModel), _plugin_config(NerfactoModel, disable_scene_contraction=False)):
+        with pytest.raises(InputError, match=line + r" \(or --pipeline\.model\.disable-scene-contraction True\)$"):
+            refuse_unreachable_settings(config)
+    refuse_unreachable_settings(_plugin_config(PluginModel, disable_scene_contraction=True))  # contraction off
+    none = _plugin_config(PluginModel)
+    none.sp = SPConfig(boundary="none")
+    refuse_unreachable_settings(none)
+    with pytest.raises(InputError, match=r"but SemanticNerfWModel contracts space .*boundary none$"):  # always on: no flag to name
+        refuse_unreachable_settings(_plugin_config(SemanticNerfWModel, disable_scene_contraction=True))
