@@ -83,7 +83,7 @@ class ImageFitConfig(FitSettings):
     sp: SPConfig = field(default_factory=_image_sp)
 
     def validate(self) -> None:
-        if self.steps < 1 or self.batch < 1 or self.lr <= 0 or self.alpha_map_lr <= 0:
+        if self.steps < 1 or self.batch < 1 or not self.lr > 0 or not self.alpha_map_lr > 0:  # NaN refused too
             raise ValueError("steps, batch, lr and alpha_map_lr must be positive")
         if self.alpha_map_downscale < 1:
             raise ValueError(f"alpha_map_downscale={self.alpha_map_downscale}: must be >= 1")

@@ -123,11 +123,17 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
     (dict(), dict(lr=-1e-2), dict(lr=1e-12), POSITIVE),
     (dict(), dict(alpha_map_lr=0.0), dict(alpha_map_lr=1e-12), POSITIVE),
     (dict(), dict(alpha_map_lr=-1e-2), dict(alpha_map_lr=1e-12), POSITIVE),
+    (dict(), dict(lr=float("nan")), dict(lr=1e-12), POSITIVE),
+    (dict(), dict(alpha_map_lr=float("nan")), dict(alpha_map_lr=1e-12), POSITIVE),
     (dict(), dict(alpha_map_downscale=0), dict(alpha_map_downscale=1), "alpha_map_downscale=0: must be >= 1"),
     (PHASE2, dict(level_mask_min_levels=0.0), dict(level_mask_min_levels=1e-6),
      "level_mask_min_levels=0.0: must be in (0, encoding.levels=16]"),
     (PHASE2, dict(level_mask_min_levels=16.5), dict(level_mask_min_levels=16.0),
      "level_mask_min_levels=16.5: must be in (0, encoding.levels=16]"),
+    (PHASE2, dict(level_mask_min_levels=-1.0), dict(level_mask_min_levels=1.0),
+     "level_mask_min_levels=-1.0: must be in (0, encoding.levels=16]"),
+    (PHASE2, dict(level_mask_quantiles=(0.6, 0.4)), dict(level_mask_quantiles=(0.4, 0.6)),
+     "level_mask_quantiles=(0.6, 0.4): need 0 <= low < high <= 1"),
     (PHASE2, dict(level_mask_quantiles=(-0.01, 0.5)), dict(level_mask_quantiles=(0.0, 0.5)),
      "level_mask_quantiles=(-0.01, 0.5): need 0 <= low < high <= 1"),
     (PHASE2, dict(level_mask_quantiles=(0.5, 0.5)), dict(level_mask_quantiles=(0.49, 0.5)),
@@ -137,7 +143,9 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
     (PHASE2, dict(importance_uniform=-0.01), dict(importance_uniform=0.0), "importance_uniform=-0.01: must be in [0, 1]"),
     (PHASE2, dict(importance_uniform=1.01), dict(importance_uniform=1.0), "importance_uniform=1.01: must be in [0, 1]"),
     (dict(), dict(lr_decay=0.0), dict(lr_decay=1e-9), "lr_decay=0.0, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
+    (dict(), dict(lr_decay=-0.5), dict(lr_decay=0.5), "lr_decay=-0.5, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
     (dict(), dict(lr_decay_at=0.0), dict(lr_decay_at=1e-9), "lr_decay=1.0, lr_decay_at=0.0: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
+    (dict(), dict(lr_decay_at=-0.5), dict(lr_decay_at=0.5), "lr_decay=1.0, lr_decay_at=-0.5: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
     (dict(), dict(lr_decay_at=1.01), dict(lr_decay_at=1.0), "lr_decay=1.0, lr_decay_at=1.01: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
     (dict(), dict(encoding=EncodingConfig(kind="".join(["tri", "plane"]))), dict(encoding=EncodingConfig(kind="finer")),
      "encoding kind='triplane' is 3D only; use hashgrid, fourier or finer for images"),
@@ -146,11 +154,14 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
 ])
 def test_validation_refuses_exactly_the_documented_values_in_one_line(options, refused, accepted, message):
     """Each bound at its edge: the first refused value gives the one line ``sp-fit`` prints, the value at the
-    edge is accepted. (The triplane kind is built at run time, as a parsed flag is: equal to the literal, not
-    the same object.) Kills: each comparison of ``validate`` swapped (``steps < 1`` -> ``<= 1`` / ``< 0``, ``lr
-    <= 0`` -> ``< 0``, ``0 < min_levels <= levels`` -> ``<=`` / ``<``, ``lo < hi`` -> ``<=``, ``hi <= 1.0`` ->
+    edge is accepted; negative values and a low quantile above the high one are refused. (The triplane kind is built
+    at run time, as a parsed flag is: equal to the literal, not the same object.) Kills: each comparison of
+    ``validate`` swapped (``steps < 1`` -> ``<= 1`` / ``< 0``, ``lr <= 0`` -> ``< 0``, ``0 < min_levels <= levels``
+    -> ``<=`` / ``<`` / ``!=``, ``lo < hi`` -> ``<=`` / ``!=`` / ``is not``, ``lr_decay > 0`` and ``0 < lr_decay_at``
+    -> ``!=``, ``hi <= 1.0`` ->
     ``< 1.0`` / ``<= 2.0``, ``kind == "triplane"`` -> ``is`` / ``>`` ...), each number +-1 and each ``or`` /
-    ``and`` of those lines."""
+    ``and`` of those lines. A NaN ``--lr`` or ``--alpha-map-lr`` passed ``lr <= 0`` and trained into a NaN loss (or
+    torch's "Invalid learning rate: nan"); it is refused now."""
     with pytest.raises(ValueError) as refused_error:
         ImageFitConfig(**dict(options, **refused)).validate()
     assert str(refused_error.value) == message
@@ -169,9 +180,9 @@ def test_an_unknown_encoding_kind_gets_the_encodings_own_line_not_the_triplane_o
 def test_a_phase_2_technique_needs_the_map_and_its_options_need_the_technique(flag):
     """``--importance-sampling`` / ``--level-masking`` alone are refused naming ``--adaptive-alpha``; each phase-2
     option set to another value without its technique is refused naming both; the documented defaults given
-    explicitly (equal values, not the dataclass's objects, as from the command line) are accepted. Kills:
-    ``getattr(self, name) and not self.adaptive_alpha`` -> ``or`` / ``not`` dropped, ``!= defaults[name]`` ->
-    ``is not`` / ``==``, ``and not getattr(self, needs)`` -> ``or``."""
+    explicitly (equal values, not the dataclass's objects, as from the command line) are accepted; values on both
+    sides of a default are refused. Kills: ``getattr(self, name) and not self.adaptive_alpha`` -> ``or`` / ``not``
+    dropped, ``!= defaults[name]`` -> ``is not`` / ``==`` / ``<`` / ``>``, ``and not getattr(self, needs)`` -> ``or``."""
     dashed = flag.replace("_", "-")
     with pytest.raises(ValueError) as refused:
         ImageFitConfig(**{flag: True}).validate()
@@ -182,27 +193,45 @@ def test_a_phase_2_technique_needs_the_map_and_its_options_need_the_technique(fl
                     level_mask_quantiles=(float("0.05"), float("0.95")))
     ImageFitConfig(**explicit).validate()
     for name, value, needs in (("importance_uniform", 0.25, "importance-sampling"),
+                               ("importance_uniform", 0.75, "importance-sampling"),
                                ("level_mask_min_levels", 4.0, "level-masking"),
-                               ("level_mask_quantiles", (0.1, 0.9), "level-masking")):
+                               ("level_mask_min_levels", 12.0, "level-masking"),
+                               ("level_mask_quantiles", (0.1, 0.9), "level-masking"),
+                               ("level_mask_quantiles", (0.01, 0.99), "level-masking")):
         with pytest.raises(ValueError) as refused:
             ImageFitConfig(adaptive_alpha=True, **{name: value}).validate()
         assert str(refused.value) == f"--{name.replace('_', '-')} applies with --{needs}: add it or drop the option"
 
 
 def test_level_masking_needs_a_hash_grid():
-    """Kills: ``self.level_masking and kind != "hashgrid"`` -> ``or`` / ``==``."""
-    with pytest.raises(ValueError) as refused:
-        ImageFitConfig(adaptive_alpha=True, level_masking=True, encoding=EncodingConfig(kind="fourier")).validate()
-    assert str(refused.value) == "--level-masking masks hash-grid levels: use --encoding.kind hashgrid (got 'fourier')"
+    """Any other kind, also one that sorts after "hashgrid", is refused naming it; "hashgrid" given at run time (equal
+    to the literal, not the same object) is accepted. Kills: ``self.level_masking and kind != "hashgrid"`` -> ``or`` /
+    ``==`` / ``<`` / ``is not``."""
+    for kind in ("fourier", "wavelet"):
+        with pytest.raises(ValueError) as refused:
+            ImageFitConfig(adaptive_alpha=True, level_masking=True, encoding=EncodingConfig(kind=kind)).validate()
+        assert str(refused.value) == f"--level-masking masks hash-grid levels: use --encoding.kind hashgrid (got {kind!r})"
     ImageFitConfig(encoding=EncodingConfig(kind="fourier")).validate()
+    ImageFitConfig(adaptive_alpha=True, level_masking=True, encoding=EncodingConfig(kind="".join(["hash", "grid"]))).validate()
 
 
-@pytest.mark.parametrize("bad", [np.zeros((H, W)), np.zeros((H, W, 4)), np.zeros((1, H, W, 3)),
+def test_a_folder_or_a_missing_file_is_refused_saying_which(tmp_path):
+    """Kills: ``... if path.is_dir() else ...`` negated (the two lines swapped) and ``not path.is_file()`` negated."""
+    with pytest.raises(ValueError) as refused:
+        image_task.load_image(tmp_path)
+    assert str(refused.value) == f"{tmp_path}: is a folder; give a file inside it"
+    with pytest.raises(ValueError) as refused:
+        image_task.load_image(tmp_path / "missing.png")
+    assert str(refused.value) == f"{tmp_path / 'missing.png'}: no such file"
+
+
+@pytest.mark.parametrize("bad", [np.zeros((H, W)), np.zeros((H, W, 4)), np.zeros((H, W, 2)), np.zeros((2, 3, 3, 3)),
                                  np.full((H, W, 3), np.nan), np.full((H, W, 3), np.inf)])
 def test_the_trainer_refuses_an_image_that_is_not_a_finite_h_w_3_array(bad):
-    """Kills: ``image.ndim != 3`` -> ``!= 2`` / ``!= 4``, ``image.shape[2] != 3`` -> ``!= 4`` / ``shape[1]`` /
-    ``shape[3]``, ``not np.isfinite(...)`` dropped and each ``or`` -> ``and`` (a 2-D array then fails on
-    ``shape[2]`` with an IndexError, not the line)."""
+    """(A 4-D array whose third axis is 3 passes the channel test; a 2-channel one passes ``> 3``.) Kills:
+    ``image.ndim != 3`` -> ``!= 2`` / ``!= 4`` / ``< 3`` / ``> 3``, ``image.shape[2] != 3`` -> ``!= 4`` / ``> 3`` /
+    ``< 3`` / ``shape[1]`` / ``shape[3]``, ``not np.isfinite(...)`` dropped and each ``or`` -> ``and`` (a 2-D array
+    then fails on ``shape[2]`` with an IndexError, not the line)."""
     with pytest.raises(ValueError) as refused:
         tiny().setup(bad)
     assert str(refused.value) == "image: need a finite [H, W, 3] array"
@@ -371,16 +400,28 @@ def lrs_of_a_fit(config) -> list:
     return lrs
 
 
-@pytest.mark.parametrize("decay", [0.5, 1.5])
+@pytest.mark.parametrize("decay", [0.5, 2.0])
 def test_the_field_lr_is_multiplied_by_lr_decay_once_at_round_lr_decay_at_times_steps(decay):
     """7 steps, ``lr_decay_at`` 0.5: steps 0-3 at lr (round(3.5) = 4), steps 4-6 at exactly ``lr * lr_decay`` (also a
-    factor above 1), the alpha map's group untouched; by default (2/3 of 9 steps) from step 6. Kills: ``step_index ==
-    round(...)`` -> ``>=`` / ``!=``, ``lr_decay_at * steps`` -> ``/`` / ``+``, ``lr_decay != 1.0`` -> ``<`` / ``==``,
-    the ``and`` -> ``or``, ``param_groups[0]`` -> ``[1]`` / ``[-1]`` and ``*=`` -> ``/=``."""
+    factor of 2, above 1), the alpha map's group untouched; by default (2/3 of 9 steps) from step 6. Kills: ``step_index
+    == round(...)`` -> ``>=`` / ``!=``, ``lr_decay_at * steps`` -> ``/`` / ``+`` / ``**``, ``lr_decay != 1.0`` -> ``<`` /
+    ``>`` / ``==`` / ``!= 2.0``, the ``and`` -> ``or``, ``param_groups[0]`` -> ``[1]`` / ``[-1]`` and ``*=`` -> ``/=``."""
     sp = SPConfig(alpha0=0.05, schedule="constant")
     lrs = lrs_of_a_fit(tiny(steps=7, lr=0.02, lr_decay=decay, lr_decay_at=0.5, adaptive_alpha=True, alpha_map_lr=0.03, sp=sp))
     assert lrs == [[0.02, 0.03]] * 4 + [[0.02 * decay, 0.03]] * 3
     assert lrs_of_a_fit(tiny(steps=9, lr=0.02, lr_decay=0.6)) == [[0.02]] * 6 + [[0.02 * 0.6]] * 3
+
+
+def test_the_lr_decay_step_is_compared_by_value_past_pythons_cached_small_ints():
+    """300 steps, decay at 0.9: step 270 (an int above 256, so the step counter and ``round``'s result are distinct
+    objects). Kills: ``step_index == round(...)`` -> ``is`` (equal only for Python's cached ints up to 256)."""
+    trainer = tiny(steps=300, lr=0.02, lr_decay=0.5, lr_decay_at=0.9).setup(picture())
+    lrs = []
+    trainer.optimizer.register_step_pre_hook(lambda opt, args, kwargs: lrs.append(opt.param_groups[0]["lr"]))
+    trainer.step_index = 268
+    for _ in range(3):
+        trainer.step()
+    assert lrs == [0.02, 0.02, 0.01]
 
 
 def test_phase_2_starts_at_the_first_step_at_alpha_0_and_freezes_the_map():
@@ -671,3 +712,34 @@ def test_a_16_bit_grey_and_alpha_png_loads_all_16_bits(tmp_path):
     a = alpha / 65535.0
     np.testing.assert_allclose(rgb, np.repeat((grey / 65535.0 * a + (1 - a))[..., None], 3, axis=2), rtol=0, atol=1e-6)
     assert rgb[0, 1, 0] > rgb[0, 0, 0]
+
+
+def test_a_truncated_png_is_refused_in_one_line_naming_the_file(tmp_path):
+    """A PNG cut short opens but fails to load with a plain OSError (not PIL's UnidentifiedImageError, which the
+    bytes of a non-image raise): both are the one line. Kills: ``except (UnidentifiedImageError, OSError)`` with
+    ``OSError`` replaced."""
+    from PIL import Image
+
+    Image.fromarray(np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)).save(tmp_path / "full.png")
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError) as refused:
+        image_task.load_image(tmp_path / "cut.png")
+    assert re.fullmatch(re.escape(f"{tmp_path / 'cut.png'}: cannot be read as an image (") + r".+\)", str(refused.value))
+
+
+@pytest.mark.parametrize("mode, colour, other", [("RGB", (10, 20, 30), (1, 2, 3)), ("L", 10, 1)])
+def test_a_transparent_colour_key_of_an_rgb_or_grey_png_is_white(tmp_path, mode, colour, other):
+    """An RGB or grey PNG with a transparent colour (tRNS, ``im.info["transparency"]``; not a mode with alpha): that
+    colour's pixels are composited on white, the others kept. Kills: ``or "transparency" in im.info`` -> ``and`` /
+    ``not in``."""
+    from PIL import Image
+
+    im = Image.new(mode, (2, 2), colour)
+    im.putpixel((1, 0), other)
+    im.save(tmp_path / "key.png", transparency=colour)
+    rgb = image_task.load_image(tmp_path / "key.png")
+    other_rgb = np.array(other if mode == "RGB" else (other,) * 3) / 255.0
+    expected = np.ones((2, 2, 3))
+    expected[0, 1] = other_rgb
+    np.testing.assert_allclose(rgb, expected, rtol=0, atol=1e-7)
