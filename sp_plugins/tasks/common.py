@@ -117,12 +117,17 @@ class StagedOutputs:
         return self
 
     def __exit__(self, kind, exc, tb) -> bool:
+        import errno
         import os
 
         from sp_plugins.adapter.errors import write_failure
 
         if exc is None:
             try:
+                for name, tmp in self._staged.items():  # before any rename: one that would fail leaves none made
+                    tmp.stat()  # a staged file never written: FileNotFoundError naming it
+                    if (self.out / name).is_dir():  # a folder of that name (kept by --overwrite) cannot be replaced
+                        raise IsADirectoryError(errno.EISDIR, "a folder has this name", str(tmp))
                 for name, tmp in self._staged.items():
                     os.replace(tmp, self.out / name)
                 for name in self._removed:
