@@ -204,11 +204,12 @@ def test_evaluate_measures_against_the_input_mesh_and_the_near_samples_quietly(b
     assert own == given and own["step"] == 20
     _, moved_twice = trainer.evaluate(trainer.mesh_in_frame, resolution=12, metric_points=200)
     assert moved_twice["chamfer"] != own["chamfer"]
-    pts = torch.rand(20_001, 3) * 2 - 1
+    pts = torch.rand(20_001, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
     with torch.no_grad():
         f = trainer.sdf(pts)
-    dist = f - 0.1 * torch.sign(torch.randn(20_001))  # |f - d| = 0.1 for the first 20,000
+    dist = f + 0.1  # |f - d| = 0.1 for the first 20,000
     dist[-1] = f[-1] + 1e3  # and far off for the one past the cap
+    assert abs(float((f[:20_000] + dist[:20_000]).abs().mean()) - 0.1) > 1e-3  # the sum would not give 0.1 (f is near 0: a sign pattern could)
     trainer.groups[1] = (pts, dist)
     _, metrics = trainer.evaluate(resolution=8, metric_points=100)
     assert metrics["near_mae"] == pytest.approx(0.1, rel=1e-4)
