@@ -341,10 +341,10 @@ def test_phase_2_needs_sp_to_end_before_the_last_step(technique):
     """10 steps: SP ending at step 8 leaves phase 2 two steps, accepted; ending at step 9 (the last) or never
     (constant) is refused in one line naming the schedule, its end and the last step. Kills: ``end >= steps -
     1`` -> ``>`` / ``steps - 2`` / ``steps - 0``, ``end is None`` -> ``is not None``, both ``or`` -> ``and``,
-    the message's ``steps - 1``."""
-    def config(sp):
+    the message's ``steps - 1``; at 300 steps (ints above 256) ``>=`` -> ``is``."""
+    def config(sp, steps=10):
         masking = dict(level_mask_min_levels=2.0) if technique == "level_masking" else {}
-        return tiny(steps=10, adaptive_alpha=True, **{technique: True}, **masking, sp=sp)
+        return tiny(steps=steps, adaptive_alpha=True, **{technique: True}, **masking, sp=sp)
 
     assert config(SPConfig(alpha0=0.05, schedule="step", end=0.8)).setup(picture()).sp.schedule.end_step == 8
     for sp, described in ((SPConfig(alpha0=0.05, schedule="step", end=0.9), "step, end=0.9"),
@@ -355,6 +355,8 @@ def test_phase_2_needs_sp_to_end_before_the_last_step(technique):
             "--importance-sampling / --level-masking start when SP ends, but the SP schedule "
             f"({described}) never ends before the last step (9): give --sp.end < 1")
     tiny(steps=10, adaptive_alpha=True, sp=SPConfig(alpha0=0.05, schedule="constant")).setup(picture())  # no phase 2 asked
+    with pytest.raises(ValueError, match=r"never ends before the last step \(299\)"):  # ints past Python's small-int cache
+        config(SPConfig(alpha0=0.05, schedule="step", end=1.0), steps=300).setup(picture())
 
 
 def test_level_masking_wraps_the_encoding_inactive_until_phase_2():
@@ -428,7 +430,8 @@ def test_phase_2_starts_at_the_first_step_at_alpha_0_and_freezes_the_map():
     """SP (step schedule) ends at step 1: step 0 is phase 1 (alpha0, the map learns), step 1 starts phase 2 and
     it stays the step it started (not restarted); the map no longer requires a gradient and no later step moves
     it (``zero_grad(set_to_none=True)``: Adam skips it); each step records the map's mean. Without the map the
-    same schedule has no phase 2. Kills: ``step_index > 0`` -> ``> 1``, ``alpha == 0.0`` -> ``!=`` / ``== 1.0``,
+    same schedule has no phase 2; SP ending at step 2 starts it at step 2. Kills: ``step_index > 0`` -> ``> 1``,
+    ``alpha == 0.0`` -> ``!=`` / ``== 1.0`` / ``>=``,
     ``phase2_step is None`` -> ``is not None``, each ``and`` of that line -> ``or``, ``requires_grad_(False)`` ->
     True, ``set_to_none=True`` -> False, ``alpha_grid is not None`` -> ``is None`` and ``start_phase2``'s
     ``step is None`` -> ``is not None``."""
@@ -446,6 +449,12 @@ def test_phase_2_starts_at_the_first_step_at_alpha_0_and_freezes_the_map():
         means.append(float(learned.mean()))
     assert trainer.history["alpha"] == [0.05, 0.0, 0.0, 0.0]
     assert trainer.history["alpha_map_mean"] == pytest.approx(means, rel=1e-6)
+    later = adaptive(steps=4, sp=SPConfig(alpha0=0.05, schedule="step", end=0.5)).setup(picture())  # SP ends at step 2
+    later.step()
+    later.step()
+    assert later.phase2_step is None
+    later.step()
+    assert later.phase2_step == 2
     plain = tiny(steps=4, sp=SPConfig(alpha0=0.05, schedule="step", end=0.25)).setup(picture())
     plain.fit()
     assert plain.phase2_step is None and "alpha_map_mean" not in plain.history
@@ -654,14 +663,17 @@ def test_fit_runs_the_remaining_steps_quietly_calling_back_after_each(capfd):
 
 @pytest.mark.parametrize("size", [(3, 1), (1, 3)])
 def test_an_image_one_pixel_wide_or_high_is_refused_naming_its_size(tmp_path, size):
-    """3x1 and 1x3 (width x height): refused, as 1x1 is. Kills: ``shape[0] < 2 or shape[1] < 2`` -> ``and`` and
-    either index changed, in the test or in the message."""
+    """3x1 and 1x3 (width x height): refused, as 1x1 is; 2x3 and 3x2 accepted. Kills: ``shape[0] < 2 or shape[1] < 2``
+    -> ``and`` / ``!= 2`` and either index changed, in the test or in the message."""
     from PIL import Image
 
     Image.new("RGB", size, (10, 20, 30)).save(tmp_path / "thin.png")
     with pytest.raises(ValueError) as refused:
         image_task.load_image(tmp_path / "thin.png")
     assert str(refused.value) == f"{tmp_path / 'thin.png'}: the image is {size[0]}x{size[1]}; need at least 2x2 pixels"
+    wider = tuple(3 if side == 1 else 2 for side in size)  # 2x3 or 3x2: accepted
+    Image.new("RGB", wider, (10, 20, 30)).save(tmp_path / "two.png")
+    assert image_task.load_image(tmp_path / "two.png").shape == (wider[1], wider[0], 3)
 
 
 def test_a_32_bit_integer_tiff_is_refused_even_with_16_bit_values(tmp_path):
@@ -743,3 +755,34 @@ def test_a_transparent_colour_key_of_an_rgb_or_grey_png_is_white(tmp_path, mode,
     expected = np.ones((2, 2, 3))
     expected[0, 1] = other_rgb
     np.testing.assert_allclose(rgb, expected, rtol=0, atol=1e-7)
+
+
+# (colour, alpha) of 8-bit pixels where alpha compositing on white (exact value c a / 255 + 255 (1 - a / 255)) gives a
+# value 0.66-0.69 from the nearest level when the background's own alpha is 254 instead of 255 (PIL's compositing is
+# otherwise within 0.5 of the exact value everywhere: checked over all 256 x 256 pairs).
+PARTIAL = [(3, 56), (6, 72), (9, 76)]
+
+
+def on_white(colour, alpha) -> float:
+    return (colour * alpha / 255 + 255 * (1 - alpha / 255)) / 255
+
+
+def test_partly_transparent_pixels_are_composited_on_an_opaque_white(tmp_path, monkeypatch):
+    """8-bit RGBA, and a 16-bit RGBA PNG read without OpenCV (its high bytes): each partly transparent pixel is within
+    half a level of ``c a + 1 - a`` on white. Kills: the alpha of the white backgrounds (``(255, 255, 255, 255)`` ->
+    ``254`` in ``load_image`` and ``_alpha_on_white``)."""
+    from PIL import Image
+
+    from tests.tasks.test_image_modes import write_png16
+
+    pixels = np.array([[[c, c, c, a] for c, a in PARTIAL]], dtype=np.uint8)
+    expected = np.array([[[on_white(c, a)] * 3 for c, a in PARTIAL]])
+    Image.fromarray(pixels, "RGBA").save(tmp_path / "rgba8.png")
+    Image.fromarray(np.concatenate([pixels, pixels]), "RGBA").save(tmp_path / "rgba8.png")  # 2 rows: at least 2x2
+    np.testing.assert_allclose(image_task.load_image(tmp_path / "rgba8.png"), np.concatenate([expected, expected]),
+                               rtol=0, atol=0.5 / 255)
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    sixteen = np.concatenate([pixels, pixels]).astype(np.uint16) * 256 + 17  # high bytes as above
+    with pytest.warns(UserWarning):
+        rgb = image_task.load_image(write_png16(tmp_path / "rgba16.png", sixteen))
+    np.testing.assert_allclose(rgb, np.concatenate([expected, expected]), rtol=0, atol=0.5 / 255)
