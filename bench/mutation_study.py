@@ -112,7 +112,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/tasks/sdf.py": ("main", ["tests/tasks/test_sdf_exact.py", "tests/tasks/test_sdf.py"]),
     "sp_plugins/tasks/trainer.py": ("main", ["tests/tasks/test_trainer_exact.py"] + _TASKS_EXACT + ["tests/tasks/test_syncs.py", "tests/tasks/test_fit_resume.py"]),
     "sp_plugins/tasks/common.py": ("main", ["tests/tasks/test_common_exact.py"] + _TASKS_EXACT + ["tests/tasks/test_fit_resume.py"]),
-    "sp_plugins/tasks/fields.py": ("main", ["tests/tasks/test_fields.py"] + _TASKS_EXACT),
+    "sp_plugins/tasks/fields.py": ("main", ["tests/tasks/test_fields_exact.py", "tests/tasks/test_fields.py"] + _TASKS_EXACT),
     "sp_plugins/tasks/checkpoint.py": ("main", ["tests/tasks/test_checkpoint_exact.py", "tests/tasks/test_fit_resume.py"]),
     "sp_plugins/tasks/settings.py": ("main", ["tests/tasks/test_settings_exact.py", "tests/tasks/test_cli_fit.py"]),
 }
