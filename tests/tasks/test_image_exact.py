@@ -676,16 +676,20 @@ def test_an_image_one_pixel_wide_or_high_is_refused_naming_its_size(tmp_path, si
     assert image_task.load_image(tmp_path / "two.png").shape == (wider[1], wider[0], 3)
 
 
-def test_a_32_bit_integer_tiff_is_refused_even_with_16_bit_values(tmp_path):
-    """PIL's mode ``I`` is 16-bit grey only when read from a PNG; from a TIFF it is 32-bit integers, refused whatever
-    its values. Kills: ``mode == "I" and fmt == "PNG"`` -> ``or``."""
+@pytest.mark.filterwarnings("ignore:IM image format is deprecated:DeprecationWarning")  # Pillow 13; gone in Pillow 15
+@pytest.mark.parametrize("name, fmt", [("i32.tif", "TIFF"), ("i32.im", "IM")])
+def test_a_32_bit_integer_image_is_refused_even_with_16_bit_values(tmp_path, name, fmt):
+    """PIL's mode ``I`` is 16-bit grey only when read from a PNG; from a TIFF or PIL's own IM format (which sorts before
+    "PNG") it is 32-bit integers, refused whatever its values. Kills: ``mode == "I" and fmt == "PNG"`` -> ``or`` and
+    ``fmt == "PNG"`` -> ``<`` / ``<=``, ``fmt or 'unknown format'`` -> ``and``."""
     from PIL import Image
 
-    Image.fromarray(np.array([[5, 1000], [0, 65535]], dtype=np.int32), "I").save(tmp_path / "i32.tif")
+    if fmt not in Image.registered_extensions().values():
+        pytest.skip(f"this Pillow has no {fmt} format")
+    Image.fromarray(np.array([[5, 1000], [0, 65535]], dtype=np.int32), "I").save(tmp_path / name)
     with pytest.raises(ValueError) as refused:
-        image_task.load_image(tmp_path / "i32.tif")
-    assert str(refused.value) == (f"{tmp_path / 'i32.tif'}: a I image (TIFF); expected 8- or 16-bit grey, palette, RGB "
-                                  "or RGBA")
+        image_task.load_image(tmp_path / name)
+    assert str(refused.value) == f"{tmp_path / name}: a I image ({fmt}); expected 8- or 16-bit grey, palette, RGB or RGBA"
 
 
 def test_without_opencv_a_16_bit_colour_png_is_read_to_its_high_byte_with_a_warning_at_the_caller(tmp_path, monkeypatch):
