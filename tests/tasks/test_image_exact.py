@@ -2,18 +2,26 @@
 field is queried at ``p + alpha_map(p) * eps`` (K draws averaged) folded into the image square
 ``[0, 1]^2``, and the gradient reaching the alpha map is the reparameterised ``eps``-weighted value,
 computed here by autograd through the paper's formula on copies of the field and the map.
+Then, ahead of the mutation study of image.py, the rest of the task from first principles: its defaults
+and bounds, the seeded field and batches, the alpha map's cells and box, phase 2 (its start, the frozen
+map, inverse-alpha pixel sampling, per-pixel level masks from the map's quantiles), the lr decay,
+resuming, render / PSNR, and the image loader's bit depths and transparency.
 Each test names the mutation of ``sp_plugins/tasks/image.py`` / the core it kills."""
 
 from __future__ import annotations
 
 import copy
+import math
+import re
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from sp_plugins import SPConfig
-from sp_plugins.tasks.fields import EncodingConfig
+from sp_plugins.tasks import image as image_task
+from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 from sp_plugins.tasks.image import ImageFitConfig
 from tests.helpers.exact import Recorder, folded_query
 
@@ -63,12 +71,6 @@ def test_one_step_queries_p_plus_the_maps_alpha_eps_and_the_map_gets_the_eps_wei
 
 
 # --- ahead of the mutation study of image.py (issue 44) ---------------------------------------------
-import math
-import re
-import sys
-
-from sp_plugins.tasks import image as image_task
-from sp_plugins.tasks.fields import NeuralField
 
 GRID = EncodingConfig(levels=3, log2_table_size=8, base_resolution=2, max_resolution=8)
 
