@@ -172,7 +172,7 @@ def test_a_box_boundary_on_a_contracting_model_is_refused_from_its_config_unless
     a plugin's subclass of it) gets no box boundary while contraction is on; off (its flag True) it may. A
     plugin's config without the flag is taken as contraction on (what its nerfacto model does). Kills:
     ``getattr(model_config, flag, False)`` -> ``True`` (a plugin's contracting model passed), ``flag is None or``
-    -> ``and``, ``boundary != "none"`` -> ``==``; and the way out named only where a flag exists."""
+    -> ``and``, ``boundary != "none"`` -> ``==`` / ``>`` / ``is not``; and the way out named only where a flag exists."""
     from nerfstudio.models.nerfacto import NerfactoModel
     from nerfstudio.models.semantic_nerfw import SemanticNerfWModel
 
@@ -187,8 +187,12 @@ def test_a_box_boundary_on_a_contracting_model_is_refused_from_its_config_unless
         with pytest.raises(InputError, match=line + r" \(or --pipeline\.model\.disable-scene-contraction True\)$"):
             refuse_unreachable_settings(config)
     refuse_unreachable_settings(_plugin_config(PluginModel, disable_scene_contraction=True))  # contraction off
+    clamp = _plugin_config(PluginModel)
+    clamp.sp = SPConfig(boundary="clamp")  # the other box boundary ("clamp" sorts before "none")
+    with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.boundary clamp needs a bounded scene"):
+        refuse_unreachable_settings(clamp)
     none = _plugin_config(PluginModel)
-    none.sp = SPConfig(boundary="none")
+    none.sp = SPConfig(boundary="".join(["no", "ne"]))  # as parsed from a command line: equal, not the literal
     refuse_unreachable_settings(none)
     with pytest.raises(InputError, match=r"but SemanticNerfWModel contracts space .*boundary none$"):  # always on: no flag to name
         refuse_unreachable_settings(_plugin_config(SemanticNerfWModel, disable_scene_contraction=True))
