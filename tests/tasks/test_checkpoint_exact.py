@@ -135,10 +135,11 @@ def test_another_version_is_refused_naming_both(tmp_path, version):
 
 
 def test_a_checkpoint_of_another_task_is_refused_and_its_own_is_loaded(tmp_path):
-    """Kills: ``task != task`` -> ``==`` / ``is not`` (a string read back is not the caller's object), the
-    format check's ``!=`` -> ``is not``."""
+    """Kills: ``task != task`` -> ``==`` / ``<`` / ``>`` / ``is not`` (a string read back is not the caller's
+    object), the format check's ``!=`` -> ``is not``."""
     path = ckpt.save(tmp_path / "checkpoint.pt", {"task": "image", "step": 5})
     assert refused(path, "pointcloud") == f"--resume: {path} is a checkpoint of sp-fit image, not sp-fit pointcloud"
+    assert refused(path, "dft") == f"--resume: {path} is a checkpoint of sp-fit image, not sp-fit dft"  # either order
     task = "".join(["ima", "ge"])  # built at run time: equal, not the same object
     assert ckpt.load(path, task) == {"task": "image", "step": 5, "format": "sp-fit-checkpoint", "version": 1}
 
