@@ -114,7 +114,8 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/tasks/common.py": ("main", ["tests/tasks/test_common_exact.py"] + _TASKS_EXACT + ["tests/tasks/test_fit_resume.py"]),
     "sp_plugins/tasks/fields.py": ("main", ["tests/tasks/test_fields_exact.py", "tests/tasks/test_fields.py"] + _TASKS_EXACT),
     "sp_plugins/tasks/checkpoint.py": ("main", ["tests/tasks/test_checkpoint_exact.py", "tests/tasks/test_fit_resume.py"]),
-    "sp_plugins/tasks/settings.py": ("main", ["tests/tasks/test_settings_exact.py", "tests/tasks/test_cli_fit.py"]),
+    "sp_plugins/tasks/settings.py": ("main", ["tests/tasks/test_settings_exact.py", "tests/tasks/test_sdf_exact.py",
+                                             "tests/tasks/test_cli_fit.py"]),
 }
 """The issue's modules (the seams, the adapter, the nerfstudio model wiring, the tasks, the core),
 each with its covering test files or test ids. An adapter module not listed here (errors, checks,

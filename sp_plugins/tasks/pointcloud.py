@@ -83,15 +83,19 @@ class PointCloudSDFConfig(MeshedFitSettings):
             raise ValueError(f"lr={self.lr}, lr_final_ratio={self.lr_final_ratio}: need lr > 0 and 0 < ratio <= 1")
         if not self.grad_clip >= 0:  # clip_grad_norm_ with a negative bound flips the gradient's sign
             raise ValueError(f"grad_clip={self.grad_clip}: use 0 (off) or a positive gradient norm")
-        if self.eikonal not in ("squared", "abs"):
-            raise ValueError(f"eikonal={self.eikonal!r}: use 'squared' or 'abs'")
-        if self.mesh_resolution < 8:
-            raise ValueError(f"mesh_resolution={self.mesh_resolution}: use at least 8")
+        check_eikonal(self.eikonal)
+        self.validate_meshing()
         self.encoding.validate()
         self.sp.validate()
 
     def setup(self, data: OrientedPoints, **kwargs) -> "PointCloudSDFTrainer":
         return self._target(self, data, **kwargs)
+
+
+def check_eikonal(name: str) -> None:
+    """The eikonal penalty is named "squared" or "abs"; anything else is refused in one line."""
+    if name not in ("squared", "abs"):
+        raise ValueError(f"eikonal={name!r}: use 'squared' or 'abs'")
 
 
 def siren_sdf_losses(
@@ -105,8 +109,7 @@ def siren_sdf_losses(
 ) -> dict[str, Tensor]:
     """The four unweighted SIREN terms (each a scalar). ``eikonal``: the penalty on ``|grad f| - 1``,
     squared or absolute; any other name is refused (a library call is not validated by a config)."""
-    if eikonal not in ("squared", "abs"):
-        raise ValueError(f"eikonal={eikonal!r}: use 'squared' or 'abs'")
+    check_eikonal(eikonal)
     grads = torch.cat([g_surface, g_space])
     excess = grads.norm(dim=-1) - 1.0
     return dict(

@@ -47,8 +47,7 @@ class SDFFitConfig(MeshedFitSettings):
     def validate(self) -> None:
         if self.steps < 1 or self.batch < 4 or self.pool < 8 or self.lr <= 0 or self.near_sigma <= 0:
             raise ValueError("steps >= 1, batch >= 4, pool >= 8, lr > 0 and near_sigma > 0 are required")
-        if self.mesh_resolution < 8:  # before training, as sp-fit pointcloud does (it failed after the last step)
-            raise ValueError(f"mesh_resolution={self.mesh_resolution}: use at least 8")
+        self.validate_meshing()
         self.encoding.validate()
         self.sp.validate()
 

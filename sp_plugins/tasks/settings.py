@@ -31,3 +31,8 @@ class MeshedFitSettings(FitSettings):
     """Samples per mesh for the metrics."""
     fscore_threshold: float = 0.01
     """F-score threshold, as a fraction of the ground truth's diagonal."""
+
+    def validate_meshing(self) -> None:
+        """Refuse a marching-cubes grid too coarse to mesh, before any training step (not after the last)."""
+        if self.mesh_resolution < 8:
+            raise ValueError(f"mesh_resolution={self.mesh_resolution}: use at least 8")

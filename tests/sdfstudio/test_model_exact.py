@@ -22,10 +22,10 @@ class _Host(nn.Module):
     """An sdfstudio ``SurfaceModel``'s part the wiring reads: its scene box and its SDF field."""
 
 
-def _model(sp: SPConfig, field=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))):
+def _model(sp: SPConfig, field=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), cls=None):
     from sp_plugins.sdfstudio.model import SDFFieldSPModel
 
-    cls = type("_Model", (SDFFieldSPModel, _Host), {})
+    cls = cls or type("_Model", (SDFFieldSPModel, _Host), {})
     model = cls.__new__(cls)
     nn.Module.__init__(model)
     model.config = SimpleNamespace(sp=sp)
@@ -114,11 +114,7 @@ def test_the_first_step_check_names_the_host_model_and_the_step():
     # in the module the real variants live in (sp_host_class: the first base not of sp_plugins)
     cls = type("SPNeuSLike", (SDFFieldSPModel, NeuSLikeModel), {"__module__": "sp_plugins.sdfstudio.variants"})
     assert cls.sp_host_class() is NeuSLikeModel
-    model = cls.__new__(cls)
-    nn.Module.__init__(model)
-    model.config = SimpleNamespace(sp=SPConfig())
-    model.scene_box = SimpleNamespace(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]))
-    model.field = tiny_field(numerical=False)
+    model = _model(SPConfig(), tiny_field(numerical=False), cls=cls)
     model.sp = model.build_preconditioner()
     model.attach_sp()
     with pytest.raises(InputError, match=r"^SP reached no SDF query of NeuSLikeModel in training step 4:"):
