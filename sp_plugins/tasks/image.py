@@ -109,8 +109,12 @@ class ImageFitConfig(FitSettings):
             raise ValueError(f"level_mask_quantiles={self.level_mask_quantiles}: need 0 <= low < high <= 1")
         if not 0.0 <= self.importance_uniform <= 1.0:
             raise ValueError(f"importance_uniform={self.importance_uniform}: must be in [0, 1]")
-        if not (self.lr_decay > 0 and 0.0 < self.lr_decay_at <= 1.0):
-            raise ValueError(f"lr_decay={self.lr_decay}, lr_decay_at={self.lr_decay_at}: need lr_decay > 0 and 0 < lr_decay_at <= 1")
+        if not (self.lr_decay > 0 and 0.0 < self.lr_decay_at < 1.0):
+            raise ValueError(f"lr_decay={self.lr_decay}, lr_decay_at={self.lr_decay_at}: need lr_decay > 0 and 0 < lr_decay_at < 1")
+        if self.lr_decay != 1.0 and round(self.lr_decay_at * self.steps) >= self.steps:
+            # the decay happens at step round(lr_decay_at * steps): past the last one it would never apply
+            raise ValueError(f"lr_decay_at={self.lr_decay_at} with steps={self.steps}: the decay would come at step "
+                             f"{round(self.lr_decay_at * self.steps)}, after the last ({self.steps - 1}); lower --lr-decay-at")
         if self.sp.alpha_grid:
             raise ValueError("alpha_grid: --sp.alpha-grid is the 3D methods' alpha grid; for an image use --adaptive-alpha")
         self.encoding.validate()

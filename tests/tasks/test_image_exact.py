@@ -144,11 +144,15 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
      "level_mask_quantiles=(0.5, 1.01): need 0 <= low < high <= 1"),
     (PHASE2, dict(importance_uniform=-0.01), dict(importance_uniform=0.0), "importance_uniform=-0.01: must be in [0, 1]"),
     (PHASE2, dict(importance_uniform=1.01), dict(importance_uniform=1.0), "importance_uniform=1.01: must be in [0, 1]"),
-    (dict(), dict(lr_decay=0.0), dict(lr_decay=1e-9), "lr_decay=0.0, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
-    (dict(), dict(lr_decay=-0.5), dict(lr_decay=0.5), "lr_decay=-0.5, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
-    (dict(), dict(lr_decay_at=0.0), dict(lr_decay_at=1e-9), "lr_decay=1.0, lr_decay_at=0.0: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
-    (dict(), dict(lr_decay_at=-0.5), dict(lr_decay_at=0.5), "lr_decay=1.0, lr_decay_at=-0.5: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
-    (dict(), dict(lr_decay_at=1.01), dict(lr_decay_at=1.0), "lr_decay=1.0, lr_decay_at=1.01: need lr_decay > 0 and 0 < lr_decay_at <= 1"),
+    (dict(), dict(lr_decay=0.0), dict(lr_decay=1e-9), "lr_decay=0.0, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(), dict(lr_decay=-0.5), dict(lr_decay=0.5), "lr_decay=-0.5, lr_decay_at=0.6666666666666666: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(), dict(lr_decay_at=0.0), dict(lr_decay_at=1e-9), "lr_decay=1.0, lr_decay_at=0.0: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(), dict(lr_decay_at=-0.5), dict(lr_decay_at=0.5), "lr_decay=1.0, lr_decay_at=-0.5: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(), dict(lr_decay_at=1.0), dict(lr_decay_at=0.999), "lr_decay=1.0, lr_decay_at=1.0: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(steps=10, lr_decay=0.6), dict(lr_decay_at=0.95), dict(lr_decay_at=0.94),
+     "lr_decay_at=0.95 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
+    (dict(steps=10, lr_decay=0.6), dict(lr_decay_at=0.99), dict(lr_decay=1.0, lr_decay_at=0.99),
+     "lr_decay_at=0.99 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
     (dict(), dict(encoding=EncodingConfig(kind="".join(["tri", "plane"]))), dict(encoding=EncodingConfig(kind="finer")),
      "encoding kind='triplane' is 3D only; use hashgrid, fourier or finer for images"),
     (dict(), dict(sp=SPConfig(alpha_grid=True)), dict(sp=SPConfig(alpha_grid=False)),
@@ -163,7 +167,10 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(options, r
     -> ``!=``, ``hi <= 1.0`` ->
     ``< 1.0`` / ``<= 2.0``, ``kind == "triplane"`` -> ``is`` / ``>`` ...), each number +-1 and each ``or`` /
     ``and`` of those lines. A NaN ``--lr`` or ``--alpha-map-lr`` passed ``lr <= 0`` and trained into a NaN loss (or
-    torch's "Invalid learning rate: nan"); it is refused now."""
+    torch's "Invalid learning rate: nan"); it is refused now. ``--lr-decay-at 1.0`` (or one whose step
+    ``round(lr_decay_at * steps)`` is ``steps``) was accepted and never applied (no step has that index); both are
+    refused now, a decay-free fit (``lr_decay`` 1) keeps any ``lr_decay_at`` in (0, 1) (kills ``< 1.0`` -> ``<= 1.0``,
+    ``>= self.steps`` -> ``>``, ``lr_decay != 1.0`` -> ``==``)."""
     with pytest.raises(ValueError) as refused_error:
         ImageFitConfig(**dict(options, **refused)).validate()
     assert str(refused_error.value) == message
