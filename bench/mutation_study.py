@@ -62,6 +62,7 @@ from typing import Dict, List, Optional, Tuple
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench.mutation_forkserver import NERFSTUDIO_PRELOAD, PRELOAD  # noqa: E402
 from tests.mutations import MAIN_PYTHON, SDF_PYTHON, copy_checkout, environment  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "mutation_study"
@@ -188,7 +189,8 @@ def start_forkserver(kind: str, copy: Path, env: Dict[str, str]) -> Optional[sub
     """The fork server of ``kind``'s environment, ready; None without ``FORK``."""
     if not FORK:
         return None
-    server = subprocess.Popen([str(python_of(kind)), str(FORKSERVER), "serve", str(socket_of(kind))], cwd=copy, env=env,
+    preload = PRELOAD + (NERFSTUDIO_PRELOAD if kind == "main" else [])
+    server = subprocess.Popen([str(python_of(kind)), str(FORKSERVER), "serve", str(socket_of(kind)), *preload], cwd=copy, env=env,
                               stdout=subprocess.PIPE, text=True)
     if server.stdout.readline().strip() != "ready":
         server.kill()
