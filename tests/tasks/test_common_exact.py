@@ -46,15 +46,15 @@ def test_auto_is_cuda_only_where_it_is_available(monkeypatch):
 
 
 def test_cuda_names_are_checked_against_the_machine(monkeypatch):
-    """With 2 CUDA devices ``cuda``, ``cuda:0`` and ``cuda:1`` resolve and ``cuda:2`` is refused naming
-    cuda:0 to cuda:1; without CUDA any cuda name is refused. Kills: ``type == "cuda"`` -> ``!=`` / negated,
+    """With 3 CUDA devices ``cuda``, ``cuda:0`` to ``cuda:2`` resolve and ``cuda:3`` is refused naming
+    cuda:0 to cuda:2 (3, not 2: ``count >> 1`` is ``count - 1`` for 2); without CUDA any cuda name is refused. Kills: ``type == "cuda"`` -> ``!=`` / negated,
     ``not torch.cuda.is_available()`` with ``not`` dropped, ``index is not None`` -> ``is``, ``and`` ->
     ``or``, ``index >= count`` -> ``>`` / ``<`` / ``==`` (and the rest), ``count - 1`` -> ``+``, ``- 0``,
-    ``- 2``."""
-    cuda(monkeypatch, True, 2)
-    assert [resolve_device(n) for n in ("cuda", "cuda:0", "cuda:1")] == [torch.device("cuda"), torch.device("cuda", 0), torch.device("cuda", 1)]
-    assert refusal("cuda:2") == "--device cuda:2: this machine has 2 CUDA device(s), cuda:0 to cuda:1"
-    assert refusal("cuda:3") == "--device cuda:3: this machine has 2 CUDA device(s), cuda:0 to cuda:1"
+    ``- 2``, ``>> 1``."""
+    cuda(monkeypatch, True, 3)
+    assert [resolve_device(n) for n in ("cuda", "cuda:0", "cuda:2")] == [torch.device("cuda"), torch.device("cuda", 0), torch.device("cuda", 2)]
+    assert refusal("cuda:3") == "--device cuda:3: this machine has 3 CUDA device(s), cuda:0 to cuda:2"
+    assert refusal("cuda:4") == "--device cuda:4: this machine has 3 CUDA device(s), cuda:0 to cuda:2"
     cuda(monkeypatch, False)
     for name in ("cuda", "cuda:0"):
         assert refusal(name) == f"--device {name}: CUDA is not available on this machine; use --device cpu (or auto)"
@@ -95,11 +95,11 @@ class Clock:
 
 
 def test_stage_names_the_step_and_its_seconds(monkeypatch, capsys):
-    """Enabled by default: ``prefix: what ...`` before, ``prefix: what: done in 2.3 s`` after (12.34 - 10.0
-    seconds, one decimal); nothing when disabled. Kills: the contextmanager decorator removed,
+    """Enabled by default: ``prefix: what ...`` before, ``prefix: what: done in 2.3 s`` after (4.34 - 2.0
+    seconds, one decimal; the end at least twice the start, where ``%`` is not ``-``); nothing when disabled. Kills: the contextmanager decorator removed,
     ``enabled`` defaulting to False, either ``if enabled`` negated, ``perf_counter() - start`` with any
     other operator."""
-    monkeypatch.setattr(common.time, "perf_counter", Clock(10.0, 12.34, 5.0, 6.0))
+    monkeypatch.setattr(common.time, "perf_counter", Clock(2.0, 4.34, 5.0, 6.0))
     with stage("meshing"):
         print("inside", file=sys.stderr)
     with stage("quiet", enabled=False):
@@ -186,12 +186,13 @@ def test_an_error_in_the_block_leaves_the_earlier_results_and_is_not_swallowed(t
 
 def test_an_os_error_names_the_file_it_hit_else_the_last_staged(tmp_path):
     """An ``OSError`` whose file is one of the staged temporary paths names that result; one without a
-    file name names the last staged (the file being written); nothing is left. Kills: ``exc.filename and
-    ... == tmp.name`` -> ``or`` / ``!=``."""
+    file name names the last staged (the file being written); nothing is left. The failing file is staged
+    after one whose name sorts after it (``c.png`` before ``b.json``). Kills: ``exc.filename and ... ==
+    tmp.name`` -> ``or`` / ``!=`` / ``<=`` (which named c.png)."""
     out = str(tmp_path)
     with pytest.raises(ValueError) as e:
         with StagedOutputs(tmp_path) as staged:
-            for name in ("a.ply", "b.json", "c.png"):
+            for name in ("c.png", "b.json", "a.ply"):
                 staged.path(name).write_text(name)
             raise OSError(errno.ENOSPC, "No space left on device", str(staged.path("b.json")))
     assert str(e.value) == (f"--out {out}: cannot write (b.json: No space left on device); the disk is full (or a quota "
@@ -235,7 +236,8 @@ def test_the_loss_curve_figure(tmp_path, monkeypatch):
     size 8); log scale unless ``log=False``; the title only when given; the legend at size 8; the grid
     at alpha 0.3. Kills: figsize 6 / 4, dpi 110, lw 1 / 0.8, y 1.0, fontsize 8 (text and legend), grid 0.3
     each +-1; the curve and mark loops skipped; ``xs is not None`` -> ``is`` / negated; ``if log`` /
-    ``if title`` negated."""
+    ``if title`` negated; the signature's ``*`` -> ``/`` (``curves`` and ``path`` are passed by name, an option
+    by position is refused)."""
     from PIL import Image
     import matplotlib.pyplot as plt
 
@@ -244,7 +246,9 @@ def test_the_loss_curve_figure(tmp_path, monkeypatch):
     monkeypatch.setattr(plt, "close", lambda fig: (figures.append(fig), close(fig)))
     path = common.plot_curves({"sp": [4.0, 2.0, 1.0], "plain": [3.0, 3.0]}, tmp_path / "c.png", marks=[(1.0, "end")], title="T")
     assert path == tmp_path / "c.png" and Image.open(path).size == (660, 440)
-    common.plot_curves({"sp": [1.0, 2.0]}, tmp_path / "d.png", xs=[5.0, 7.0], log=False, ylabel="psnr")
+    common.plot_curves(curves={"sp": [1.0, 2.0]}, path=tmp_path / "d.png", xs=[5.0, 7.0], log=False, ylabel="psnr")
+    with pytest.raises(TypeError):  # the options are keyword-only
+        common.plot_curves({"sp": [1.0]}, tmp_path / "e.png", [5.0])
     (fig, fig2) = figures
     (ax,), (ax2,) = fig.axes, fig2.axes
     assert tuple(fig.get_size_inches()) == (6.0, 4.0)
@@ -285,13 +289,14 @@ def test_the_step_timer_on_the_cpu(monkeypatch):
     times are readable, replaceable (a resume) and summed by ``total``. Kills: ``device is not None`` ->
     ``is`` / negated, ``and type == "cuda"`` -> ``or`` / ``!=``, ``self._cuda`` negated in either place,
     the start assertion's ``is not`` -> ``is``, ``perf_counter() - start`` with any other operator, the
-    ``times`` / ``total`` properties and the setter undecorated."""
-    monkeypatch.setattr(common.time, "perf_counter", Clock(1.0, 1.25, 3.0, 3.125))
+    ``times`` / ``total`` properties and the setter undecorated. (Each end at least twice its start: below
+    that ``end % start`` is ``end - start``.)"""
+    monkeypatch.setattr(common.time, "perf_counter", Clock(1.0, 2.25, 3.0, 6.125))
     for timer, device in ((StepTimer("cpu"), torch.device("cpu")), (StepTimer(), None)):
         assert timer.device == device
         with timer:
             pass
-        assert timer.times == ([0.25] if device else [0.125])
+        assert timer.times == ([1.25] if device else [3.125])
     timer = StepTimer("cpu")
     timer.times = (2.0, 0.5)
     assert timer.times == [2.0, 0.5] and timer.total == 2.5 and type(timer.total) is float
