@@ -290,13 +290,14 @@ def test_the_step_timer_on_the_cpu(monkeypatch):
     ``is`` / negated, ``and type == "cuda"`` -> ``or`` / ``!=``, ``self._cuda`` negated in either place,
     the start assertion's ``is not`` -> ``is``, ``perf_counter() - start`` with any other operator, the
     ``times`` / ``total`` properties and the setter undecorated. (Each end at least twice its start: below
-    that ``end % start`` is ``end - start``.)"""
-    monkeypatch.setattr(common.time, "perf_counter", Clock(1.0, 2.25, 3.0, 6.125))
-    for timer, device in ((StepTimer("cpu"), torch.device("cpu")), (StepTimer(), None)):
+    that ``end % start`` is ``end - start``.) Apple's ``mps`` (and any device but CUDA) times the same way:
+    kills ``type == "cuda"`` -> ``>=`` ("mps" sorts after "cuda": it read CUDA events)."""
+    monkeypatch.setattr(common.time, "perf_counter", Clock(1.0, 2.25, 3.0, 6.125, 7.0, 14.5))
+    for timer, device in ((StepTimer("cpu"), torch.device("cpu")), (StepTimer(), None), (StepTimer("mps"), torch.device("mps"))):
         assert timer.device == device
         with timer:
             pass
-        assert timer.times == ([1.25] if device else [3.125])
+        assert timer.times == [{"cpu": 1.25, None: 3.125, "mps": 7.5}[device and device.type]]
     timer = StepTimer("cpu")
     timer.times = (2.0, 0.5)
     assert timer.times == [2.0, 0.5] and timer.total == 2.5 and type(timer.total) is float

@@ -137,6 +137,24 @@ def test_a_finer_field_is_finer_layers_then_a_linear_with_a_small_siren_init():
     assert field.include_input is True
 
 
+def test_a_finer_fields_last_bound_reads_the_last_hidden_width_and_a_parsed_kind():
+    """Three hidden widths (16, 8, 4): the last Linear is U(+-sqrt(6 / 4) / omega), exactly the reference's draw
+    (4, the last hidden width: ``widths[2]`` is 8 here, the same as ``widths[-2]`` only with two hidden layers);
+    the kind named by an equal string built at run time (as a parsed ``--encoding.kind finer`` is) builds the same
+    FINER net. Kills: ``widths[-2]`` -> ``widths[2]`` in the bound, ``kind == "finer"`` -> ``is`` there."""
+    enc = EncodingConfig(kind="".join(["fin", "er"]), finer_omega=2.0)
+    torch.manual_seed(5)
+    field = NeuralField(enc, dim=2, hidden=(16, 8, 4))
+    *layers, last = field.mlp
+    assert [type(m) for m in layers] == [FinerLayer] * 3 and type(last) is nn.Linear and last.in_features == 4
+    torch.manual_seed(5)  # the same draws: the three FINER layers, then the last Linear re-drawn in +-bound
+    FinerLayer(2, 16, 2.0, True, 1.0), FinerLayer(16, 8, 2.0, False, 1.0), FinerLayer(8, 4, 2.0, False, 1.0)
+    ref = nn.Linear(4, 1)
+    bound = math.sqrt(6.0 / 4) / 2.0
+    nn.init.uniform_(ref.weight, -bound, bound)
+    assert torch.equal(last.weight, ref.weight) and torch.equal(last.bias, ref.bias)
+
+
 def test_geometric_init_is_sal_s_sphere():
     """The last layer's weights N(sqrt(pi) / sqrt(d_in), 1e-4) and bias -radius; every other weight
     N(0, sqrt(2) / sqrt(d_out)) with bias 0; the first layer reads only the coordinates (the encoding's
