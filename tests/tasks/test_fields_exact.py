@@ -155,6 +155,51 @@ def test_a_finer_fields_last_bound_reads_the_last_hidden_width_and_a_parsed_kind
     assert torch.equal(last.weight, ref.weight) and torch.equal(last.bias, ref.bias)
 
 
+def test_the_mlp_widths_add_the_input_width_and_each_hidden_layer_but_the_last_has_its_activation():
+    """One Fourier octave on 3-D (width 6, whose bits 3 shares: ``6 | 3`` is 7 and ``6 ^ 3`` is 5, only ``+`` gives 9;
+    the 2-octave field above has width 12, where ``|`` and ``^`` give 15 too) and three hidden widths: an activation
+    after each of the first three linears (``len(widths) // 2`` is ``len(widths) - 2`` only for four widths); a FINER
+    net's layers chain widths (16, 8, 4) in order. Kills: ``enc_dim + dim`` -> ``|`` / ``^``, ``i < len(widths) - 2``
+    -> ``// 2``, FINER's ``widths[i + 1]`` -> ``widths[i | 1]``."""
+    field = NeuralField(EncodingConfig(kind="fourier", frequencies=1), dim=3, hidden=(5, 6, 7))
+    assert [(m.in_features, m.out_features) for m in linears(field)] == [(9, 5), (5, 6), (6, 7), (7, 1)]
+    assert [type(m).__name__ for m in field.mlp] == ["Linear", "Softplus"] * 3 + ["Linear"]
+    assert field(torch.rand(4, 3)).shape == (4, 1)
+    finer = NeuralField(EncodingConfig(kind="finer"), dim=2, hidden=(16, 8, 4))
+    assert [(m.linear.in_features, m.linear.out_features) for m in finer.mlp[:-1]] == [(2, 16), (16, 8), (8, 4)]
+
+
+def test_a_fields_defaults_are_two_hidden_64s_and_a_sphere_of_radius_half():
+    """``NeuralField(encoding)``: a 3-D SDF field (out 1) with hidden widths 64, 64, Softplus, the input included,
+    on [-1, 1]; with ``geometric_init`` the sphere's radius is 0.5 (the last bias -0.5). Kills: the defaults
+    ``hidden=(64, 64)`` +-1 in either width, ``init_radius=0.5`` -> -0.5 (and the other defaults changed)."""
+    enc = EncodingConfig(kind="fourier", frequencies=1)
+    field = NeuralField(enc)
+    assert [(m.in_features, m.out_features) for m in linears(field)] == [(9, 64), (64, 64), (64, 1)]
+    assert type(field.mlp[1]) is nn.Softplus and field.include_input and (field.dim, field.lo, field.hi) == (3, -1.0, 1.0)
+    sphere = NeuralField(enc, geometric_init=True)
+    assert torch.equal(linears(sphere)[-1].bias, torch.tensor([-0.5]))
+
+
+def test_a_triplane_is_3d_only_and_a_parsed_kind_names_the_same_encoding():
+    """The kind named by an equal string built at run time (as a parsed flag is): ``triplane`` builds the
+    triplane on 3-D and is refused on 2-D and 4-D; ``finer`` with ``geometric_init`` is refused like the literal,
+    and so is an SDF field of 0 outputs. Kills: ``kind == "triplane"`` -> ``is``, ``dim != 3`` -> ``<``, the
+    geometric-init refusal's ``kind == "finer"`` -> ``is`` and ``out_dim != 1`` -> ``>``."""
+    from sp_plugins.encodings import TriplaneEncoding
+
+    triplane = EncodingConfig(kind="".join(["tri", "plane"]), plane_resolution=4, plane_features=2)
+    enc, width = make_encoding(triplane, 3)
+    assert type(enc) is TriplaneEncoding and width == 2
+    for dim in (2, 4):
+        with pytest.raises(ValueError, match=r"^encoding kind='triplane' is 3D only; use hashgrid or fourier for images$"):
+            make_encoding(triplane, dim)
+    fourier = EncodingConfig(kind="fourier", frequencies=1)
+    for bad in (dict(encoding=EncodingConfig(kind="".join(["fin", "er"]))), dict(encoding=fourier, out_dim=0)):
+        with pytest.raises(ValueError, match="^geometric_init applies to SDF fields"):
+            NeuralField(geometric_init=True, **bad)
+
+
 def test_geometric_init_is_sal_s_sphere():
     """The last layer's weights N(sqrt(pi) / sqrt(d_in), 1e-4) and bias -radius; every other weight
     N(0, sqrt(2) / sqrt(d_out)) with bias 0; the first layer reads only the coordinates (the encoding's
