@@ -200,6 +200,35 @@ def test_a_triplane_is_3d_only_and_a_parsed_kind_names_the_same_encoding():
             NeuralField(geometric_init=True, **bad)
 
 
+@pytest.mark.parametrize("kind", ["hashgrid", "fourier", "triplane", "finer"])
+@pytest.mark.parametrize("activation", ["softplus", "relu"])
+def test_a_kind_and_activation_named_by_parsed_strings_build_what_the_literals_build(kind, activation):
+    """``sp-fit``'s flags arrive as strings equal to the literals, not the same objects: a field built from
+    such strings (``"".join``) has the literal-built field's layers, the same initial weights for one seed, and
+    reads the same coordinates (the same outputs), without the input where the kind allows. Kills each
+    ``kind == "..."`` / ``activation == "softplus"`` -> ``is`` in ``make_encoding`` and ``NeuralField`` (the
+    encoding built, the input forced for FINER, the Fourier [-1, 1] coordinates, the activation)."""
+    small = dict(levels=2, log2_table_size=8, base_resolution=4, max_resolution=8, frequencies=2, plane_resolution=4,
+                 plane_features=2)
+
+    def build(k, a):
+        torch.manual_seed(11)
+        return NeuralField(EncodingConfig(kind=k, **small), dim=3, hidden=(8,), activation=a, include_input=False)
+
+    literal, parsed = build(kind, activation), build("".join(list(kind)), "".join(list(activation)))
+    assert [type(m) for m in parsed.modules()] == [type(m) for m in literal.modules()]
+    assert parsed.include_input == literal.include_input == (kind == "finer")
+    x = torch.rand(16, 3) * 2 - 1
+    torch.testing.assert_close(parsed(x), literal(x), rtol=0, atol=0)
+
+
+def test_an_unknown_kind_is_named_as_unknown_also_with_geometric_init():
+    """The refusal of geometric init for FINER compares the kind before it is validated: an unknown kind (one
+    that sorts before "finer") still gets the unknown-kind line. Kills: ``kind == "finer"`` -> ``<=`` there."""
+    with pytest.raises(ValueError, match=r"^encoding kind='bogus' is not known; allowed values: hashgrid, fourier, triplane, finer$"):
+        NeuralField(EncodingConfig(kind="bogus"), geometric_init=True)
+
+
 def test_geometric_init_is_sal_s_sphere():
     """The last layer's weights N(sqrt(pi) / sqrt(d_in), 1e-4) and bias -radius; every other weight
     N(0, sqrt(2) / sqrt(d_out)) with bias 0; the first layer reads only the coordinates (the encoding's
