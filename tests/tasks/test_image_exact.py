@@ -153,6 +153,8 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
      "lr_decay_at=0.95 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
     (dict(steps=10, lr_decay=0.6), dict(lr_decay_at=0.99), dict(lr_decay=1.0, lr_decay_at=0.99),
      "lr_decay_at=0.99 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
+    (dict(steps=10, lr_decay=1.5), dict(lr_decay_at=0.95), dict(lr_decay_at=0.94),
+     "lr_decay_at=0.95 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
     (dict(steps=1000, lr_decay=0.6), dict(lr_decay_at=0.9996), dict(lr_decay_at=0.9994),
      "lr_decay_at=0.9996 with steps=1000: the decay would come at step 1000, after the last (999); lower --lr-decay-at"),
     (dict(), dict(encoding=EncodingConfig(kind="".join(["tri", "plane"]))), dict(encoding=EncodingConfig(kind="finer")),
@@ -172,7 +174,7 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(options, r
     torch's "Invalid learning rate: nan"); it is refused now. ``--lr-decay-at 1.0`` (or one whose step
     ``round(lr_decay_at * steps)`` is ``steps``) was accepted and never applied (no step has that index); both are
     refused now, a decay-free fit (``lr_decay`` 1) keeps any ``lr_decay_at`` in (0, 1) (kills ``< 1.0`` -> ``<= 1.0``,
-    ``>= self.steps`` -> ``>`` / ``is`` (1000 steps: past CPython's cached small ints), ``lr_decay != 1.0`` -> ``==``)."""
+    ``>= self.steps`` -> ``>`` / ``is`` (1000 steps: past CPython's cached small ints), ``lr_decay != 1.0`` -> ``==`` / ``<`` (a factor above 1 is a change too))."""
     with pytest.raises(ValueError) as refused_error:
         ImageFitConfig(**dict(options, **refused)).validate()
     assert str(refused_error.value) == message
