@@ -149,6 +149,7 @@ PHASE2 = dict(adaptive_alpha=True, importance_sampling=True, level_masking=True)
     (dict(), dict(lr_decay_at=0.0), dict(lr_decay_at=1e-9), "lr_decay=1.0, lr_decay_at=0.0: need lr_decay > 0 and 0 < lr_decay_at < 1"),
     (dict(), dict(lr_decay_at=-0.5), dict(lr_decay_at=0.5), "lr_decay=1.0, lr_decay_at=-0.5: need lr_decay > 0 and 0 < lr_decay_at < 1"),
     (dict(), dict(lr_decay_at=1.0), dict(lr_decay_at=0.999), "lr_decay=1.0, lr_decay_at=1.0: need lr_decay > 0 and 0 < lr_decay_at < 1"),
+    (dict(), dict(lr_decay_at=1.5), dict(lr_decay_at=0.5), "lr_decay=1.0, lr_decay_at=1.5: need lr_decay > 0 and 0 < lr_decay_at < 1"),
     (dict(steps=10, lr_decay=0.6), dict(lr_decay_at=0.95), dict(lr_decay_at=0.94),
      "lr_decay_at=0.95 with steps=10: the decay would come at step 10, after the last (9); lower --lr-decay-at"),
     (dict(steps=10, lr_decay=0.6), dict(lr_decay_at=0.99), dict(lr_decay=1.0, lr_decay_at=0.99),
@@ -174,7 +175,7 @@ def test_validation_refuses_exactly_the_documented_values_in_one_line(options, r
     torch's "Invalid learning rate: nan"); it is refused now. ``--lr-decay-at 1.0`` (or one whose step
     ``round(lr_decay_at * steps)`` is ``steps``) was accepted and never applied (no step has that index); both are
     refused now, a decay-free fit (``lr_decay`` 1) keeps any ``lr_decay_at`` in (0, 1) (kills ``< 1.0`` -> ``<= 1.0``,
-    ``>= self.steps`` -> ``>`` / ``is`` (1000 steps: past CPython's cached small ints), ``lr_decay != 1.0`` -> ``==`` / ``<`` (a factor above 1 is a change too))."""
+    ``>= self.steps`` -> ``>`` / ``is`` (1000 steps: past CPython's cached small ints), ``lr_decay != 1.0`` -> ``==`` / ``<`` (a factor above 1 is a change too), ``lr_decay_at < 1.0`` -> ``!=``)."""
     with pytest.raises(ValueError) as refused_error:
         ImageFitConfig(**dict(options, **refused)).validate()
     assert str(refused_error.value) == message
@@ -503,6 +504,16 @@ def test_draw_pixels_is_inverse_cdf_sampling_of_the_cdfs_total_that_skips_zero_w
     expected = draws(cdf, r * 3.0)
     assert expected[0] == 3 and (expected == 4).any() and not (expected == 2).any()
     assert torch.equal(idx, expected)
+
+
+def test_a_draw_of_exactly_the_cdfs_total_is_the_last_pixel(monkeypatch):
+    """torch's CPU ``rand`` is below 1 (and below 1 no product rounds up to the total), but a generator whose range
+    includes 1 (curand's uniform is (0, 1]) puts ``u`` at ``cdf[-1]``, where ``searchsorted`` answers ``len(cdf)``,
+    one past the last pixel: the clamp makes it the last pixel. The stand-in ``rand`` returns exactly 1. Kills:
+    ``clamp_max(len(cdf) - 1)`` -> ``- 0``."""
+    monkeypatch.setattr(image_task.torch, "rand", lambda n, **kw: torch.ones(n, dtype=kw["dtype"], device=kw["device"]))
+    cdf = torch.tensor([0.25, 0.5, 1.5], dtype=torch.float64)
+    assert image_task.draw_pixels(cdf, 4, torch.Generator()).tolist() == [2, 2, 2, 2]
 
 
 def test_phase_2_draws_pixels_from_the_frozen_maps_inverse_alpha_mixture():
