@@ -80,7 +80,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     # sdf test_seam 5, sdf test_methods 24, sdf test_any_method ~60, extension_points 1, test_with_sp 65,
     # test_sp_option_matrix 35, test_divergence 1, tasks *_exact 3 each, test_pointcloud 6, test_image 19,
     # test_image_modes 14, test_sdf 5, test_syncs 4, test_fields 3, test_fit_resume 36 (+5-7 s of imports per run).
-    "sp_plugins/core/schedule.py": ("main", ["tests/core/test_schedule.py",
+    "sp_plugins/core/schedule.py": ("main", ["tests/core/test_schedule_exact.py", "tests/core/test_schedule.py",
                                              f"{_CORE_PROPS}::test_schedule_equals_its_formula_and_is_zero_at_and_after_the_end",
                                              f"{_CORE_PROPS}::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
     "sp_plugins/core/boundary.py": ("main", ["tests/core/test_perturb.py", _CORE_PROPS]),
