@@ -2,6 +2,7 @@
 ``resolve`` at its edge with its one line, and kinds named by parsed strings. Each test names the mutants it
 kills (``bench/mutation_study.py sp_plugins/core/schedule.py``)."""
 
+import dataclasses
 import math
 
 import pytest
@@ -56,3 +57,36 @@ def test_resolve_refuses_a_missing_or_non_positive_end_in_one_line(end):
     with pytest.raises(ValueError) as e:
         AlphaSchedule.resolve("exponential", 0.01, end=end, total_steps=100)
     assert str(e.value) == f"end={end!r}: give a fraction of training in (0, 1] or an absolute end step > 1"
+
+
+def test_resolve_ends_fractions_and_steps_and_refuses_a_bad_diagonal_or_kind():
+    """Fractions 0.5 / 1.0 of 10 steps end at 5 / 9 (the last step), a tiny one at step 1; the kind and alpha0 by
+    keyword; a constant schedule named by a parsed string needs no end; a diagonal of 0 or below is refused in
+    one line and 0.5 scales alpha0; an unknown kind (one sorting before "constant") gets the unknown-kind line.
+    Kills: ``end <= 0`` -> ``<= 1``, the signature's ``*`` -> ``/``, ``kind == "constant"`` -> ``is`` / ``<`` /
+    ``<=`` in ``resolve``, ``scene_diagonal > 0`` -> ``!= 0`` / ``> 1`` / ``> -1``."""
+    assert [AlphaSchedule.resolve("linear", 0.1, end=e, total_steps=10).end_step for e in (0.5, 1.0, 1e-9)] == [5, 9, 1]
+    assert AlphaSchedule.resolve(kind="linear", alpha0=0.1, end=4, total_steps=10).end_step == 4
+    assert AlphaSchedule.resolve(parsed("constant"), 0.1, end=None, total_steps=None)(10**6) == 0.1
+    assert AlphaSchedule(parsed("constant"), 0.1, None).end_step is None
+    for diagonal in (0.0, -2.0):
+        with pytest.raises(ValueError) as e:
+            AlphaSchedule.resolve("linear", 0.1, end=0.5, total_steps=10, scene_diagonal=diagonal)
+        assert str(e.value) == f"scene_diagonal={diagonal!r}: must be a finite number > 0"
+    assert AlphaSchedule.resolve("linear", 0.1, end=0.5, total_steps=10, scene_diagonal=0.5).alpha0 == 0.05
+    with pytest.raises(ValueError) as e:
+        AlphaSchedule.resolve("bogus", 0.1, end=0.5, total_steps=10)
+    assert str(e.value) == "schedule='bogus' is not a schedule; allowed values: constant, step, exponential, linear"
+
+
+def test_before_step_0_alpha_is_alpha0_and_a_schedule_is_frozen():
+    """A negative step (a host asking before training) reads step 0; a schedule is a frozen value (hosts share it).
+    Kills: ``max(step, 0)`` -> ``max(step, 1)`` / ``max(step, -1)``, ``frozen=True`` -> False, a final ratio of 1.5
+    accepted (``final_ratio < 1.0`` -> ``!=``)."""
+    for kind in ("linear", "exponential"):
+        s = AlphaSchedule(kind, 0.5, 8)
+        assert s(-1) == s(0) == pytest.approx(0.5, rel=1e-12) and s(0) == 0.5
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        AlphaSchedule("linear", 0.5, 8).alpha0 = 1.0
+    with pytest.raises(ValueError, match=r"^final_ratio=1.5: must lie in \(0, 1\)$"):
+        AlphaSchedule("exponential", 0.5, 8, final_ratio=1.5)
