@@ -65,6 +65,8 @@ def stencil_laplacian(
     values: Float[Tensor, "*batch points"], centre_values: Float[Tensor, "*batch"], step: float, kind: StencilKind = "6pt"
 ) -> Float[Tensor, "*batch"]:
     """Laplacian from the stencil values and the value at the centre."""
+    if kind not in STENCIL_KINDS:  # (the gradient checks through stencil_offsets)
+        raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
     n = values.shape[-1]
     denom = step * step if kind == "6pt" else 2.0 * step * step
     return (values.sum(-1) - n * centre_values) / denom
