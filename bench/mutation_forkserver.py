@@ -140,7 +140,8 @@ def request(path: str, payload: dict) -> bytes:
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
         conn.connect(path)
         conn.sendall(json.dumps(payload).encode() + b"\n")
-        conn.shutdown(socket.SHUT_WR) if payload.get("stop") else None
+        if payload.get("stop"):
+            conn.shutdown(socket.SHUT_WR)
         return _recv_all(conn)
 
 
