@@ -19,6 +19,12 @@ STENCIL_KINDS: tuple[str, ...] = ("6pt", "4pt")
 _OFFSETS: dict = {}
 
 
+def check_stencil_kind(kind: str) -> None:
+    """Refuse a kind that is not a stencil, in one line."""
+    if kind not in STENCIL_KINDS:
+        raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
+
+
 def stencil_offsets(kind: StencilKind, *, device=None, dtype=None) -> Float[Tensor, "points 3"]:
     """Unit offsets: ``6pt`` is +-e_i (central differences); ``4pt`` the vertices of a regular
     tetrahedron (+-1, +-1, +-1) with an even number of minus signs (length sqrt(3)).
@@ -29,16 +35,15 @@ def stencil_offsets(kind: StencilKind, *, device=None, dtype=None) -> Float[Tens
     cached = _OFFSETS.get(key)
     if cached is not None:
         return cached
+    check_stencil_kind(kind)
     with torch.inference_mode(False):  # a cached inference tensor could not be saved for backward later
         if kind == "6pt":
             eye = torch.eye(3, device=device, dtype=dtype)
             cached = torch.cat([eye, -eye])
-        elif kind == "4pt":
+        else:
             cached = torch.tensor(
                 [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]], device=device, dtype=dtype
             )
-        else:
-            raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
     _OFFSETS[key] = cached
     return cached
 
@@ -65,8 +70,7 @@ def stencil_laplacian(
     values: Float[Tensor, "*batch points"], centre_values: Float[Tensor, "*batch"], step: float, kind: StencilKind = "6pt"
 ) -> Float[Tensor, "*batch"]:
     """Laplacian from the stencil values and the value at the centre."""
-    if kind not in STENCIL_KINDS:  # (the gradient checks through stencil_offsets)
-        raise ValueError(f"stencil={kind!r} is not a stencil; allowed values: {', '.join(STENCIL_KINDS)}")
+    check_stencil_kind(kind)  # (the gradient checks through stencil_offsets)
     n = values.shape[-1]
     denom = step * step if kind == "6pt" else 2.0 * step * step
     return (values.sum(-1) - n * centre_values) / denom

@@ -47,8 +47,9 @@ def test_kinds_named_by_parsed_strings_and_by_keyword(monkeypatch):
 @pytest.mark.parametrize("kind", ["3pt", "8pt", "", "6PT"])
 def test_an_unknown_kind_is_refused_by_every_function(kind, monkeypatch):
     """Kinds that sort before "4pt", after "6pt" or between them are refused with the line, by the offsets, the
-    gradient and the Laplacian (which used to take any kind as "4pt", silently). Kills: ``kind == "6pt"`` ->
-    ``>=``, ``kind == "4pt"`` -> ``<=`` in stencil_offsets, the Laplacian's check removed."""
+    gradient and the Laplacian (which used to take any kind as "4pt", silently; before ``check_stencil_kind``
+    the offsets' ``kind == "6pt"`` -> ``>=`` and ``kind == "4pt"`` -> ``<=`` survived too). Kills: the check's
+    ``not in`` -> ``in``, the check dropped from stencil_offsets or from the Laplacian."""
     monkeypatch.setattr(stencil, "_OFFSETS", {})
     message = f"^stencil={kind!r} is not a stencil; allowed values: 6pt, 4pt$"
     values = torch.zeros(2, 6)
