@@ -65,10 +65,11 @@ class Metric(torch.nn.Module):
 
 
 @pytest.mark.parametrize("args, kwargs, net_type", [((), {}, "alex"), (("vgg",), {}, "vgg"), ((), {"net_type": "squeeze"}, "squeeze"),
-                                                    (("vgg",), {"net_type": "squeeze"}, "squeeze")])
+                                                    (("vgg",), {"net_type": "squeeze"}, "squeeze"), (("vgg", "mean"), {}, "vgg")])
 def test_the_backbone_asked_for_decides_and_the_real_metric_gets_the_same_arguments(hub, args, kwargs, net_type):
     """``net_type`` from the keyword, else the first positional argument, else torchmetrics' default "alex".
-    Kills: ``args[0] if args`` -> ``if not args``, the default, the arguments not passed on, ``detach`` ignored."""
+    Kills: ``args[0] if args`` -> ``if not args`` / ``args[-1]`` (a second positional argument, torchmetrics'
+    reduction), the default, the arguments not passed on, ``detach`` ignored."""
     build = lpips.offline_factory(Metric)
     assert build.real is Metric
     assert isinstance(build(*args, **kwargs), lpips.MissingLPIPS)

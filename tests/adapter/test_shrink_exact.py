@@ -24,8 +24,9 @@ def config(sdf: bool):
 
 @pytest.mark.parametrize("sdf", [False, True])
 def test_each_setting_lands_where_it_belongs(sdf):
+    """Kills: the signature's ``*`` -> ``/`` (the config is passed by name here)."""
     c = config(sdf)
-    assert shrink(c, num_samples=16, field=dict(hidden_dim=32, max_res=64), lr={"fields": 5e-3}, warm_up_end=10, max_steps=200) is c
+    assert shrink(config=c, num_samples=16, field=dict(hidden_dim=32, max_res=64), lr={"fields": 5e-3}, warm_up_end=10, max_steps=200) is c
     m = c.pipeline.model
     f = m.sdf_field if sdf else m.field
     assert m.num_samples == 16 and (f.hidden_dim, f.max_res) == (32, 64)
