@@ -83,7 +83,8 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/core/schedule.py": ("main", ["tests/core/test_schedule_exact.py", "tests/core/test_schedule.py",
                                              f"{_CORE_PROPS}::test_schedule_equals_its_formula_and_is_zero_at_and_after_the_end",
                                              f"{_CORE_PROPS}::test_preconditioner_returns_exactly_x_in_eval_and_at_and_after_the_end"]),
-    "sp_plugins/core/boundary.py": ("main", ["tests/core/test_boundary_exact.py", "tests/core/test_perturb.py", _CORE_PROPS]),
+    "sp_plugins/core/boundary.py": ("main", ["tests/core/test_boundary_exact.py", "tests/core/test_perturb.py", _CORE_PROPS,
+                                             "tests/tasks/test_syncs.py"]),  # (the dense fold's no-sync promise)
     "sp_plugins/core/perturb.py": ("main", ["tests/core/test_perturb_exact.py", "tests/core/test_perturb.py", _CORE_PROPS]),
     "sp_plugins/core/noise.py": ("main", ["tests/core/test_noise_exact.py", "tests/core/test_perturb.py",
                                           f"{_CORE_PROPS}::test_perturb_equals_the_reference",
