@@ -48,6 +48,7 @@ copy the other's ``<module>.sqlite``, ``.toml`` and ``.meta.json`` files there f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -58,7 +59,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Iterator, List, Optional, Tuple
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -172,7 +173,7 @@ def python_of(kind: str) -> Path:
 
 FORK = os.environ.get("SP_MUTATION_FORK", "1") != "0"
 """Each mutant's pytest in a fork of a server that has imported torch & co. once
-(``bench/mutation_forkserver.py``; 2-3x faster); ``SP_MUTATION_FORK=0``: a fresh interpreter each."""
+(``bench/mutation_forkserver.py``; 3-8x faster); ``SP_MUTATION_FORK=0``: a fresh interpreter each."""
 FORKSERVER = ROOT / "bench" / "mutation_forkserver.py"
 
 
@@ -186,17 +187,23 @@ def test_command(module: str) -> str:
     return f"{python_of(kind)} {runner} -q -x -p no:cacheprovider -p pytest_timeout " + " ".join(tests)
 
 
-def start_forkserver(kind: str, copy: Path, env: Dict[str, str]) -> Optional[subprocess.Popen]:
-    """The fork server of ``kind``'s environment, ready; None without ``FORK``."""
+@contextlib.contextmanager
+def forkserver(kind: str, copy: Path, env: Dict[str, str]) -> Iterator[None]:
+    """The fork server of ``kind``'s environment, ready for the block and stopped after it (nothing
+    without ``FORK``)."""
     if not FORK:
-        return None
+        yield
+        return
     preload = PRELOAD + (NERFSTUDIO_PRELOAD if kind == "main" else [])
     server = subprocess.Popen([str(python_of(kind)), str(FORKSERVER), "serve", str(socket_of(kind)), *preload], cwd=copy, env=env,
                               stdout=subprocess.PIPE, text=True)
-    if server.stdout.readline().strip() != "ready":
+    try:
+        if server.stdout.readline().strip() != "ready":
+            raise SystemExit(f"mutation_study: the fork server of {kind} did not start (SP_MUTATION_FORK=0 runs without it)")
+        yield
+    finally:
         server.kill()
-        raise SystemExit(f"mutation_study: the fork server of {kind} did not start (SP_MUTATION_FORK=0 runs without it)")
-    return server
+        server.wait()
 
 
 def study_environment(copy: Path) -> Dict[str, str]:
@@ -256,47 +263,38 @@ def run_module(module: str, timeout_floor: float) -> Optional[dict]:
     session, config, meta_path = (WORK / f"{slug(module)}{ext}" for ext in (".sqlite", ".toml", ".meta.json"))
     meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
     cmd = test_command(module)
-    server = start_forkserver(kind, copy, env)
-    try:
-        return _run_session(module, copy, env, cmd, meta, meta_path, session, config, source_hash, tests_hash, timeout_floor)
-    finally:
-        if server is not None:
-            server.kill()
-            server.wait()
-
-
-def _run_session(module, copy, env, cmd, meta, meta_path, session, config, source_hash, tests_hash, timeout_floor):
-    fresh = meta.get("source") != source_hash or not session.exists()
-    if fresh or meta.get("command") != cmd or meta.get("tests") != tests_hash:
+    with forkserver(kind, copy, env):
+        fresh = meta.get("source") != source_hash or not session.exists()
+        if fresh or meta.get("command") != cmd or meta.get("tests") != tests_hash:
+            start = time.perf_counter()
+            base = subprocess.run(cmd.split(), cwd=copy, env=env, capture_output=True, text=True)
+            baseline_s = time.perf_counter() - start
+            if base.returncode != 0:
+                tail = (base.stdout + base.stderr).strip().splitlines()[-3:]
+                raise SystemExit(f"mutation_study: the covering tests of {module} fail unmutated: {' | '.join(tail)}")
+            timeout = max(timeout_floor, 4.0 * baseline_s)
+            config.write_text(
+                "[cosmic-ray]\n"
+                f'module-path = "{module}"\ntimeout = {timeout:.0f}\nexcluded-modules = []\n'
+                f"test-command = {json.dumps(cmd)}\n\n[cosmic-ray.distributor]\nname = \"local\"\n"
+            )
+            if fresh:
+                session.unlink(missing_ok=True)
+                subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
+                meta = {"exec_s": 0.0}
+            else:
+                print(f"mutation_study: {module}: its tests changed; running its {rerun_survivors(session, module)} survivors "
+                      "(not listed as equivalent) again", flush=True)
+            meta.update(source=source_hash, tests=tests_hash, command=cmd, baseline_s=round(baseline_s, 1), timeout_s=round(timeout))
+            meta_path.write_text(json.dumps(meta))
         start = time.perf_counter()
-        base = subprocess.run(cmd.split(), cwd=copy, env=env, capture_output=True, text=True)
-        baseline_s = time.perf_counter() - start
-        if base.returncode != 0:
-            tail = (base.stdout + base.stderr).strip().splitlines()[-3:]
-            raise SystemExit(f"mutation_study: the covering tests of {module} fail unmutated: {' | '.join(tail)}")
-        timeout = max(timeout_floor, 4.0 * baseline_s)
-        config.write_text(
-            "[cosmic-ray]\n"
-            f'module-path = "{module}"\ntimeout = {timeout:.0f}\nexcluded-modules = []\n'
-            f"test-command = {json.dumps(cmd)}\n\n[cosmic-ray.distributor]\nname = \"local\"\n"
-        )
-        if fresh:
-            session.unlink(missing_ok=True)
-            subprocess.run([str(COSMIC_RAY), "init", str(config), str(session)], cwd=copy, env=env, check=True)
-            meta = {"exec_s": 0.0}
-        else:
-            print(f"mutation_study: {module}: its tests changed; running its {rerun_survivors(session, module)} survivors "
-                  "(not listed as equivalent) again", flush=True)
-        meta.update(source=source_hash, tests=tests_hash, command=cmd, baseline_s=round(baseline_s, 1), timeout_s=round(timeout))
-        meta_path.write_text(json.dumps(meta))
-    start = time.perf_counter()
-    try:
-        subprocess.run([str(COSMIC_RAY), "exec", str(config), str(session)], cwd=copy, env=env, check=True)
-    finally:
-        meta["exec_s"] = round(meta.get("exec_s", 0.0) + time.perf_counter() - start, 1)
-        meta_path.write_text(json.dumps(meta))
-        shutil.copy2(ROOT / module, copy / module)  # whatever the tool left, the copy is the checkout's again
-    return summarise(module)
+        try:
+            subprocess.run([str(COSMIC_RAY), "exec", str(config), str(session)], cwd=copy, env=env, check=True)
+        finally:
+            meta["exec_s"] = round(meta.get("exec_s", 0.0) + time.perf_counter() - start, 1)
+            meta_path.write_text(json.dumps(meta))
+            shutil.copy2(ROOT / module, copy / module)  # whatever the tool left, the copy is the checkout's again
+        return summarise(module)
 
 
 def _equivalents() -> dict:
