@@ -91,7 +91,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
                                           f"{_CORE_PROPS}::test_perturb_equals_the_reference",
                                           f"{_CORE_PROPS}::test_preconditioner_draws_the_configured_noise_kind"]),
     "sp_plugins/core/stencil.py": ("main", ["tests/core/test_stencil_exact.py", "tests/core/test_stencil.py"]),
-    "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid.py", _CORE_PROPS]),
+    "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid_exact.py", "tests/core/test_alpha_grid.py", _CORE_PROPS]),
     "sp_plugins/core/config.py": ("main", ["tests/core/test_config_exact.py", "tests/core/test_preconditioner.py", _CORE_PROPS]),
     "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner.py", _CORE_PROPS]),
     # the seams and the host wiring

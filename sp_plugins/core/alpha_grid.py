@@ -47,6 +47,13 @@ def _from_alpha(kind: str, alpha: Tensor) -> Tensor:
     return a + torch.log(-torch.expm1(-a))  # inverse softplus
 
 
+def map_figure_size(shape: Sequence[int]) -> tuple[float, float]:
+    """Inches (width, height) of a 2D map ``[H, W]``'s figure: 5 wide, the grid's aspect clamped to
+    [0.1, 10] (an 8 x 25611 image's map is no 16000-inch figure), plus half an inch for the margin."""
+    aspect = min(max(shape[0] / shape[1], 0.1), 10.0)
+    return 5.0, 5.0 * aspect + 0.5
+
+
 class AlphaGrid(nn.Module):
     """A non-negative alpha field on a 2D or 3D grid, sampled (bi/tri)linearly.
 
@@ -164,8 +171,7 @@ class AlphaGrid(nn.Module):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        aspect = min(max(v.shape[0] / v.shape[1], 0.1), 10.0)  # a 8x25611 image's map: no 16000-inch figure
-        fig, ax = plt.subplots(figsize=(5, 5 * aspect + 0.5))
+        fig, ax = plt.subplots(figsize=map_figure_size(v.shape))
         im = ax.imshow(v, cmap="magma", vmin=0.0, vmax=vmax)
         ax.set_axis_off()
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="alpha")
