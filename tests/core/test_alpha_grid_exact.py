@@ -135,6 +135,21 @@ def test_a_checkpoint_of_another_parameterisation_loads_as_the_same_alphas(store
     assert torch.allclose(target.values().double(), values, rtol=1e-4)
 
 
+@pytest.mark.parametrize("loaded", ["log", "softplus"])
+def test_an_alpha_checkpoint_with_a_zero_cell_loads_into_a_finite_grid(loaded):
+    """An ``alpha`` grid stores 0 where Adam pushed a cell below it; loaded into a log or softplus
+    grid it must stay finite (a -inf stored value reads NaN wherever interpolation gives it weight
+    0). Kills: ``clamp_min(1e-30)`` -> ``clamp_min(-1)`` in ``_from_alpha`` (log and softplus)."""
+    state = {"alpha": torch.tensor([[[[0.0, 0.2], [0.3, 0.4]]]])}
+    grid = AlphaGrid(dim=2, resolution=2, init=0.1, parameterization=loaded)
+    grid.load_state_dict(state)
+    assert bool(torch.isfinite(grid.param).all())
+    x = torch.tensor([[1.0, 1.0], [-1.0, 1.0], [0.0, 0.0], [-1.0, -1.0]])  # the last: the zero cell itself
+    a = grid(x).detach()[:, 0]
+    assert bool(torch.isfinite(a).all()) and float(a[-1]) < 1e-20
+    assert a[:2].tolist() == pytest.approx([0.4, 0.3], rel=1e-5)
+
+
 def test_a_checkpoint_that_stores_two_parameterisations_is_refused():
     """Which of two stored grids is meant is not knowable: the first is converted and the other is
     an unexpected key (strict loading refuses it). Kills: the conversion loop's ``break`` ->
