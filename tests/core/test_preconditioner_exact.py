@@ -359,6 +359,17 @@ def test_only_the_config_is_positional():
     assert int(sp.total_steps) == 10
 
 
+def test_with_boundary_none_the_box_is_not_handed_to_perturb():
+    """Boundary a parsed "none" with bounds given: the box plays no part, so positions of another dimension
+    than the module's (2-D positions, the default ``dim=3``), outside the box, come back as ``x + alpha * eps``.
+    Kills: ``self._has_bounds and self.config.boundary != "none"`` -> ``is not`` in ``_kwargs`` (the ``[3]`` box
+    would be expanded to the positions' 2 axes and fail)."""
+    sp = build(alpha0=0.1, schedule="constant", boundary=parsed("none"), seed=3).train()
+    x = torch.full((5, 2), 4.0)
+    eps = torch.randn(5, 2, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(sp(x), x + 0.1 * eps, rtol=1e-6, atol=1e-6)
+
+
 # -- several draws -----------------------------------------------------------------------------------
 
 
