@@ -478,14 +478,26 @@ def test_the_hosts_own_classes_are_nerfstudios():
     assert errors.provider(host_class("nerfstudio")) == "nerfstudio"
 
 
-def test_a_plugin_is_named_by_its_first_distribution_and_version():
-    """``cv2`` is declared by two distributions here: the first one's name and version. Kills: ``dists[0]`` ->
-    ``[1]`` / ``[-1]``, ``if not dists`` negated."""
+def dist_info(root: Path, folder: str, name: str, top: str, release: str = "") -> None:
+    """An installed distribution's metadata: ``folder`` (``<name>-<version>.dist-info``), its ``Name``, its
+    ``Version`` (none when empty) and the top-level module it declares."""
+    info = root / folder
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\n" + (f"Version: {release}\n" if release else ""))
+    (info / "top_level.txt").write_text(f"{top}\n")
+
+
+def test_a_plugin_is_named_by_its_first_distribution_and_version(tmp_path, monkeypatch):
+    """A module two distributions declare (of different versions): the first one's name and its version. Kills:
+    ``dists[0]`` -> ``[1]`` / ``[-1]`` (in the name and in ``version(...)``), ``if not dists`` negated."""
     assert errors.provider(host_class("yaml.nodes")) == f"the plugin PyYAML {version('PyYAML')}"
-    dists = packages_distributions().get("cv2", [])
-    if len(set(dists)) < 2:
-        pytest.skip("cv2 is not declared by two distributions here")
-    assert errors.provider(host_class("cv2.gapi")) == f"the plugin {dists[0]} {version(dists[0])}"
+    dist_info(tmp_path, "verdist_a-1.0.dist-info", "verdist_a", "sp_vermod", "1.0")
+    dist_info(tmp_path, "verdist_b-2.0.dist-info", "verdist_b", "sp_vermod", "2.0")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    dists = packages_distributions()["sp_vermod"]
+    assert sorted(dists) == ["verdist_a", "verdist_b"]
+    first = dists[0]
+    assert errors.provider(host_class("sp_vermod.fields")) == f"the plugin {first} {'1.0' if first == 'verdist_a' else '2.0'}"
 
 
 def test_a_module_no_distribution_declares_is_named_by_its_top():
@@ -493,14 +505,14 @@ def test_a_module_no_distribution_declares_is_named_by_its_top():
 
 
 def test_a_distribution_without_metadata_is_named_without_a_version(tmp_path, monkeypatch):
-    """A ``.dist-info`` whose name is not its folder's: ``version`` cannot find it. Kills: ``except Exception``
-    -> another exception (``PackageNotFoundError`` escapes)."""
-    info = tmp_path / "fakedist-1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: ghostdist\n")
-    (info / "top_level.txt").write_text("ghostmod\n")
+    """Two ``.dist-info`` whose names are not their folders': ``version`` cannot find them. Kills: ``except
+    Exception`` -> another exception (``PackageNotFoundError`` escapes), ``dists[0]`` -> ``[1]`` / ``[-1]``."""
+    dist_info(tmp_path, "fakedist-1.0.dist-info", "ghostdist", "ghostmod")
+    dist_info(tmp_path, "fakedist2-1.0.dist-info", "ghostdist2", "ghostmod")
     monkeypatch.syspath_prepend(str(tmp_path))
-    assert errors.provider(host_class("ghostmod.fields")) == "the plugin ghostdist"
+    dists = packages_distributions()["ghostmod"]
+    assert sorted(dists) == ["ghostdist", "ghostdist2"]
+    assert errors.provider(host_class("ghostmod.fields")) == f"the plugin {dists[0]}"
 
 
 def test_build_failure_of_a_network_error():
