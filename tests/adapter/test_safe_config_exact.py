@@ -354,9 +354,12 @@ def test_an_object_must_hold_a_mapping():
 
 
 @pytest.mark.parametrize("key,tag", [("__class__", "!!str"), ("__init__", "!!str"), ("____", "!!str"), ("'1x'", "!!str"),
-                                     ("'a b'", "!!str"), ("1", "!!int"), ("null", "!!null"), ("[a]", "!!seq")])
+                                     ("'a b'", "!!str"), ("1", "!!int"), ("null", "!!null"), ("[a]", "!!seq"),
+                                     ("!!timestamp abc", "!!timestamp"), ("!<tag:zzz> abc", "tag:zzz")])
 def test_a_setting_name_must_be_a_plain_identifier(key, tag):
-    """The key's line and tag. Kills: the ``and`` chain -> ``or``, its ``not`` dropped."""
+    """The key's line and tag; identifiers of another tag sort below (``null``) and above (``timestamp``,
+    ``tag:zzz``) ``str``. Kills: the ``and`` chain -> ``or``, its ``not`` dropped, ``key.tag == str`` -> ``<=`` /
+    ``>=`` / ``is`` / ``is not``."""
     text = f"!!python/object:{SP}.Other\n? {key}\n: 1\n"
     node = yaml.compose(f"? {key}\n: 1\n").value[0][0]  # the key as the file holds it
     refused(text, 2, tag, f"is not a setting name ({node.value!r}) of {SP}.Other")
