@@ -93,7 +93,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/core/stencil.py": ("main", ["tests/core/test_stencil_exact.py", "tests/core/test_stencil.py"]),
     "sp_plugins/core/alpha_grid.py": ("main", ["tests/core/test_alpha_grid_exact.py", "tests/core/test_alpha_grid.py", _CORE_PROPS]),
     "sp_plugins/core/config.py": ("main", ["tests/core/test_config_exact.py", "tests/core/test_preconditioner.py", _CORE_PROPS]),
-    "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner.py", _CORE_PROPS]),
+    "sp_plugins/core/preconditioner.py": ("main", ["tests/core/test_preconditioner_exact.py", "tests/core/test_preconditioner.py", _CORE_PROPS]),
     # the seams and the host wiring
     "sp_plugins/nerfstudio/seam.py": ("main", _NS_SEAM),
     "sp_plugins/sdfstudio/seam.py": ("sdfstudio", _SDF_SEAM + ["tests/sdfstudio/test_any_method.py::test_a_field_that_moved_nothing_is_refused_in_one_line"]),
@@ -113,8 +113,8 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/adapter/variants.py": ("main", ["tests/adapter/test_variants_exact.py", "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/adapter/checks.py": ("main", ["tests/adapter/test_checks_exact.py", "tests/cli/test_device_flags.py", "tests/nerfstudio/test_bad_input_ns.py"]),
     "sp_plugins/adapter/lpips.py": ("main", ["tests/adapter/test_lpips_exact.py", "tests/nerfstudio/test_ns_lpips.py"]),
-    "sp_plugins/adapter/errors.py": ("main", ["tests/cli/test_bad_input.py", "tests/nerfstudio/test_safe_config_ns.py"]),
-    "sp_plugins/adapter/safe_config.py": ("main", ["tests/cli/test_fuzz_inputs.py", "tests/nerfstudio/test_safe_config_ns.py"]),
+    "sp_plugins/adapter/errors.py": ("main", ["tests/adapter/test_errors_exact.py", "tests/cli/test_bad_input.py", "tests/nerfstudio/test_safe_config_ns.py"]),
+    "sp_plugins/adapter/safe_config.py": ("main", ["tests/adapter/test_safe_config_exact.py", "tests/cli/test_fuzz_inputs.py", "tests/nerfstudio/test_safe_config_ns.py"]),
     "sp_plugins/adapter/shrink.py": ("main", ["tests/adapter/test_shrink_exact.py", "tests/nerfstudio/test_seam_exact.py", "tests/nerfstudio/test_sp_option_matrix.py"]),
     # the sp-fit tasks
     "sp_plugins/tasks/pointcloud.py": ("main", ["tests/tasks/test_pointcloud_exact.py", "tests/tasks/test_pointcloud.py"]),

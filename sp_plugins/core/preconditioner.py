@@ -189,7 +189,7 @@ class StochasticPreconditioner(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
         self._total = int(self.total_steps)  # a sync, but only when a checkpoint loads
         self._step = int(self.step)
-        if self._total >= 0 or self.config.schedule == "constant":
+        if self.schedule is not None:  # known now (a total, a constant or an absolute end): alpha at the loaded step
             self.set_step(self._step)
         if self._reseed_at is not None:
             self._reseed_at = self._step
@@ -322,7 +322,7 @@ def _add_outputs(a, b):
     if isinstance(a, dict):
         return {key: _add_outputs(value, b[key]) for key, value in a.items()}
     if isinstance(a, (tuple, list)):
-        return type(a)(_add_outputs(u, v) for u, v in zip(a, b))
+        return _rebuilt(a, [_add_outputs(u, v) for u, v in zip(a, b)])
     return a
 
 
@@ -332,5 +332,10 @@ def _scale_outputs(a, factor: float):
     if isinstance(a, dict):
         return {key: _scale_outputs(value, factor) for key, value in a.items()}
     if isinstance(a, (tuple, list)):
-        return type(a)(_scale_outputs(u, factor) for u in a)
+        return _rebuilt(a, [_scale_outputs(u, factor) for u in a])
     return a
+
+
+def _rebuilt(a, items: list):
+    """``items`` in ``a``'s sequence type: a named tuple takes its fields as arguments."""
+    return type(a)(*items) if hasattr(a, "_fields") else type(a)(items)

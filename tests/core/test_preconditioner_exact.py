@@ -225,8 +225,8 @@ def test_with_a_total_construction_moves_to_step_0():
 
 def test_loading_a_state_without_a_total_leaves_a_fractional_schedule_unresolved():
     """A state saved before the total was known (total -1) loads into the same config without resolving the
-    fractional end (which would raise); once the total is set it resolves. Kills: ``self._total >= 0`` ->
-    ``!= 0`` / ``>= -1``; ``self.config.schedule == "constant"`` -> ``!=`` / ``is not`` / ``>`` / ``>=``."""
+    fractional end (which would raise); once the total is set it resolves. Kills: the load's ``if self.schedule
+    is not None`` -> ``is None`` / ``if not ...`` (a load would raise or skip the step)."""
     cfg = dict(alpha0=0.02, end=0.2)
     saved = SPConfig(**cfg).setup(bounds=(-1.0, 1.0))
     sp = SPConfig(**cfg).setup(bounds=(-1.0, 1.0))
@@ -237,8 +237,8 @@ def test_loading_a_state_without_a_total_leaves_a_fractional_schedule_unresolved
 
 def test_loading_a_constant_schedules_state_without_a_total_moves_to_its_step():
     """A constant schedule needs no total: a load moves to the loaded step, so its alpha is in force at once
-    (before, the module had never been stepped: alpha 0). The config's kind is a parsed string. Kills:
-    ``self.config.schedule == "constant"`` -> ``!=`` / ``is`` / ``<`` / ``>``."""
+    (before, the module had never been stepped: alpha 0). The config's kind is a parsed string. Kills: the
+    load's ``self.schedule is not None`` -> ``is None``."""
     saved = SPConfig(alpha0=0.03, schedule="constant", boundary="none").setup()
     saved.set_step(7)
     sp = SPConfig(alpha0=0.03, schedule=parsed("constant"), boundary="none").setup().train()
@@ -247,11 +247,22 @@ def test_loading_a_constant_schedules_state_without_a_total_moves_to_its_step():
     assert int(sp.step) == 7 and sp.alpha == 0.03 and sp.active
 
 
+def test_loading_an_absolute_end_schedules_state_without_a_total_puts_its_alpha_in_force():
+    """An absolute ``end`` (in steps) needs no total either: a checkpoint loads with the alpha of its step in
+    force (it used to read alpha 0, inactive, until the next ``set_step``: a regression test for that defect,
+    found by the mutation study's review)."""
+    saved = SPConfig(alpha0=0.04, end=50, schedule="linear", boundary="none").setup()
+    saved.set_step(5)
+    sp = SPConfig(alpha0=0.04, end=50, schedule="linear", boundary="none").setup().train()
+    sp.load_state_dict(saved.state_dict())
+    assert int(sp.step) == 5 and int(sp.total_steps) == -1 and sp.active
+    assert sp.alpha == pytest.approx(0.04 * (1 - 5 / 50), rel=1e-12)
+
+
 def test_a_total_of_0_resolves_and_a_state_with_total_0_loads_to_its_alpha():
     """Total 0 is a known total: the fractional end resolves (to step 1, the earliest), and a state holding
     total 0 moves a module without a total to that schedule's alpha at step 0 (exponential: ``alpha0 * (r**0 -
-    r) / (1 - r)``). Kills: ``total_steps=None if total < 0`` -> ``< 1`` / ``<= 0``; ``self._total >= 0`` ->
-    ``> 0`` / ``>= 1``."""
+    r) / (1 - r)``). Kills: ``total_steps=None if total < 0`` -> ``< 1`` / ``<= 0``."""
     saved = build(alpha0=0.02, end=0.2, total_steps=0)
     r = 1e-3
     expected = 0.02 * (r**0 - r) / (1 - r)
@@ -392,6 +403,26 @@ def test_mean_over_draws_with_one_sample_returns_the_call_itself_and_with_two_th
     mean = two.mean_over_draws(once)
     assert len(calls) == 2
     assert torch.equal(mean["rgb"], (calls[0] + calls[1]) * 0.5) and torch.equal(mean["index"], torch.arange(3) + 1)
+
+
+def test_mean_over_draws_averages_a_named_tuple_and_a_list_and_keeps_their_types():
+    """A field may return a named tuple (its outputs by name): two draws average it field by field, and
+    it comes back as that named tuple (it used to raise ``TypeError: __new__() missing ...``: a regression
+    test for that defect, found by the mutation study's review)."""
+    import collections
+
+    Outputs = collections.namedtuple("Outputs", ["density", "rgb", "index"])
+    sp = noise_only(0, num_samples=2)
+    draws = iter([(1.0, 4.0), (3.0, 8.0)])
+
+    def once():
+        d, c = next(draws)
+        return Outputs(torch.full((2,), d), [torch.full((3,), c), 7], torch.arange(2))
+
+    out = sp.mean_over_draws(once)
+    assert type(out) is Outputs and type(out.rgb) is list
+    assert out.density.tolist() == [2.0, 2.0] and out.rgb[0].tolist() == [6.0] * 3 and out.rgb[1] == 7
+    assert out.index.tolist() == [0, 1]
 
 
 def test_blurred_with_two_samples_is_the_mean_of_fn_over_two_draws():
