@@ -174,7 +174,10 @@ class RunConfigLoader(yaml.SafeLoader):
             first = node.value[0] if len(node.value) == 2 else None
             if first is None or not first.tag.startswith(PYTHON + "name:"):
                 raise _Refusal(node, "may only subscribe a generic class the config names")
-            cls = self._resolve(first.tag[len(PYTHON + "name:"):], first)
+            generic = first.tag[len(PYTHON + "name:"):]
+            if not _within(generic, CLASS_PACKAGES):  # checked before _resolve imports it (an import runs its module)
+                raise _Refusal(first, "names something outside the host's and sp-plugins' packages")
+            cls = self._resolve(generic, first)
             if not (isinstance(cls, type) and issubclass(cls, typing.Generic)):  # type: ignore[arg-type]
                 raise _Refusal(node, "may only subscribe a generic class")
             return

@@ -457,6 +457,20 @@ def test_only_a_generic_class_is_subscripted(first):
             "!!python/object/apply:operator.getitem", "may only subscribe a generic class")
 
 
+def test_a_subscription_of_a_class_outside_the_packages_is_refused_before_its_module_imports():
+    """The subscripted class is checked against the allowed packages before anything imports its module (an
+    import runs the module's code: ``this`` prints, ``antigravity`` opens a browser). A regression test for
+    that defect, found by the mutation study's review. Kills: the check removed or negated."""
+    import sys
+
+    sys.modules.pop("this", None)
+    with pytest.raises(ConfigRefused) as info:
+        load(f"!!python/object/apply:operator.getitem [!!python/name:this.x '', !!python/name:{SP}.Arg '']")
+    assert str(info.value) == (f"W: refused line 1: the tag !!python/name:this.x names something outside the host's and "
+                               f"sp-plugins' packages; {sc.UNTRUSTED}")
+    assert "this" not in sys.modules
+
+
 # -- the other bad files ---------------------------------------------------------------------------
 def yaml_error(text: str) -> yaml.YAMLError:
     with pytest.raises(yaml.YAMLError) as info:

@@ -110,7 +110,9 @@ REFUSED = {
                         "not a config dataclass"),
     "dunder key": ("!!python/object:sp_plugins.core.config.SPConfig {__class__: 1}", "sp_plugins.core.config.SPConfig",
                    "not a setting name"),
-    "getitem of a function": ("a: !!python/object/apply:_operator.getitem [!!python/name:os.system '', 1]",
+    "getitem outside": ("a: !!python/object/apply:_operator.getitem [!!python/name:os.system '', 1]",
+                        "!!python/name:os.system", "outside the host's and sp-plugins'"),  # before os is imported
+    "getitem of a function": ("a: !!python/object/apply:_operator.getitem [!!python/name:nerfstudio.utils.scripts.run_command '', 1]",
                               "_operator.getitem", "generic class"),
     "local tag": ("a: !touch {m}", "!touch", "not a tag"),
 }
