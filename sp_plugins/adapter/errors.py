@@ -133,14 +133,16 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
     save = _torch_frame(tb, "save")
     if save is not None:
         path = _path_of(save.f_locals.get("f"))
+        removed = ""
         if path is not None and os.path.isfile(path):
             try:
                 os.unlink(path)  # a partial checkpoint would be taken for the latest one by a resume
+                removed = " (the partial file was removed)"
             except OSError:
                 pass
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else first_line(exc, 120)
         return (f"{path or 'the checkpoint'}: writing the checkpoint failed ({reason}); the disk is probably full or the "
-                "folder read-only (the partial file was removed): free space or choose another output folder")
+                f"folder read-only{removed}: free space or choose another output folder")
     if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS and exc.filename:
         return write_failure(exc)
     return None
@@ -172,9 +174,10 @@ def provider(cls: type) -> str:
     if not dists:
         return f"the plugin {top}"
     try:
-        return f"the plugin {dists[0]} {version(dists[0])}"
-    except Exception:  # noqa: BLE001  (metadata without a version)
-        return f"the plugin {dists[0]}"
+        found = version(dists[0])  # None for metadata without a Version on Python 3.11
+    except Exception:  # noqa: BLE001  (metadata without a version, where version() raises)
+        found = None
+    return f"the plugin {dists[0]} {found}" if found else f"the plugin {dists[0]}"
 
 
 def build_failure(exc: BaseException, cls: type, step: str) -> Optional[str]:

@@ -332,6 +332,8 @@ def test_a_load_or_save_outside_torch_is_not_torchs(tmp_path):
 # -- describe_failure: torch.save ------------------------------------------------------------------
 WRITE_FAILED = ("writing the checkpoint failed ({}); the disk is probably full or the folder read-only (the partial "
                 "file was removed): free space or choose another output folder")
+KEPT = WRITE_FAILED.replace(" (the partial file was removed)", "")
+"""Nothing was removed (a handle, a folder, a file that cannot be removed): the line does not say it was."""
 
 
 class Raises:
@@ -370,7 +372,7 @@ def test_a_failed_save_of_another_error_gives_its_first_line(tmp_path):
 def test_a_failed_save_to_a_handle_is_the_checkpoint():
     """Kills: ``path or 'the checkpoint'`` -> ``and``, ``path is not None and ...`` -> ``or`` (``isfile(None)``)."""
     exc = caught(torch.save, {"x": Raises(ValueError("nope"))}, io.BytesIO())
-    assert errors.describe_failure(exc) == "the checkpoint: " + WRITE_FAILED.format("nope")
+    assert errors.describe_failure(exc) == "the checkpoint: " + KEPT.format("nope")
 
 
 def test_a_failed_save_leaves_what_is_not_a_file(tmp_path):
@@ -381,7 +383,7 @@ def test_a_failed_save_leaves_what_is_not_a_file(tmp_path):
     link = tmp_path / "link"
     link.symlink_to(folder)
     exc = caught(torch.save, {"a": 1}, str(link))
-    assert errors.describe_failure(exc) == f"{link}: " + WRITE_FAILED.format(errors.first_line(exc, 120))
+    assert errors.describe_failure(exc) == f"{link}: " + KEPT.format(errors.first_line(exc, 120))
     assert link.is_symlink() and folder.is_dir()
 
 
@@ -391,7 +393,7 @@ def test_a_file_that_cannot_be_removed_still_gets_its_line():
     removal fails, the line is still given. Kills: ``except OSError`` -> another exception (the removal's
     error escapes)."""
     exc = caught(torch.save, {"a": 1}, "/proc/self/status")
-    assert errors.describe_failure(exc) == "/proc/self/status: " + WRITE_FAILED.format(errors.first_line(exc, 120))
+    assert errors.describe_failure(exc) == "/proc/self/status: " + KEPT.format(errors.first_line(exc, 120))
     assert os.path.isfile("/proc/self/status")
 
 
@@ -513,6 +515,14 @@ def test_a_distribution_without_metadata_is_named_without_a_version(tmp_path, mo
     dists = packages_distributions()["ghostmod"]
     assert sorted(dists) == ["ghostdist", "ghostdist2"]
     assert errors.provider(host_class("ghostmod.fields")) == f"the plugin {dists[0]}"
+
+
+def test_a_distribution_whose_metadata_has_no_version_is_named_without_one(tmp_path, monkeypatch):
+    """A found distribution without a ``Version`` line (``version()`` gives None on Python 3.11 where it used to
+    say "the plugin nover None": a regression test for that defect, found by the exact tests' review)."""
+    dist_info(tmp_path, "nover-0.dist-info", "nover", "sp_novermod")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert errors.provider(host_class("sp_novermod.fields")) == "the plugin nover"
 
 
 def test_build_failure_of_a_network_error():
