@@ -61,6 +61,9 @@ SDF_TASK_EXACT: TestSet = ("main", ("tests/tasks/test_sdf_exact.py",))
 NOISE_EXACT: TestSet = ("main", ("tests/core/test_noise_exact.py",))
 NS_MODEL_EXACT: TestSet = ("main", ("tests/nerfstudio/test_model_exact.py",))
 SDF_MODEL_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_model_exact.py",))
+ALPHA_GRID_EXACT: TestSet = ("main", ("tests/core/test_alpha_grid_exact.py",))
+PRECONDITIONER_EXACT: TestSet = ("main", ("tests/core/test_preconditioner_exact.py",))
+SAFE_CONFIG_EXACT: TestSet = ("main", ("tests/adapter/test_safe_config_exact.py",))
 
 
 @dataclass(frozen=True)
@@ -179,6 +182,13 @@ MUTATIONS: List[Mutation] = [
     Mutation("alpha grid times the schedule (old variant)", "sp_plugins/core/preconditioner.py",
              'self._grid_scale = decay if c.alpha_grid_mode == "scaled" else', "self._grid_scale = decay if True else",
              (CORE,)),
+    # issue 44's later survivors: what the core's study found no test reading exactly
+    Mutation("alpha grid read half a cell off (its cell centres not on the bounds)", "sp_plugins/core/alpha_grid.py",
+             'padding_mode="border", align_corners=True)', 'padding_mode="border", align_corners=False)', (ALPHA_GRID_EXACT,)),
+    Mutation("unseeded noise: every rank draws the same stream", "sp_plugins/core/preconditioner.py",
+             "return (drawn + rank) % (1 << 63)", "return drawn % (1 << 63)", (PRECONDITIONER_EXACT,)),
+    Mutation("config.yml: a subscription imports any module before its package is checked", "sp_plugins/adapter/safe_config.py",
+             "if not _within(generic, CLASS_PACKAGES):", "if False:", (SAFE_CONFIG_EXACT,)),
     Mutation("half precision rounded back", "sp_plugins/core/perturb.py",
              "x = x.to(compute_dtype(x.dtype))", "pass", (CORE,)),
     # -- the demo --------------------------------------------------------------------------------
