@@ -81,6 +81,8 @@ files of most tests); a slow file drawn last would run alone at the end."""
 
 
 def pytest_collection_modifyitems(config, items):
+    if not hasattr(config, "workerinput"):
+        return  # one process (not an xdist worker): the order given stands (the mutation study's cheapest-first files)
     here = Path(__file__).resolve().parent
 
     def rank(item):
