@@ -159,10 +159,12 @@ def test_a_config_of_another_version_is_refused_naming_up_to_four_settings_each(
     (["--load-config=c=d.yml"], "--load-config c=d.yml"),
     (["--load-config"], "the run's config (config.yml)"),
     ([], "the run's config (config.yml)"),
+    (["--x", "--load-config", "e.yml"], "--load-config e.yml"),  # at an odd index: i | 1 is i there
+    (["--x", "--load-config"], "the run's config (config.yml)"),
 ])
 def test_the_config_source_is_the_load_config_flag_as_typed(argv, source):
     """Kills: ``i + 1 < len`` -> ``<=`` (an IndexError for a trailing flag), ``split('=', 1)`` -> ``2`` / ``[1]`` ->
-    ``[0]``."""
+    ``[0]``, ``i + 1`` -> ``i | 1`` (both places: equal at index 0 only)."""
     assert checks.config_source(argv) == source
 
 
@@ -190,6 +192,19 @@ def test_devices_are_checked_against_this_machine(monkeypatch):
     checks.check_device("mps")
     with pytest.raises(InputError, match=r"^--machine\.num-devices 2: nerfstudio trains on more than one device only"):
         checks.check_device("mps", 2)
+
+
+def test_fewer_cuda_devices_than_there_are_and_device_types_named_by_parsed_strings_pass(monkeypatch):
+    """One of two CUDA devices is fine; ``cuda`` and ``mps`` as tyro hands them over (equal strings, not the
+    literals) are the same devices. Kills: ``count > available`` -> ``!=`` / ``is not``, ``device_type ==
+    "mps"`` -> ``is``, ``device_type != "cuda"`` -> ``is not``."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    checks.check_device("cuda", 1)
+    checks.check_device("".join(list("cuda")), 2)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    with pytest.raises(InputError, match=r"^--machine\.device-type mps: Apple's MPS is not available"):
+        checks.check_device("".join(list("mps")))
 
 
 def test_existing_outputs_are_listed_and_a_file_in_place_of_the_folder_refused(tmp_path):
