@@ -161,10 +161,12 @@ def test_a_config_of_another_version_is_refused_naming_up_to_four_settings_each(
     ([], "the run's config (config.yml)"),
     (["--x", "--load-config", "e.yml"], "--load-config e.yml"),  # at an odd index: i | 1 is i there
     (["--x", "--load-config"], "the run's config (config.yml)"),
+    (["--data", "d"], "the run's config (config.yml)"),  # a flag that sorts before --load-config
 ])
 def test_the_config_source_is_the_load_config_flag_as_typed(argv, source):
     """Kills: ``i + 1 < len`` -> ``<=`` (an IndexError for a trailing flag), ``split('=', 1)`` -> ``2`` / ``[1]`` ->
-    ``[0]``, ``i + 1`` -> ``i | 1`` (both places: equal at index 0 only)."""
+    ``[0]``, ``i + 1`` -> ``i | 1`` / ``i ^ 1`` (both places: equal at index 0 only), ``arg == "--load-config"`` ->
+    ``<=``."""
     assert checks.config_source(argv) == source
 
 
@@ -205,6 +207,22 @@ def test_fewer_cuda_devices_than_there_are_and_device_types_named_by_parsed_stri
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     with pytest.raises(InputError, match=r"^--machine\.device-type mps: Apple's MPS is not available"):
         checks.check_device("".join(list("mps")))
+
+
+def test_the_versions_named_leave_out_a_host_that_is_not_installed(monkeypatch):
+    """sdfstudio's environment has no ``nerfstudio`` distribution: the refusal names sp-plugins' version only.
+    Kills: ``except PackageNotFoundError`` -> another exception (the lookup's error escapes)."""
+    import importlib.metadata as metadata
+
+    real = metadata.version
+
+    def version(dist):
+        if dist == "nerfstudio":
+            raise metadata.PackageNotFoundError(dist)
+        return real(dist)
+
+    monkeypatch.setattr(metadata, "version", version)
+    assert checks._versions() == f"sp-plugins {real('sp-plugins')}"
 
 
 def test_existing_outputs_are_listed_and_a_file_in_place_of_the_folder_refused(tmp_path):
