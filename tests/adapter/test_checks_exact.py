@@ -225,6 +225,26 @@ def test_the_versions_named_leave_out_a_host_that_is_not_installed(monkeypatch):
     assert checks._versions() == f"sp-plugins {real('sp-plugins')}"
 
 
+def test_a_parsed_cuda_is_checked_as_cuda_and_a_type_it_does_not_know_is_left_to_torch(monkeypatch):
+    """``cuda`` as tyro hands it over is refused where there is no CUDA; a device type this check does not know
+    (``xpu``, from ``torch.device(...).type`` in the data manager) is left to torch. Kills: ``device_type ==
+    "cuda"`` -> ``is``, ``device_type == "mps"`` -> ``>=`` (``xpu`` sorts after ``mps``)."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    with pytest.raises(InputError, match=r"^--machine\.device-type cuda: CUDA is not available"):
+        checks.check_device("".join(list("cuda")))
+    checks.check_device("xpu")
+
+
+def test_fewer_than_four_unknown_settings_are_all_named_without_an_ellipsis():
+    """Kills: ``len(unknown) > 4`` -> ``!= 4``."""
+    config = Outer()
+    config.inner.extra = 1
+    with pytest.raises(InputError) as info:
+        checks.check_known_settings(config, "pipeline", source="s")
+    assert "settings this version does not know (pipeline.inner.extra); load it with" in str(info.value)
+
+
 def test_existing_outputs_are_listed_and_a_file_in_place_of_the_folder_refused(tmp_path):
     """Kills: ``exists() and not is_dir()`` -> ``or`` (a missing folder refused), the membership test."""
     out = tmp_path / "run"
