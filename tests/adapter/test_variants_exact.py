@@ -52,6 +52,14 @@ def test_a_class_path_encodes_to_an_identifier_and_decodes_back(path, text):
     assert v.decode_path(text) == path
 
 
+def test_a_class_path_longer_than_256_characters_decodes_back():
+    """Past 256 the decoder's index and ``len(text)`` are no longer CPython's cached small ints. Kills:
+    ``while i < len(text)`` -> ``is not`` (the loop would run past the end)."""
+    path = "pkg_" * 40 + "mod." + "Cls_" * 30
+    text = v.encode_path(path)
+    assert len(text) > 256 and v.decode_path(text) == path
+
+
 @pytest.mark.parametrize("text", ["a_x", "a_", "_", "ab_dC_"])
 def test_text_the_encoder_could_not_have_written_is_refused(text):
     """A lone ``_`` or one followed by anything but ``u`` / ``d``. Kills: ``not in`` -> ``in``, the slice
@@ -170,11 +178,13 @@ def test_a_host_class_not_importable_by_its_path_is_refused_in_one_line(factory)
 
 
 def test_a_builder_that_makes_the_wrong_class_is_refused(factory):
-    """Kills: any clause of ``issubclass and qualname == name and module == module`` dropped or ``and`` -> ``or``."""
+    """Kills: any clause of ``issubclass and qualname == name and module == module`` dropped or ``and`` -> ``or``,
+    ``__module__ == self.module`` -> ``<=``."""
     f, _, _ = factory
     for wrong in (lambda host, n, m: v.subclass((object,), n, m),  # not a subclass
                   lambda host, n, m: v.subclass((host,), n + "X", m),  # another name
-                  lambda host, n, m: v.subclass((host,), n, "elsewhere")):  # another module
+                  lambda host, n, m: v.subclass((host,), n, "elsewhere"),  # another module
+                  lambda host, n, m: v.subclass((host,), n, m[:-1])):  # one that sorts before it
         f.builders["Model"] = wrong
         f._made.clear()
         with pytest.raises(TypeError, match=r"^the Model builder made .*, not a subclass of .*HostModel"):
