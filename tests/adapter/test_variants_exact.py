@@ -179,16 +179,27 @@ def test_a_host_class_not_importable_by_its_path_is_refused_in_one_line(factory)
 
 def test_a_builder_that_makes_the_wrong_class_is_refused(factory):
     """Kills: any clause of ``issubclass and qualname == name and module == module`` dropped or ``and`` -> ``or``,
-    ``__module__ == self.module`` -> ``<=``."""
+    ``__module__ == self.module`` / ``__qualname__ == name`` -> ``<=``."""
     f, _, _ = factory
     for wrong in (lambda host, n, m: v.subclass((object,), n, m),  # not a subclass
                   lambda host, n, m: v.subclass((host,), n + "X", m),  # another name
                   lambda host, n, m: v.subclass((host,), n, "elsewhere"),  # another module
-                  lambda host, n, m: v.subclass((host,), n, m[:-1])):  # one that sorts before it
+                  lambda host, n, m: v.subclass((host,), n, m[:-1]),  # one that sorts before it
+                  lambda host, n, m: v.subclass((host,), n[:-1], m)):  # a name that sorts before it
         f.builders["Model"] = wrong
         f._made.clear()
         with pytest.raises(TypeError, match=r"^the Model builder made .*, not a subclass of .*HostModel"):
             f.get("Model", HostModel)
+
+
+def test_a_builder_may_name_its_class_with_an_equal_string_of_its_own(factory):
+    """A builder that spells the name it was given anew (an equal string, another object) makes the right class.
+    Kills: ``cls.__qualname__ == name`` / ``cls.__module__ == self.module`` -> ``is``."""
+    f, _, _ = factory
+    f.builders["Model"] = lambda host, n, m: v.subclass((host,), "".join(list(n)), "".join(list(m)))
+    f._made.clear()
+    made = f.get("Model", HostModel)
+    assert issubclass(made, HostModel) and made.__qualname__ == f.name("Model", HostModel)
 
 
 def test_a_mixin_is_found_through_its_provider_module_or_refused():
