@@ -265,6 +265,44 @@ def test_convert_copies_every_init_field_but_the_target_and_applies_changes():
     assert v.convert(host, SPHostConfig, _target=Mixin)._target is Mixin
 
 
+def test_field_default_finds_a_field_named_by_a_parsed_string_and_a_default_equal_to_anything():
+    """A field named as a flag hands it over (an equal string, not the literal); a default whose ``==`` says yes to
+    everything (a wildcard) is still a default. Kills: ``f.name == name`` -> ``is``, ``f.default is not MISSING``
+    -> ``!=``."""
+
+    class Wildcard:
+        def __eq__(self, other):
+            return True
+
+        __hash__ = object.__hash__
+
+    anything = Wildcard()
+
+    @dataclasses.dataclass
+    class WithWildcard:
+        w: object = anything
+
+    assert v.field_default(HostConfig, "".join(list("num_samples"))) == 64
+    assert v.field_default(WithWildcard, "w") is anything
+
+
+def test_convert_copies_a_field_whose_name_sorts_before_the_target():
+    """Kills: ``f.name != "_target"`` -> ``>`` (``_a`` and ``Upper`` sort before ``_target`` and would be dropped)."""
+
+    @dataclasses.dataclass
+    class Host:
+        _target: type = HostModel
+        _a: int = 1
+        Upper: int = 2
+
+    @dataclasses.dataclass
+    class SPHost(Host):
+        sp: str = "off"
+
+    out = v.convert(Host(_a=7, Upper=9), SPHost)
+    assert (out._a, out.Upper, out.sp) == (7, 9, "off")
+
+
 def test_target_class_is_the_type_a_config_instantiates_or_none():
     assert v.target_class(HostConfig()) is HostModel
     assert v.target_class(types.SimpleNamespace(_target="nerfstudio.models.X")) is None
