@@ -107,7 +107,7 @@ COVERING: Dict[str, Tuple[str, List[str]]] = {
     "sp_plugins/adapter/model.py": ("main", _HOST_NEUTRAL + _NS_SEAM),
     "sp_plugins/adapter/callbacks.py": ("main", ["tests/adapter/test_callbacks_exact.py", *_HOST_NEUTRAL, "tests/nerfstudio/test_seam.py",
                                                                 "tests/nerfstudio/test_neuralangelo_schedule.py"]),
-    "sp_plugins/adapter/presets.py": ("main", ["tests/test_defaults_table.py", "tests/nerfstudio/test_with_sp.py"]),
+    "sp_plugins/adapter/presets.py": ("main", ["tests/adapter/test_presets_exact.py", "tests/test_defaults_table.py", "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/adapter/tables.py": ("main", ["tests/adapter/test_tables_exact.py", "tests/nerfstudio/test_method_table.py", "tests/nerfstudio/test_seam.py",
                                              "tests/nerfstudio/test_with_sp.py"]),
     "sp_plugins/adapter/variants.py": ("main", ["tests/adapter/test_variants_exact.py", "tests/nerfstudio/test_with_sp.py"]),
