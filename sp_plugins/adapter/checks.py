@@ -121,6 +121,8 @@ def check_device(device_type: str, count: int = 1, flag: str = "--machine.device
     """``count`` devices of ``device_type`` (cpu, cuda, mps) exist here."""
     import torch
 
+    if count < 1:  # before nerfstudio's launcher, which stops with a traceback (world_size cannot be 0)
+        raise InputError(f"--machine.num-devices {count}: training needs at least one device; pass --machine.num-devices 1")
     if device_type == "cuda":
         available = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if available == 0:

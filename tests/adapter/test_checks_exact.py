@@ -236,6 +236,17 @@ def test_a_parsed_cuda_is_checked_as_cuda_and_a_type_it_does_not_know_is_left_to
     checks.check_device("xpu")
 
 
+@pytest.mark.parametrize("count", [0, -1])
+def test_no_device_at_all_is_refused_in_one_line_and_one_device_passes(count):
+    """``--machine.num-devices 0`` used to reach nerfstudio's launcher (``ValueError: world_size cannot be 0``, a
+    traceback; ``ns-train`` runs our preflight, and with it this check, before it launches). Kills: ``count < 1``
+    -> ``<= 1`` / ``< 0`` / ``< 2``."""
+    with pytest.raises(InputError, match=rf"^--machine\.num-devices {count}: training needs at least one device; "
+                                         r"pass --machine\.num-devices 1$"):
+        checks.check_device("cpu", count)
+    checks.check_device("cpu", 1)
+
+
 def test_fewer_than_four_unknown_settings_are_all_named_without_an_ellipsis():
     """Kills: ``len(unknown) > 4`` -> ``!= 4``."""
     config = Outer()
