@@ -151,6 +151,7 @@ def cases(tiny_scene, ns_server, tmp_path_factory):
         "train-damaged-image": train("damaged", ["blender-data", "--data", str(damaged)]),
         "train-cuda": train("cuda", blender, "--machine.device-type", "cuda"),
         "train-cpu-two-devices": train("cpu-2", blender, "--machine.device-type", "cpu", "--machine.num-devices", "2"),
+        "train-no-device": train("cpu-0", blender, "--machine.device-type", "cpu", "--machine.num-devices", "0"),
         "train-nan": train("nan", blender, "--max-num-iterations", "8", "--steps-per-save", "1000",
                            *[a for g in ("fields", "field-grid", "field-background") for a in (f"--optimizers.{g}.optimizer.lr", "1e30")]),
         "train-full-disk-config": train("full-config", blender, fsize=0),
@@ -293,6 +294,11 @@ def test_ns_train_two_cpu_devices(cases):
     """nerfstudio's launcher asserts CUDA for more than one device (a traceback after writing the run folder)."""
     check(cases, "train-cpu-two-devices", "--machine.num-devices 2", "--machine.device-type cuda", "--machine.num-devices 1",
           prog="ns-train")
+
+
+def test_ns_train_no_device_at_all(cases):
+    """nerfstudio's launcher stopped with a traceback (``world_size cannot be 0``); the preflight refuses it first."""
+    check(cases, "train-no-device", "--machine.num-devices 0", "at least one device", "--machine.num-devices 1", prog="ns-train")
 
 
 def test_ns_train_loss_turning_nan_stops_naming_the_step(cases):
