@@ -4,7 +4,8 @@
   masked hash levels, numerical gradients), SP through the one seam like every method;
   ``sp.enabled=False`` is the plain baseline. The cosine
   annealing of NeuS ends at a fraction of training instead of a fixed 50k steps, so short runs
-  anneal too.
+  anneal too. Rays that miss the scene box keep their background in front of its far plane
+  (:mod:`sp_plugins.nerfstudio.components.colliders`: nerfstudio's turned such a ray's colour NaN).
 - :class:`NeuralangeloLiteModel`: the same with a hash grid, numerical gradients, an eikonal and a
   curvature loss, and Neuralangelo's coarse-to-fine scheme (:func:`coarse_to_fine_schedule`).
   ``coarse_to_fine=False`` uses all levels and the finest step from step 0 (what the SP variant
@@ -40,6 +41,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
 from sp_plugins.nerfstudio.components import hash_encoding
+from sp_plugins.nerfstudio.components.colliders import bound_surface_rays
 from sp_plugins.adapter.callbacks import model_schedule_callback, trainer_total_steps
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
@@ -84,6 +86,7 @@ class SPNeuSModel(SPModel, NeuSModel):
 
     def populate_host_modules(self) -> None:
         super().populate_host_modules()
+        bound_surface_rays(self)  # rays missing the box made the background NaN (colliders.py)
         self._size_background_mlp()
         device = self.kwargs.get("device")
         if self.config.background_model == "grid" and hash_encoding.use_sp_hash_grids(device):

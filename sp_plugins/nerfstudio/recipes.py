@@ -18,7 +18,7 @@ import sys
 from dataclasses import dataclass
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
-Value = Union[int, float, str, Tuple[int, ...]]
+Value = Union[bool, int, float, str, Tuple[int, ...]]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,23 @@ RECIPES: Dict[str, Recipe] = {
             "pipeline.model.num-nerf-samples-per-ray": 32,
             "pipeline.model.num-proposal-samples-per-ray": (64, 32),
             "pipeline.model.eval-num-rays-per-chunk": 4096,
+        },
+    ),
+    "nerfacto-object": Recipe(
+        methods=("sp-nerfacto", "nerfacto"),
+        about="an object on a white background seen from a ring of cameras (Blender scenes, `sp-scene`): nerfstudio's "
+              "and nerfbaselines' Blender settings (near 2 / far 6 for cameras about 4 units out, white background, "
+              "no scene contraction, no appearance embedding, camera optimizer or distortion loss)",
+        flags={
+            "pipeline.model.near-plane": 2.0,
+            "pipeline.model.far-plane": 6.0,
+            "pipeline.model.background-color": "white",
+            "pipeline.model.disable-scene-contraction": True,
+            "pipeline.model.proposal-initial-sampler": "uniform",
+            "pipeline.model.distortion-loss-mult": 0.0,
+            "pipeline.model.use-appearance-embedding": False,
+            "pipeline.model.average-init-density": 1.0,
+            "pipeline.model.camera-optimizer.mode": "off",
         },
     ),
 }

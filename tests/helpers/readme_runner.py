@@ -75,8 +75,10 @@ BUDGET: Tuple[Tuple[str, str, str], ...] = (
 HEAD_PLACED = (r"\bsp-sweep\b",)
 
 PLACEHOLDERS: Tuple[Tuple[str, object], ...] = (
-    # outputs/.../x/.../config.yml -> the newest file matching outputs/**/x/**/config.yml, when the line runs
-    (r"outputs/\.\.\.(?P<rest>/[\w./-]*)", lambda m: "\"$(_readme_newest 'outputs/**%s')\"" % m["rest"].replace("...", "**")),
+    # outputs/.../x/.../config.yml, outputs/sp/.../config.yml -> the newest file matching the path with each
+    # ``...`` a ``**`` (outputs/**/x/**/config.yml), when the line runs
+    (r"\boutputs/(?=[\w./-]*\.\.\.)(?P<rest>[\w./-]*)",
+     lambda m: "\"$(_readme_newest 'outputs/%s')\"" % m["rest"].replace("...", "**")),
 )
 
 BASH_PRELUDE = """\
