@@ -2,6 +2,7 @@
 # One entry point for newcomers and CI.
 #   ./run.sh demo [sp-demo options]   set everything up, then train baseline vs SP on a bundled scene
 #   ./run.sh test [pytest options]    set everything up, then run the test suite
+#   ./run.sh docs                     set everything up, build the docs site (warnings are errors), print index.html's path
 #   ./run.sh setup                    only create / update the virtual environments
 #   ./run.sh setup-sdfstudio          only create / update the sdfstudio environment (see below)
 # The virtual environment lives in $SP_VENV (default: .venv inside this checkout, one per checkout,
@@ -63,7 +64,7 @@ setup() {
     # only byte code there is; without it every process compiled nerfstudio and torch again (a run 2x slower)
     # shellcheck disable=SC2086
     "$venv/bin/python" -m pip install -q $torch_spec
-    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev]"
+    "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev,docs]"
     echo "$want" > "$stamp"
   fi
 }
@@ -214,5 +215,9 @@ case "$cmd" in
   setup-sdfstudio) setup_sdfstudio ;;
   demo)  setup; exec "$venv/bin/sp-demo" "$@" ;;
   test)  run_tests "$@" ;;
-  *) echo "usage: $0 {demo|test|setup} [options]" >&2; exit 2 ;;
+  docs)  setup
+         # the docs site (Sphinx + furo + MyST; tests/docs/test_docs_site.py builds it the same way in the suite)
+         "$venv/bin/python" -m sphinx -W --keep-going -q -b html "$here/docs" "$here/docs/_build/html" "$@"
+         echo "[sp-plugins] docs: $here/docs/_build/html/index.html" ;;
+  *) echo "usage: $0 {demo|test|docs|setup} [options]" >&2; exit 2 ;;
 esac

@@ -12,7 +12,7 @@ time and the cost the text states beside it.
 
 What differs from typing the blocks, all declared here: ``outputs/.../config.yml`` is filled as the suite
 fills it (:data:`tests.helpers.readme_runner.PLACEHOLDERS`); ``fox`` is a link to the real capture
-(``../shared/data/real/fox``, or ``SP_FOX_CAPTURE``); blocks under the sdfstudio heading run with
+(``../shared/data/real/fox``, or ``SP_FOX_CAPTURE``); the blocks of the sdfstudio guide run with
 sdfstudio's environment first on ``PATH``; one torch thread per command (``OMP_NUM_THREADS=1``). Blocks
 marked ``readme-runner: skip`` are skipped with their reason; Python blocks are API examples (run by the
 suite), not recipes.
@@ -101,7 +101,7 @@ def prepare(work: Path) -> None:
 def block_env(block: rr.Block) -> Dict[str, str]:
     env = rr.block_env()
     env["OMP_NUM_THREADS"] = "1"
-    if block.section == rr.SDFSTUDIO_SECTION:
+    if block.path == rr.SDFSTUDIO_PAGE:
         sdf = Path(os.environ.get("SP_SDFSTUDIO_VENV", REPO / ".venv-sdfstudio")) / "bin"
         env["PATH"] = f"{sdf}{os.pathsep}{env['PATH']}"
     return env

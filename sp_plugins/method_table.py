@@ -1,14 +1,14 @@
-"""README's method tables: what SP does to every method a host registers, as markdown.
+"""The docs' method tables: what SP does to every method a host registers, as markdown.
 
     python -m sp_plugins.method_table            # print the table of the host installed here
-    python -m sp_plugins.method_table --write    # from a checkout's root: refresh that table in README.md
+    python -m sp_plugins.method_table --write    # from a checkout's root: refresh that table in its docs page
 
 Each row is read from the host's registered methods, through the same ``sp_methods`` that
 ``sp-train`` / ``sp-sdfstudio-train`` use, and from the host's table module
 (:mod:`sp_plugins.nerfstudio.table`, :mod:`sp_plugins.sdfstudio.table`). nerfstudio 1.x and
 sdfstudio install the same package name and never share an environment, so each host's table is
 made in that host's environment (here ``.venv`` and ``.venv-sdfstudio``), and a test in each
-host's suite fails when README.md's copy drifts.
+host's suite fails when the page's copy drifts (``docs/guides/any-method.md``, ``docs/guides/sdfstudio.md``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,14 @@ from sp_plugins.sdfstudio.detect import is_sdfstudio, nerfstudio_dir
 from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
 PROG = "python -m sp_plugins.method_table"
-README = Path(__file__).resolve().parent.parent / "README.md"
+ROOT = Path(__file__).resolve().parent.parent
+PAGES = {"nerfstudio": "docs/guides/any-method.md", "sdfstudio": "docs/guides/sdfstudio.md"}
+"""Where each host's table lives in a checkout (the guide that explains ``sp-train`` / ``sp-sdfstudio-train``)."""
+
+
+def page(host: str, root: Path = ROOT) -> Path:
+    """The docs page holding ``host``'s table under ``root`` (a checkout's root)."""
+    return root / PAGES[host]
 HEADS = {
     "nerfstudio": "| nerfstudio method | under `sp-train METHOD` |",
     "sdfstudio": "| sdfstudio method | under `sp-sdfstudio-train sp-<method>` |",
@@ -138,22 +145,22 @@ def table(host: str, outcomes: Optional[Dict[str, Tuple[int, str]]] = None) -> s
 
 
 def write(root: Path, host: str) -> Path:
-    """Refresh ``host``'s table in ``root``'s README.md. Raises ``ValueError`` (one line) when the
-    README has no such table; checked before the host is imported."""
-    readme = root / "README.md"
-    text = readme.read_text() if readme.is_file() else ""
+    """Refresh ``host``'s table in its docs page under ``root`` (:data:`PAGES`). Raises ``ValueError`` (one
+    line) when the page has no such table; checked before the host is imported."""
+    doc = page(host, root)
+    text = doc.read_text() if doc.is_file() else ""
     begin, end = markers(host)
     if begin not in text or end not in text.partition(begin)[2]:
-        raise ValueError(f"{readme} has no {begin} ... {end} table: run --write from the root of a sp-plugins checkout")
+        raise ValueError(f"{doc} has no {begin} ... {end} table: run --write from the root of a sp-plugins checkout")
     head, _, rest = text.partition(begin)
-    readme.write_text(head + table(host) + rest.partition(end)[2])
-    return readme
+    doc.write_text(head + table(host) + rest.partition(end)[2])
+    return doc
 
 
 def main(argv=None) -> None:
-    """Print what SP does to each method of the host installed here; --write puts it into README.md."""
+    """Print what SP does to each method of the host installed here; --write puts it into its docs page."""
     parser = argparse.ArgumentParser(prog=PROG, description=main.__doc__)
-    parser.add_argument("--write", action="store_true", help="refresh README.md's table in the current folder (a checkout's root)")
+    parser.add_argument("--write", action="store_true", help="refresh the table in its docs page (docs/guides/) under the current folder (a checkout's root)")
     try:
         host = installed_host()
         message = f"wrote {write(Path.cwd(), host)} ({host})" if parser.parse_args(argv).write else table(host)

@@ -1,7 +1,8 @@
-"""The README is executable (issue 47): every fenced block of README.md and docs/*.md runs here as a
-user types it, in order, in one working folder, through ``tests/helpers/readme_runner.py`` (Sybil,
-with a shell evaluator of ours; why Sybil: see that module). The blocks under the sdfstudio
-heading run in sdfstudio's environment (tests/sdfstudio/test_readme_sdfstudio.py). What the runner
+"""The README and the docs are executable (issue 47): every fenced block of README.md and the docs pages
+(in the order of the site's tables of contents) runs here as a user types it, in order, in one working
+folder, through ``tests/helpers/readme_runner.py`` (Sybil, with a shell evaluator of ours; why Sybil:
+see that module). The blocks of docs/guides/sdfstudio.md run in sdfstudio's environment
+(tests/sdfstudio/test_readme_sdfstudio.py). What the runner
 may change is declared there (budget flags, placeholders, fixtures, Python preludes); a block that
 cannot run here carries ``<!-- readme-runner: skip (reason) -->``.
 
@@ -34,7 +35,7 @@ def shim_env(tmp_path_factory):
 @pytest.mark.timeout(1800)  # about 4 minutes on 2 idle cores (the README's commands, lowered); a loaded machine takes longer
 def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property, shim_env):
     start = time.monotonic()
-    runner = rr.Runner(tmp_path, mine=lambda block: block.section != rr.SDFSTUDIO_SECTION, env=shim_env)
+    runner = rr.Runner(tmp_path, mine=lambda block: block.path != rr.SDFSTUDIO_PAGE, env=shim_env)
     for document in rr.documents():
         runner.run(document)
     text = f"{rr.summary(runner.outcomes)}\nwall time {time.monotonic() - start:.0f} s"
@@ -43,7 +44,7 @@ def test_every_readme_block_runs_or_carries_a_reason(tmp_path, record_property, 
     statuses = [o.status for o in runner.outcomes]
     assert all(o.detail for o in runner.outcomes if o.status == "skipped"), text
     assert statuses.count("as written") + statuses.count("lowered") >= 8, text
-    assert "elsewhere" in statuses, "the sdfstudio section's blocks were not found: " + text
+    assert "elsewhere" in statuses, "the sdfstudio page's blocks were not found: " + text
     check_the_readmes_ns_train_sweep(tmp_path / "runs" / "neus")
 
 
@@ -123,11 +124,11 @@ def test_only_the_declared_budget_flags_change():
 
 
 def test_readme_chamfer_claims_match_bench_results():
-    """The demo section's per-mesh Chamfer ratios are the raw-Chamfer table's of bench/RESULTS.md."""
+    """The demo's per-mesh Chamfer ratios (docs/getting-started.md) are the raw-Chamfer table's of bench/RESULTS.md."""
     results = (rr.REPO / "bench" / "RESULTS.md").read_text()
     table = results[results.index("**Chamfer (raw mesh)**"):results.index("**Chamfer after keeping the largest component**")]
     ratio = {m.group(1): m.group(2) for m in re.finditer(r"^\| (\w+) \|(?: [^|]+ \|){4} \**([\d.]+)\** \|", table, flags=re.M)}
-    readme = (rr.REPO / "README.md").read_text()
+    readme = (rr.REPO / "docs" / "getting-started.md").read_text()
     assert f"on Spot\nSP's raw Chamfer is {ratio['spot']}x" in readme and f"on the bunny {ratio['bunny']}x" in readme
     least = max(ratio, key=lambda mesh: float(ratio[mesh]))  # the largest ratio: the smallest gain
     assert least == "bunny" and "Spot is the mesh where SP's raw Chamfer gain is" not in readme, ratio

@@ -30,7 +30,7 @@ def sample_surface(
 
 def directed_distances(
     src: Float[np.ndarray, "n 3"], dst: Float[np.ndarray, "m 3"], dst_tree: Optional[cKDTree] = None
-) -> tuple[Float[np.ndarray, "n"], np.ndarray]:
+) -> tuple[Float[np.ndarray, " n"], np.ndarray]:
     """Distance from every ``src`` point to its nearest ``dst`` point, and that point's index.
 
     The tree is built with sliding-midpoint splits and uncompacted nodes: with scipy's defaults,
@@ -56,7 +56,7 @@ def mesh_metrics(
     Args:
         n_points: samples per mesh.
         fscore_threshold: a point counts as matched when its nearest neighbour on the other
-            surface is closer than this (in ``unit``s: 0.01 = 1% of the diagonal by default).
+            surface is closer than this (in units of ``unit``: 0.01 = 1% of the diagonal by default).
         seed: sampling seed (the same seed on the same mesh gives the same points).
         unit: distances are divided by it; None = ``gt``'s bounding-box diagonal.
 
@@ -65,7 +65,7 @@ def mesh_metrics(
         ``chamfer`` = (accuracy + completeness) / 2, the symmetric mean nearest-neighbour L2
         distance; ``accuracy`` = mean distance pred -> gt (floaters and extra sheets raise it);
         ``completeness`` = mean distance gt -> pred (missing or misplaced true surface raises it);
-        ``normal_consistency`` = mean |cos| between matched normals, averaged over both
+        ``normal_consistency`` = mean ``|cos|`` between matched normals, averaged over both
         directions (1 is perfect); ``precision``, ``recall``, ``fscore`` at the threshold;
         ``unit``, ``n_points``, ``area_ratio`` (pred area / gt area: about 2 means a second
         sheet). An empty ``pred`` gives infinite distances and zero scores.

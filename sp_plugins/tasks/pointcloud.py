@@ -70,9 +70,9 @@ class PointCloudSDFConfig(MeshedFitSettings):
     w_eikonal: float = 5e1
     w_offsurface: float = 1e2
     eikonal: Literal["squared", "abs"] = "squared"
-    """Eikonal penalty on (|grad f| - 1): squared (the paper's code) or abs (SIREN's paper)."""
+    """Eikonal penalty on ``|grad f| - 1``: squared (the paper's code) or abs (SIREN's paper)."""
     offsurface_falloff: float = 100.0
-    """The off-surface term is exp(-falloff * |f|)."""
+    """The off-surface term is ``exp(-falloff * |f|)``."""
     encoding: EncodingConfig = field(default_factory=EncodingConfig)
     sp: SPConfig = field(default_factory=_pointcloud_sp)
 
@@ -99,10 +99,10 @@ def check_eikonal(name: str) -> None:
 
 
 def siren_sdf_losses(
-    f_surface: Float[Tensor, "s"],
+    f_surface: Float[Tensor, " s"],
     g_surface: Float[Tensor, "s 3"],
     normals: Float[Tensor, "s 3"],
-    f_space: Float[Tensor, "o"],
+    f_space: Float[Tensor, " o"],
     g_space: Float[Tensor, "o 3"],
     falloff: float = 100.0,
     eikonal: Literal["squared", "abs"] = "squared",

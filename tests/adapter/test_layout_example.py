@@ -1,5 +1,5 @@
-"""The README's "Layout" worked example (issue 45): a toy field declares where it queries with one
-method, ``sp_read_positions``, and the seam, unedited, moves its queries there. Runs the README's own
+"""The docs' worked example (docs/extending.md, "A field with its own read point") (issue 45): a toy field declares where it queries with one
+method, ``sp_read_positions``, and the seam, unedited, moves its queries there. Runs the page's own
 block, then the same field without the method: its queries then leave the box."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "extending.md"
 HEADING = "### A field with its own read point (worked example)"
 METHOD = '''
     def sp_read_positions(self, frustums: Frustums) -> torch.Tensor:
@@ -20,8 +20,8 @@ INLINE = "f = ray_samples.frustums\n        self.queried = f.origins + f.directi
 
 
 def example() -> str:
-    text = README.read_text()
-    assert HEADING in text, f"README has no {HEADING!r}"
+    text = PAGE.read_text()
+    assert HEADING in text, f"docs/extending.md has no {HEADING!r}"
     match = re.search(r"```python\n(.*?)```", text[text.index(HEADING):], flags=re.S)
     assert match, "no python block under the heading"
     return match.group(1)
@@ -30,11 +30,11 @@ def example() -> str:
 def test_the_readme_field_with_its_own_read_point_is_reached_and_queried_inside_the_box():
     source = example()
     assert METHOD in source and CALL in source  # the one method this example is about
-    exec(compile(source, str(README), "exec"), {"__name__": "readme_example"})
+    exec(compile(source, str(PAGE), "exec"), {"__name__": "readme_example"})
 
 
 def test_without_its_read_point_the_same_field_queries_outside_the_box():
     source = example().replace(METHOD, "\n").replace(CALL, INLINE)
     assert "sp_read_positions" not in source
-    with pytest.raises(AssertionError):  # the README's last line: the far ends left the box
-        exec(compile(source, str(README), "exec"), {"__name__": "readme_example"})
+    with pytest.raises(AssertionError):  # the example's last line: the far ends left the box
+        exec(compile(source, str(PAGE), "exec"), {"__name__": "readme_example"})

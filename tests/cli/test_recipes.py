@@ -1,4 +1,4 @@
-"""The README's CPU recipe (section "Real captures on a CPU") as a user outside a source checkout runs
+"""The docs' CPU recipe (docs/guides/real-captures.md) as a user outside a source checkout runs
 it: its ``$(...)`` prints the package's flags, and ns-train's own parser takes them for each method."""
 
 from __future__ import annotations
@@ -14,14 +14,11 @@ import pytest
 
 from sp_plugins.nerfstudio.recipes import RECIPES
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "guides" / "real-captures.md"
 
 
 def _readme_recipe_call() -> str:
-    text = README.read_text()
-    section = text[text.index("### Real captures on a CPU"):]
-    section = section[: section.index("\n### ", 1)] if "\n### " in section[1:] else section
-    (call,) = re.findall(r"\$\((python -m [^)]*)\)", section)
+    (call,) = set(re.findall(r"\$\((python -m sp_plugins\.nerfstudio\.recipes [^)]*)\)", PAGE.read_text()))
     return call
 
 

@@ -45,8 +45,8 @@ from typing import Callable, Dict, List, Optional, Tuple
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 MARKER = re.compile(r"<!--\s*readme-runner:\s*skip\s*\((?P<reason>.+?)\)\s*-->\s*$")
-SDFSTUDIO_SECTION = "## sdfstudio (second host)"
-"""Blocks under this heading run in sdfstudio's environment (tests/sdfstudio/test_readme_sdfstudio.py)."""
+SDFSTUDIO_PAGE = REPO / "docs" / "guides" / "sdfstudio.md"
+"""Blocks of this page run in sdfstudio's environment (tests/sdfstudio/test_readme_sdfstudio.py)."""
 
 # (command, flag, value): the command's text (a regex; the flag goes before its dataparser
 # subcommand, else at the end of the command; for HEAD_PLACED commands right after their name),
@@ -171,7 +171,7 @@ def blocks(path: Path) -> List[Block]:
         region = example.region
         found[region.start] = _block(path, text, region.start, example.line, region.lexemes["arguments"],
                                      region.lexemes["source"].text)
-    for m in re.finditer(r"^```(\w*)\n(.*?)^```$", text, flags=re.M | re.S):
+    for m in re.finditer(r"^```(\{[\w-]+\}|\w*)\n(.*?)^```$", text, flags=re.M | re.S):  # {eval-rst}: a MyST directive
         if m.start() not in found:
             found[m.start()] = _block(path, text, m.start(), text[: m.start()].count("\n") + 1, m.group(1), m.group(2))
     return [found[k] for k in sorted(found)]
@@ -336,6 +336,12 @@ def summary(outcomes: List[Outcome]) -> str:
 
 
 def documents() -> List[Path]:
-    """README.md and every docs page."""
-    return [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    """README.md, then the docs pages in the order of ``docs/index.md``'s tables of contents (a page is
+    read after the pages before it, as a reader goes through the site), then any page no table lists."""
+    docs = REPO / "docs"
+    listed: List[Path] = []
+    for body in re.findall(r"^:::\{toctree\}\n(.*?)^:::$", (docs / "index.md").read_text(), flags=re.M | re.S):
+        listed += [docs / f"{line.strip()}.md" for line in body.splitlines() if line.strip() and not line.startswith(":")]
+    rest = sorted(p for p in docs.rglob("*.md") if p not in listed and p.name != "index.md" and "_build" not in p.parts)
+    return [REPO / "README.md", docs / "index.md", *listed, *rest]
 

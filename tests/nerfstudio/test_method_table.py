@@ -1,4 +1,4 @@
-"""README's nerfstudio method table is the one ``sp_plugins.method_table`` makes from the registered
+"""The docs' nerfstudio method table (docs/guides/any-method.md) is the one ``sp_plugins.method_table`` makes from the registered
 methods and ``sp_plugins/nerfstudio/table.py`` (sdfstudio's: tests/sdfstudio/test_any_method.py)."""
 
 import os
@@ -13,13 +13,13 @@ BEGIN, END = method_table.markers("nerfstudio")
 
 
 def _readme_copy(text: str) -> str:
-    assert BEGIN in text and END in text, "README.md has lost the nerfstudio method table's markers"
+    assert BEGIN in text and END in text, "docs/guides/any-method.md has lost the nerfstudio method table's markers"
     return text[text.index(BEGIN): text.index(END) + len(END)]
 
 
 def test_the_readme_table_is_the_generated_one():
-    assert _readme_copy(method_table.README.read_text()) == method_table.table("nerfstudio"), (
-        "README's nerfstudio method table is out of date: run python -m sp_plugins.method_table --write"
+    assert _readme_copy(method_table.page("nerfstudio").read_text()) == method_table.table("nerfstudio"), (
+        "the nerfstudio method table in docs/guides/any-method.md is out of date: run python -m sp_plugins.method_table --write"
     )
 
 
@@ -39,8 +39,8 @@ def test_the_methods_the_readme_says_the_suite_does_not_train_are_the_ones_it_do
     offered = {m for m, (order, _) in outcomes.items() if order == 0}
     untrained = offered - set(BUILTIN_TRAIN)
     assert untrained == {"depth-nerfacto", "semantic-nerfw", "generfacto"}
-    after = method_table.README.read_text().partition(END)[2][:800]
-    assert all(f"`{m}`" in after for m in untrained), "README's sentence under the table names other methods"
+    after = method_table.page("nerfstudio").read_text().partition(END)[2][:800]
+    assert all(f"`{m}`" in after for m in untrained), "the sentence under the table names other methods"
 
 
 def _run(cwd):
@@ -49,15 +49,17 @@ def _run(cwd):
 
 
 def test_write_restores_a_drifted_readme_table(tmp_path):
-    """The README says --write regenerates the table: run as written, from the root of a copy whose table drifted."""
-    text = method_table.README.read_text()
+    """The page says --write regenerates the table: run as written, from the root of a copy whose table drifted."""
+    text = method_table.page("nerfstudio").read_text()
     head, _, rest = text.partition(BEGIN)
     old, _, tail = rest.partition(END)
     rows = old.strip("\n").splitlines()
     drifted = rows[:2] + ["| `gone` | offered |"] + rows[3:-1]  # one row changed, one lost
-    (tmp_path / "README.md").write_text(head + "\n".join([BEGIN, *drifted, END]) + tail)
+    copy = method_table.page("nerfstudio", tmp_path)
+    copy.parent.mkdir(parents=True)
+    copy.write_text(head + "\n".join([BEGIN, *drifted, END]) + tail)
     proc = _run(tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert (tmp_path / "README.md").read_text() == head + method_table.table("nerfstudio") + tail
-    assert f"wrote {tmp_path / 'README.md'} (nerfstudio)" in proc.stdout
+    assert copy.read_text() == head + method_table.table("nerfstudio") + tail
+    assert f"wrote {copy} (nerfstudio)" in proc.stdout
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import io
 import os
 import re
-import shutil
 import time
 from pathlib import Path
 
@@ -28,13 +27,8 @@ try:
 except ImportError:  # the tests skip (or fail under CI=true) in their fixture, naming it
     PlaywrightTimeout = TimeoutError
 
-CHROMIUM = os.environ.get("SP_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-"""Debian's chromium (run.sh installs it); ``SP_CHROMIUM`` names another Chromium build."""
-# FINDINGS.md, 2026-12-05: what runs here (no GPU, no sandbox for root, no network)
-CHROMIUM_ARGS = [
-    "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
-]
+from tests.helpers.browser import CHROMIUM, CHROMIUM_ARGS, browser_or_skip  # noqa: E402
+
 STEPS = 200
 SP_END = 1.0  # SP on for every step but the last (sp_plugins.core.AlphaSchedule.resolve)
 TINY = [
@@ -46,20 +40,7 @@ ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 READOUT = re.compile(r"Step: (\d+)\s*Resolution: (\d+)x(\d+)px")
 
 
-def _browser_or_skip():
-    """Playwright's sync API, or a skip naming what is missing (a failure under CI=true: required there)."""
-    missing = None
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        missing = "playwright is not installed (pip install -e '.[dev]')"
-    if missing is None and not (os.path.isfile(CHROMIUM) and os.access(CHROMIUM, os.X_OK)):
-        missing = f"no chromium at {CHROMIUM} (./run.sh setup installs it as root where apt is; or: apt-get install chromium)"
-    if missing:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"CI=true and the browser test cannot run: {missing}")
-        pytest.skip(missing)
-    return sync_playwright
+_browser_or_skip = browser_or_skip
 
 
 # -- the viewer processes (started by tests/helpers/viewer.py, as a user types them) ----------------
@@ -258,8 +239,8 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
         seen.append(wait_for(lambda: (r := readout(page)) and r[0] > seen[-1] and r[0], 90, f"a step past {seen[-1]}", why))
     at("steps shown after resuming", seen)
     # and the object shows up in the frames rendered during training
-    stats = at("frame", wait_for(lambda: (s := frame_stats(page)) and shows_the_object(s) and s, 90,
-                                 "a frame that shows the object (grey spread > 15, coloured pixels > 1%)", why))
+    at("frame", wait_for(lambda: (s := frame_stats(page)) and shows_the_object(s) and s, 90,
+                         "a frame that shows the object (grey spread > 15, coloured pixels > 1%)", why))
     seen.append(at("step of that frame", readout(page)[0]))
     schedule = sp_schedule(spot.parent)
     assert all(schedule(s) > 0 for s in seen), (seen, schedule, why())

@@ -298,7 +298,7 @@ def test_help_of_both_commands_lists_the_generic_methods(capsys, tmp_path):
 
 
 def test_the_readme_table_is_the_generated_one():
-    """README's sdfstudio method table is ``sp_plugins.method_table``'s, and what it offers and refuses
+    """The sdfstudio method table (docs/guides/sdfstudio.md) is ``sp_plugins.method_table``'s, and what it offers and refuses
     is what the tests above train, build and refuse."""
     from sp_plugins import method_table
 
@@ -307,10 +307,10 @@ def test_the_readme_table_is_the_generated_one():
     assert {m for m, (order, _) in outcomes.items() if order == 0} == set(TRAINS) | set(CUDA_ONLY)
     assert {m for m, (order, _) in outcomes.items() if order == 1} == set(REFUSED)
     begin, end = method_table.markers("sdfstudio")
-    text = method_table.README.read_text()
-    assert begin in text and end in text, "README.md has lost the sdfstudio method table's markers"
+    text = method_table.page("sdfstudio").read_text()
+    assert begin in text and end in text, "docs/guides/sdfstudio.md has lost the sdfstudio method table's markers"
     assert text[text.index(begin): text.index(end) + len(end)] == method_table.table("sdfstudio", outcomes), (
-        "README's sdfstudio method table is out of date: run python -m sp_plugins.method_table --write in sdfstudio's environment"
+        "the sdfstudio method table in docs/guides/sdfstudio.md is out of date: run python -m sp_plugins.method_table --write in sdfstudio's environment"
     )
     after = text.partition(end)[2][:400]
-    assert all(f"`{m}`" in after for m in CUDA_ONLY), "README's sentence under the table names other untrained methods"
+    assert all(f"`{m}`" in after for m in CUDA_ONLY), "the sentence under the table names other untrained methods"

@@ -1,4 +1,4 @@
-"""The README's sdfstudio section is executable (issue 47): its blocks run here, in sdfstudio's
+"""The docs' sdfstudio guide (docs/guides/sdfstudio.md) is executable (issue 47): its blocks run here, in sdfstudio's
 environment, as a user types them, through the same runner as tests/test_readme.py (Sybil; the
 budget flags, placeholders and skip markers declared in tests/helpers/readme_runner.py). The scene
 they train on is made first by the README's own ``sp-scene spot my-scene`` line."""
@@ -18,27 +18,25 @@ def test_readme_sdfstudio_blocks_run_as_a_user_types_them(tmp_path, record_prope
     assert scene, f"the README no longer starts a block with {SCENE_LINE!r}, which the sdfstudio blocks train on"
     start = time.monotonic()
     rr.run_block(rr.Block(readme, scene[0].line, "bash", SCENE_LINE + "\n", scene[0].section), tmp_path)
-    runner = rr.Runner(tmp_path, mine=lambda block: block.section == rr.SDFSTUDIO_SECTION)
-    outcomes = runner.run(readme)
+    runner = rr.Runner(tmp_path, mine=lambda block: block.path == rr.SDFSTUDIO_PAGE)
+    outcomes = runner.run(rr.SDFSTUDIO_PAGE)
     text = f"{rr.summary(outcomes)}\nwall time {time.monotonic() - start:.0f} s"
     record_property("readme_runner_sdfstudio", text)
     print(text)
     ran = [o for o in outcomes if o.status in ("as written", "lowered")]
-    assert ran and all(o.block.section == rr.SDFSTUDIO_SECTION for o in ran), text
+    assert ran and all(o.block.path == rr.SDFSTUDIO_PAGE for o in ran), text
     assert all(o.detail for o in outcomes if o.status == "skipped"), text
 
 
 def test_every_flag_the_sdfstudio_section_names_exists(tmp_path):
-    """The section's prose names flags too (a resume, the geo-* methods, meshing): each is a flag of
+    """The page's prose names flags too (a resume, the geo-* methods, meshing): each is a flag of
     sdfstudio's commands as sp-sdfstudio-train / ns-extract-mesh print them (the README once named
     ``--max-num-iterations``, which sdfstudio spells ``--trainer.max-num-iterations``)."""
     import re
 
     from tests.helpers.sdf_configs import run
 
-    text = (rr.REPO / "README.md").read_text()
-    section = text[text.index(rr.SDFSTUDIO_SECTION):]
-    section = section[: section.index("\n## ", 1)]
+    section = rr.SDFSTUDIO_PAGE.read_text()
     section = re.sub(r"<!-- readme-runner: skip .*?\n```.*?\n```", "", section, flags=re.S)  # pip lines
     # our own `python -m sp_plugins...` commands named in the prose have their own tests (the method table's --write)
     section = re.sub(r"`python -m sp_plugins[^`]*`", "", section)
