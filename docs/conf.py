@@ -30,7 +30,6 @@ myst_enable_extensions = ["colon_fence"]
 myst_heading_anchors = 3
 html_theme = "furo"
 html_title = "sp-plugins"
-html_static_path = ["_static"]
 nitpicky = False
 
 autodoc_member_order = "bysource"
