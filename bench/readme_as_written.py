@@ -156,10 +156,19 @@ def report(records: List[Dict], skipped: List[Dict]) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--only", help="run only the blocks whose text matches this regex (the others keep their records)")
+    parser.add_argument("--document", action="append", help="run only this document's blocks (README.md, docs/guides/nerfstudio.md, ...; "
+                        "repeatable); the others keep their records")
     parser.add_argument("--list", action="store_true", help="list the blocks, their commands and stated costs, run nothing")
     parser.add_argument("--fresh", action="store_true", help="forget the records and the work folder first")
     args = parser.parse_args(argv)
-    all_items = [item for doc in rr.documents() for item in items(doc)]
+    docs = rr.documents()
+    if args.document:
+        wanted_docs = {(REPO / d).resolve() for d in args.document}
+        unknown = wanted_docs - {d.resolve() for d in docs}
+        if unknown:
+            parser.error(f"--document {', '.join(sorted(str(u.relative_to(REPO)) for u in unknown))}: not a page of the "
+                         "README or the docs' tables of contents")
+    all_items = [item for doc in docs for item in items(doc)]
     if args.list:
         for item in all_items:
             b = item.block
@@ -180,7 +189,8 @@ def main(argv=None) -> int:
         if b.skip:
             skipped.append({"where": b.where, "reason": b.skip})
             continue
-        wanted = args.only is None or re.search(args.only, b.source)
+        wanted = (args.only is None or re.search(args.only, b.source)) and (
+            not args.document or b.path.resolve() in wanted_docs)
         if item.key in state and (state[item.key]["rc"] == 0 or not wanted):
             records.append(state[item.key])
             continue
