@@ -9,7 +9,7 @@ by sp_plugins itself (module ``sp_plugins.*``) or any other message is never hid
 Scope (:mod:`sp_plugins.patches.registry`):
 
 - our console commands (``sp-train``, ``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``,
-  ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``) own their process: there the filters stay
+  ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``, ``sp-compare``) own their process: there the filters stay
   until it ends (``registry.install_for_process``);
 - under nerfstudio's own ``ns-*`` commands they are held by our code's objects (our model, our
   data manager, the checked run config of our method; ``registry.hold``): in force while one of

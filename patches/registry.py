@@ -121,14 +121,14 @@ SDFSTUDIO = tuple(name for name in ENTRIES if name.startswith("sdfstudio_") and 
 ``sdfstudio_methods`` (our methods in its ns-train) is separate."""
 
 SP_COMMANDS: Tuple[str, ...] = (
-    "sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check",
+    "sp-demo", "sp-bench", "sp-scene", "sp-fit", "sp-export-mesh", "sp-train", "sp-sweep", "sp-gpu-check", "sp-compare",
 )
 """Our console commands outside sdfstudio (they own their process: the Python-level patches stay there)."""
 OUR_COMMANDS: Tuple[str, ...] = SP_COMMANDS + ("sp-sdfstudio-train", "sp-sdfstudio-extract-mesh")
 _MODULE_COMMANDS = {  # ``python -m <module>`` runs the same command
     "sp_plugins.cli.demo": "sp-demo", "sp_plugins.cli.bench": "sp-bench", "sp_plugins.cli.scene": "sp-scene",
     "sp_plugins.cli.fit": "sp-fit", "sp_plugins.cli.export_mesh": "sp-export-mesh", "sp_plugins.cli.sweep": "sp-sweep",
-    "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.cli.train": "sp-train",
+    "sp_plugins.cli.gpu_check": "sp-gpu-check", "sp_plugins.cli.train": "sp-train", "sp_plugins.cli.compare": "sp-compare",
 }
 
 

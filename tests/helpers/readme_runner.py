@@ -59,6 +59,8 @@ BUDGET: Tuple[Tuple[str, str, str], ...] = (
     (_TRAIN, "--max-num-iterations", "2"),
     (_TRAIN, "--pipeline.datamanager.train-num-rays-per-batch", "64"),
     (r"\bsp-export-mesh\b", "--resolution", "128"),  # its smallest
+    (r"\bsp-compare\b", "--mesh-resolution", "32"),
+    (r"\bsp-compare\b", "--max-views", "2"),
     (r"\bns-export pointcloud\b", "--num-points", "2000"),
     (r"\bsp-fit (?:pointcloud|sdf)\b", "--steps", "2"),
     (r"\bsp-fit (?:pointcloud|sdf)\b", "--mesh-resolution", "32"),
