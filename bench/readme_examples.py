@@ -164,6 +164,8 @@ def main(argv=None) -> None:
                 shown = ", ".join(f"{label} {record[key]:.{digits}f}" for key, label, digits in METRICS[args.example])
                 print(f"{args.example} {record['name']}: {shown}, train {record['train_s']:.0f} s", flush=True)
                 records.append(record)
+    # the table holds every finished run of this example (earlier invocations' seeds and settings too)
+    records = [json.loads(f.read_text()) for f in sorted((root / "runs").glob("*/eval.json"))]
     text = table(args.example, records)
     (root / "results.json").write_text(json.dumps({"machine": machine_info(), "runs": records}, indent=1))
     (root / "results.md").write_text(text + "\n")

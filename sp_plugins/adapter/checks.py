@@ -20,7 +20,7 @@ import dataclasses
 import sys
 import zipfile
 from pathlib import Path
-from typing import Iterable, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 from sp_plugins.adapter.errors import InputError
 
@@ -58,7 +58,7 @@ def _versions() -> str:
     return ", ".join(parts)
 
 
-def _walk(obj, prefix: str, seen: set) -> Iterator[Tuple[str, object]]:
+def _walk(obj, prefix: str, seen: set) -> Iterator[Tuple[str, Any]]:  # the dataclass instances in obj
     if id(obj) in seen:
         return
     seen.add(id(obj))

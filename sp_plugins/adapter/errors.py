@@ -120,7 +120,7 @@ def describe_failure(exc: BaseException, tb: Optional[TracebackType] = None) -> 
                 "or --vis tensorboard")
     load = _torch_frame(tb, "load")
     if load is not None:
-        path = _path_of(load.f_locals.get("f")) or "the checkpoint"
+        path: Optional[str] = _path_of(load.f_locals.get("f")) or "the checkpoint"
         if isinstance(exc, OSError) and exc.errno == errno.ENOENT:
             return f"{path}: checkpoint not found"
         refused = refused_global(exc)

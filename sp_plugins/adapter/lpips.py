@@ -95,5 +95,5 @@ def offline_factory(real_cls: type, detach: bool = False) -> Callable[..., Any]:
         say_skipped(net_type)
         return MissingLPIPS()
 
-    build.real = real_cls  # type: ignore[attr-defined]
+    setattr(build, "real", real_cls)  # (a function attribute, which a type checker cannot declare)
     return build

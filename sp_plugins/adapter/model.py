@@ -67,6 +67,8 @@ class SPModelBase:
     metaclass is torch's ``type``, and our variants are made with ``type(...)``.)"""
 
     sp: StochasticPreconditioner
+    config: Any  # the host model's (its config holds an ``sp`` field)
+    training: bool  # nn.Module's
     steps_flag = "--max-num-iterations"
     """The flag that sets the run's length in this host's ``ns-train`` (named in errors)."""
 
@@ -117,7 +119,7 @@ class SPModelBase:
     def build_preconditioner(self) -> StochasticPreconditioner:
         """``config.sp`` set up over :meth:`sp_bounds`; the total steps come later from the trainer."""
         aabb = self.sp_scene_aabb()
-        return self.config.sp.setup(scene_diagonal=box_diagonal(aabb), bounds=self.sp_bounds(aabb), dim=3)  # type: ignore[attr-defined]
+        return self.config.sp.setup(scene_diagonal=box_diagonal(aabb), bounds=self.sp_bounds(aabb), dim=3)
 
     def populate_modules(self) -> None:
         self.sp = self.build_preconditioner()
@@ -126,7 +128,7 @@ class SPModelBase:
 
     def populate_host_modules(self) -> None:
         """The host model's own ``populate_modules``."""
-        super().populate_modules()  # type: ignore[misc]
+        super().populate_modules()  # type: ignore[misc]  # the host model's (next in the MRO)
 
     def check_first_step(self, step: int) -> None:
         """After every training step until the first with alpha > 0: then :meth:`check_sp_reached`, once."""
@@ -136,18 +138,18 @@ class SPModelBase:
         self.check_sp_reached(step)
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
-        groups = super().get_param_groups()  # type: ignore[misc]
+        groups = super().get_param_groups()  # type: ignore[misc]  # the host model's (next in the MRO)
         if self.sp.alpha_grid is not None:
             groups[ALPHA_GRID_GROUP] = list(self.sp.alpha_grid.parameters())
         return groups
 
     def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
-        callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]
+        callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]  # the host model's (next in the MRO)
         ours = sp_callbacks(self.sp, training_callback_attributes, self.sp_training_callback, self.steps_flag)
         return list(callbacks) + ours + [self.sp_training_callback("after", self.check_first_step)]
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
-        metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]
-        if self.training:  # type: ignore[attr-defined]
+        metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]  # the host model's (next in the MRO)
+        if self.training:
             metrics["sp_alpha"] = self.sp.alpha
         return metrics

@@ -93,7 +93,7 @@ class RunConfigLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` plus the Python tags a saved trainer config holds, each checked against
     the allow-list of this module, for the whole document before any object is built."""
 
-    def __init__(self, stream):
+    def __init__(self, stream: Any) -> None:
         super().__init__(stream)
         self._names: dict = {}
 
@@ -178,7 +178,7 @@ class RunConfigLoader(yaml.SafeLoader):
             if not _within(generic, CLASS_PACKAGES):  # checked before _resolve imports it (an import runs its module)
                 raise _Refusal(first, "names something outside the host's and sp-plugins' packages")
             cls = self._resolve(generic, first)
-            if not (isinstance(cls, type) and issubclass(cls, typing.Generic)):  # type: ignore[arg-type]
+            if not (isinstance(cls, type) and issubclass(cls, typing.Generic)):
                 raise _Refusal(node, "may only subscribe a generic class")
             return
         if not _within(name, ENUM_PACKAGES):
@@ -318,16 +318,16 @@ def reading_configs_safely(module: ModuleType, where: str, versions: str = "") -
     file the user gave; check that file with :func:`load_run_config` first, for a refusal before the
     host starts). Yields the stand-in, whose ``loads`` counts the host's reads (tests check that the
     host still reads through it)."""
-    real = module.yaml
+    real = getattr(module, "yaml")  # getattr / setattr: a ModuleType declares no `yaml` for the type checker
     if isinstance(real, _SafeYaml):  # already inside such a block
         yield real
         return
     proxy = _SafeYaml(real, where, versions)
-    module.yaml = proxy
+    setattr(module, "yaml", proxy)
     try:
         yield proxy
     finally:
-        module.yaml = real
+        setattr(module, "yaml", real)
 
 
 @contextlib.contextmanager

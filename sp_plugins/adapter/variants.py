@@ -159,8 +159,8 @@ def subclass(bases: tuple, name: str, module: str, **namespace: Any) -> type:
 def field_default(cls: type, name: str) -> Any:
     """The default of dataclass field ``name`` of ``cls`` (its factory called)."""
     (f,) = [f for f in dataclasses.fields(cls) if f.name == name]
-    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-        return f.default_factory()  # type: ignore[misc]
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
     if f.default is not dataclasses.MISSING:
         return f.default
     raise ValueError(f"{cls.__name__}.{name} has no default")

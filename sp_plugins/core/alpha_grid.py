@@ -84,6 +84,10 @@ class AlphaGrid(nn.Module):
         parameterization: ``log`` | ``alpha`` | ``softplus`` (see above).
     """
 
+    # buffers (register_buffer below), typed here: nn.Module's attribute lookup types them Tensor | Module
+    lo: Tensor
+    hi: Tensor
+
     def __init__(
         self,
         dim: int = 3,

@@ -37,6 +37,8 @@ def as_bounds(bounds: BoundsLike, dim: int, like: Tensor, check: bool = True) ->
     ``SceneBox.aabb`` layout). ``check=False`` skips the empty-box test (a host sync on a GPU) for
     bounds that were checked once at set-up.
     """
+    lo: Union[float, Tensor]
+    hi: Union[float, Tensor]
     if isinstance(bounds, Tensor) and bounds.dim() == 2:
         lo, hi = bounds[0], bounds[1]
     else:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-from typing import TYPE_CHECKING, Any, Callable, Optional, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Optional, TypeVar, cast
 
 import torch
 from jaxtyping import Float
@@ -64,6 +64,10 @@ class StochasticPreconditioner(nn.Module):
         bounds: the box for ``reflect`` / ``clamp`` and for the alpha grid.
         dim: dimension of the positions (2 for images).
     """
+
+    # buffers (register_buffer below), typed here: nn.Module's attribute lookup types them Tensor | Module
+    step: Tensor
+    total_steps: Tensor
 
     def __init__(
         self,
@@ -155,7 +159,8 @@ class StochasticPreconditioner(nn.Module):
         self.step.fill_(self._step)  # an asynchronous fill: no host sync on an accelerator
         c = self.config
         self._alpha = self._resolved_schedule()(self._step) if c.enabled else 0.0
-        decay = self._decay(self._step) if c.enabled else 0.0  # in [0, 1]; > 0 exactly before the end
+        # in [0, 1]; > 0 exactly before the end (the _resolved_schedule call above set _decay)
+        decay = cast(AlphaSchedule, self._decay)(self._step) if c.enabled else 0.0
         self._grid_scale = decay if c.alpha_grid_mode == "scaled" else (1.0 if decay > 0.0 else 0.0)
         return self.alpha
 
@@ -198,7 +203,7 @@ class StochasticPreconditioner(nn.Module):
     def get_extra_state(self) -> dict:
         """The noise generators' states (CPU byte tensors), keyed by device type, with the seed
         and the rank that drew them. Read only when a checkpoint is written."""
-        states = {}
+        states: dict[str, Tensor] = {}
         for key, g in self._generators.items():
             states.setdefault(torch.device(key).type, g.get_state().clone())
         for kind, state in self._saved_generator_states.items():  # loaded, not drawn from yet

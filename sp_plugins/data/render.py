@@ -92,7 +92,7 @@ def view_rays(
         yield index, origins.reshape(-1, 3), dirs.reshape(-1, 3)
 
 
-def per_pixel(values: Float[np.ndarray, "m *c"], height: int, width: int) -> Float[np.ndarray, "h w s *c"]:
+def per_pixel(values: Float[np.ndarray, " m *c"], height: int, width: int) -> Float[np.ndarray, "h w s *c"]:
     """Per-ray values of :func:`view_rays` grouped by pixel: axis 2 holds a pixel's ``s`` sub-rays."""
     return values.reshape(height, width, -1, *values.shape[1:])
 

@@ -55,7 +55,7 @@ class FrequencyEncoding(nn.Module):
         exps = torch.linspace(min_freq_exp, max_freq_exp, num_frequencies, dtype=torch.float64)
         self.angular_frequencies = tuple(float(v) for v in scale * 2.0**exps)
 
-    def frequencies(self, like: Tensor) -> Float[Tensor, "k"]:
+    def frequencies(self, like: Tensor) -> Float[Tensor, " k"]:
         """The angular frequencies in ``like``'s dtype, made on its device from Python numbers:
         no host-to-device copy (``torch.tensor(list, device=cuda)`` would synchronise the host
         with the GPU at every call), and no float64 buffer (MPS has none)."""

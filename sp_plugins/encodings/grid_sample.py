@@ -11,6 +11,8 @@ runs deterministically (sorted) in that mode. Slower, so only then.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -52,9 +54,10 @@ def grid_sample_gather(input: Tensor, grid: Tensor, *, padding_mode: str = "zero
     for s in sizes[:-1]:
         strides.append(strides[-1] * s)
     flat = input.reshape(batch, channels, -1)
-    out = None
+    out: Optional[Tensor] = None
     for corner in range(2**dims):
-        index, weight = None, None
+        index: Optional[Tensor] = None
+        weight: Optional[Tensor] = None
         for d in range(dims):
             side = (corner >> d) & 1
             i = cells[d] + side
@@ -64,7 +67,9 @@ def grid_sample_gather(input: Tensor, grid: Tensor, *, padding_mode: str = "zero
             term = i.clamp(0, sizes[d] - 1) * strides[d]
             index = term if index is None else index + term
             weight = w if weight is None else weight * w
+        assert index is not None and weight is not None  # dims >= 1
         values = torch.gather(flat, 2, index[:, None, :].expand(batch, channels, index.shape[-1]))  # [N, C, P]
         contribution = values * weight[:, None, :].to(values.dtype)
         out = contribution if out is None else out + contribution
+    assert out is not None  # 2**dims >= 1 corners
     return out.reshape(batch, channels, *out_shape)

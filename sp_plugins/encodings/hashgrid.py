@@ -251,9 +251,10 @@ class HashGrid(nn.Module):
             raise ValueError(f"backend={backend!r} is not a backend; allowed values: {', '.join(BACKENDS)}")
         self.requested_backend = backend
         self.backend = "torch"
-        self.tcnn_encoding = None
+        self.tcnn_encoding: Any = None  # a tinycudann.Encoding (no type information) on the tcnn backend
         table = torch.empty(self.n_table_rows * features_per_level, dtype=dtype).uniform_(-init_scale, init_scale)
-        self.table = nn.Parameter(table)  # flat: tcnn's params layout, so optimizer state fits either backend
+        # flat: tcnn's params layout, so optimizer state fits either backend; None on the tcnn backend
+        self.table: Optional[nn.Parameter] = nn.Parameter(table)
         self._make_constants()
         if backend == "tcnn":  # tcnn keeps its parameters on the current CUDA device from the start
             resolve_backend("tcnn", "cuda", dtype)
@@ -304,6 +305,7 @@ class HashGrid(nn.Module):
         ``params`` are ``table.reshape(-1)``."""
         tcnn = _import_tcnn()
         table = self.table
+        assert table is not None  # called on the torch backend
         device = table.device if device is None else torch.device(device)
         if device.type == "cuda" and device.index is None:
             device = torch.device("cuda", torch.cuda.current_device())
@@ -431,7 +433,9 @@ class HashGrid(nn.Module):
         # positions need float32 at least: x * 2047 in half precision would snap to a coarse grid
         compute_dtype = x.dtype if x.dtype in (torch.float32, torch.float64) else torch.float32
         flat = flat.to(compute_dtype)
-        table = (self.table if self.table.dtype == compute_dtype else self.table.to(compute_dtype)).view(-1, self.features_per_level)
+        param = self.table
+        assert param is not None  # the torch backend (the tcnn one returned above)
+        table = (param if param.dtype == compute_dtype else param.to(compute_dtype)).view(-1, self.features_per_level)
         if n_active == 0:
             out = flat.new_zeros(flat.shape[0], self.n_output_dims)
         else:

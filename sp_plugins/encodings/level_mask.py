@@ -11,7 +11,7 @@ works with any backend of :class:`~sp_plugins.encodings.HashGrid` without touchi
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import torch
 from jaxtyping import Float
@@ -35,11 +35,11 @@ def levels_from_alpha(
     return num_levels - t * (num_levels - min_levels)
 
 
-def level_mask(levels: Float[Tensor, "n"], num_levels: int, features_per_level: int) -> Float[Tensor, "n lf"]:
+def level_mask(levels: Float[Tensor, " n"], num_levels: int, features_per_level: int) -> Float[Tensor, "n lf"]:
     """Mask for an encoding output laid out coarsest level first: level ``l`` gets weight
     ``clamp(levels - l, 0, 1)`` (1 for the fully usable levels, a fraction for the last one)."""
-    l = torch.arange(num_levels, device=levels.device, dtype=levels.dtype)
-    w = (levels[:, None] - l).clamp(0.0, 1.0)
+    lvl = torch.arange(num_levels, device=levels.device, dtype=levels.dtype)
+    w = (levels[:, None] - lvl).clamp(0.0, 1.0)
     return w.repeat_interleave(features_per_level, dim=1)
 
 
@@ -55,8 +55,9 @@ class PerPointLevelMask(nn.Module):
     def __init__(self, encoding: nn.Module, levels_fn: Optional[Callable[[Tensor], Tensor]] = None) -> None:
         super().__init__()
         self.encoding = encoding
-        self.num_levels = int(encoding.num_levels)
-        self.features_per_level = int(encoding.features_per_level)
+        levelled: Any = encoding  # its attributes beyond nn.Module's (which types them Tensor | Module)
+        self.num_levels = int(levelled.num_levels)
+        self.features_per_level = int(levelled.features_per_level)
         self.n_output_dims = self.num_levels * self.features_per_level
         self.levels_fn = levels_fn
 

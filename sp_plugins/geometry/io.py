@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional, Union, cast
 
 import numpy as np
 import trimesh
@@ -135,6 +135,7 @@ def load_oriented_points(
     A point cloud without normals is refused unless ``estimate_missing_normals``, in which case
     they are estimated with :func:`estimate_normals` and a warning says so.
     """
+    nrm: Optional[np.ndarray]  # None: a point cloud without normals
     loaded = _load_any(path)
     if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) > 0:
         mesh = load_mesh(path)
@@ -197,7 +198,8 @@ class Frame:
         diag = float(np.linalg.norm(hi - lo))
         if not diag > 0:
             raise ValueError("the points all coincide: nothing to fit")
-        return Frame(tuple(float(v) for v in (lo + hi) / 2), diagonal / diag)
+        center = cast(tuple[float, float, float], tuple(float(v) for v in (lo + hi) / 2))  # points are [n, 3]
+        return Frame(center, diagonal / diag)
 
     def to_frame(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x) - np.asarray(self.center)) * self.scale

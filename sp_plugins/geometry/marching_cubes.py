@@ -18,7 +18,7 @@ import trimesh
 from jaxtyping import Float
 from torch import Tensor
 
-SDFFunction = Callable[[Float[Tensor, "n 3"]], Union[Float[Tensor, "n"], Float[Tensor, "n 1"]]]
+SDFFunction = Callable[[Float[Tensor, "n 3"]], Union[Float[Tensor, " n"], Float[Tensor, "n 1"]]]
 BoundsLike = Union[Tuple[float, float], Sequence[Sequence[float]], np.ndarray]
 
 
@@ -78,7 +78,7 @@ def evaluate_grid(
 
 
 def refine_vertices(
-    sdf_fn: SDFFunction,
+    sdf_fn: Optional[SDFFunction],
     verts_index: Float[np.ndarray, "v 3"],
     volume: Float[np.ndarray, "rx ry rz"],
     bounds: BoundsLike,
@@ -88,7 +88,8 @@ def refine_vertices(
     device: Union[str, torch.device] = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> Float[np.ndarray, "v 3"]:
-    """Move each marching-cubes vertex to the zero crossing of ``sdf_fn`` on its grid edge.
+    """Move each marching-cubes vertex to the zero crossing of ``sdf_fn`` on its grid edge
+    (``sdf_fn`` may be None when ``iterations`` is 0).
 
     Args:
         verts_index: vertices in grid-index coordinates (as scikit-image returns them with unit
@@ -113,6 +114,7 @@ def refine_vertices(
     rows = np.nonzero(on_edge)[0]
     if len(rows) == 0:
         return world
+    assert sdf_fn is not None, "refine_vertices: iterations > 0 needs sdf_fn"
     ax = axis[rows]
     i0 = np.round(verts_index[rows]).astype(np.int64)
     i0[np.arange(len(rows)), ax] = np.clip(np.floor(verts_index[rows, ax]).astype(np.int64), 0, res[ax] - 2)
@@ -202,6 +204,7 @@ def mesh_from_grid(
     # (an SDF) that gives outward normals (positive volume), which the tests check.
     verts, faces, _, _ = marching_cubes(volume, level=0.0, gradient_direction="descent")
     if refine > 0:
+        assert sdf_fn is not None  # refused above without one
         shifted = (lambda p: sdf_fn(p).reshape(-1) - level) if level != 0.0 else sdf_fn
         world = refine_vertices(shifted, verts, volume, bounds, refine, chunk=chunk, device=device, dtype=dtype)
     else:

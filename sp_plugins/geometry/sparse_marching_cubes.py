@@ -142,8 +142,8 @@ def sparse_extract_mesh(
     brick = max(int(brick), 2**levels)
     brick = int(2 ** math.ceil(math.log2(brick)))
 
-    stores = []
-    active = None  # [m, 3] active cells of the current level
+    stores: list[_LevelStore] = []
+    active: Optional[np.ndarray] = None  # [m, 3] active cells of the current level
     for lev in range(levels + 1):
         n_cells = coarse_cells * 2**lev
         store = _LevelStore(n_cells + 1)
@@ -159,6 +159,7 @@ def sparse_extract_mesh(
             need = store.key(ijk)
         else:
             prev = stores[-1]
+            assert active is not None  # the coarser level's cells (the loop stops at a level that kept none)
             # points shared with the coarser level are known already
             store.add(store.key(prev.ijk(prev.keys) * 2), prev.values)
             cells = (active[:, None, :] * 2 + _CORNERS[None]).reshape(-1, 3)
@@ -230,4 +231,5 @@ def _brick_volume(stores: list, brick_index: np.ndarray, brick: int, levels: int
             volume = torch.nn.functional.interpolate(volume[None, None], size=(size + 1,) * 3, mode="trilinear",
                                                      align_corners=True)[0, 0]
             volume = torch.where(torch.from_numpy(found), torch.from_numpy(values), volume)
+    assert volume is not None  # stores holds every level, the coarsest first
     return volume.numpy()

@@ -148,7 +148,7 @@ class SPSDFField(SPFieldMixin, SDFField):
         serving_mesher(self)  # ns-export's mesher asks whether a callable evaluates our field
         return super().forward_geonetwork(inputs)
 
-    def sdf_of(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, "n"]:
+    def sdf_of(self, x: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
         return self.forward_geonetwork(x)[:, 0]
 
     def geometry(

@@ -103,15 +103,15 @@ def make_encoding(config: EncodingConfig, dim: int) -> Tuple[Optional[nn.Module]
         from sp_plugins.encodings import FrequencyEncoding
 
         # octaves 2^0 .. 2^(n-1) times pi on [-1, 1] coordinates (NeRF's convention)
-        enc = FrequencyEncoding(dim, config.frequencies, 0.0, config.frequencies - 1.0, scale=math.pi)
-        return enc, enc.n_output_dims
+        freq = FrequencyEncoding(dim, config.frequencies, 0.0, config.frequencies - 1.0, scale=math.pi)
+        return freq, freq.n_output_dims
     if config.kind == "triplane":
         if dim != 3:
             raise ValueError("encoding kind='triplane' is 3D only; use hashgrid or fourier for images")
         from sp_plugins.encodings import TriplaneEncoding
 
-        enc = TriplaneEncoding(config.plane_resolution, config.plane_features, reduce="sum")
-        return enc, enc.n_output_dims
+        planes = TriplaneEncoding(config.plane_resolution, config.plane_features, reduce="sum")
+        return planes, planes.n_output_dims
     return None, 0
 
 
@@ -166,7 +166,7 @@ class NeuralField(nn.Module):
             self.mlp = nn.Sequential(*layers, last)
             return
         act = (lambda: nn.Softplus(beta=100.0)) if activation == "softplus" else nn.ReLU
-        mods = []
+        mods: list[nn.Module] = []
         for i in range(len(widths) - 1):
             mods.append(nn.Linear(widths[i], widths[i + 1]))
             if i < len(widths) - 2:

@@ -27,7 +27,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Optional, Tuple, Type, Union
+from typing import Mapping, Optional, Tuple, Type, Union, cast
 
 import numpy as np
 import torch
@@ -222,14 +222,14 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
-def importance_weights(alpha: Float[Tensor, "n"], uniform_share: float) -> Float[Tensor, "n"]:
+def importance_weights(alpha: Float[Tensor, " n"], uniform_share: float) -> Float[Tensor, " n"]:
     """Pixel probabilities: ``(1 - u) * (1/alpha) / sum(1/alpha) + u / n`` (low alpha, fine
     detail: drawn more often)."""
     inv = 1.0 / alpha.clamp_min(1e-12)
     return (1.0 - uniform_share) * inv / inv.sum() + uniform_share / len(alpha)
 
 
-def draw_pixels(cdf: Float[Tensor, "n"], batch: int, generator: torch.Generator) -> Tensor:
+def draw_pixels(cdf: Float[Tensor, " n"], batch: int, generator: torch.Generator) -> Tensor:
     """``batch`` indices drawn with replacement from the distribution whose CDF is ``cdf``
     (inverse-CDF sampling: cheaper than ``torch.multinomial`` over a whole image)."""
     u = torch.rand(batch, generator=generator, device=cdf.device, dtype=cdf.dtype) * cdf[-1]
@@ -263,7 +263,8 @@ class ImageFitTrainer(ResumableTrainer):
         if config.level_masking:
             from sp_plugins.encodings.level_mask import PerPointLevelMask
 
-            self.field.encoding = PerPointLevelMask(self.field.encoding)  # inactive until phase 2
+            # inactive until phase 2; level masking needs a hash grid (validate), so there is an encoding
+            self.field.encoding = PerPointLevelMask(cast(torch.nn.Module, self.field.encoding))
         sp_config = self._setup_sp(bounds=(0.0, 1.0), dim=2)
         groups = self._param_groups(sp_config)  # the field's (validate refuses SP's own alpha grid here)
         if config.adaptive_alpha:
@@ -293,15 +294,15 @@ class ImageFitTrainer(ResumableTrainer):
 
     # -- phase 2 ----------------------------------------------------------------------------
     @torch.no_grad()
-    def pixel_alpha(self) -> Float[Tensor, "hw"]:
+    def pixel_alpha(self) -> Float[Tensor, " hw"]:
         """The learned (unscaled) alpha map at every pixel centre."""
         return self.sp.alpha_grid(self.positions)[:, 0]
 
-    def levels_at(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n"]:
+    def levels_at(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, " n"]:
         """Usable hash-grid levels at ``x`` in phase 2 (inverse to the map's alpha there)."""
         from sp_plugins.encodings.level_mask import levels_from_alpha
 
-        lo, hi = self.level_mask_alpha_range
+        lo, hi = cast(Tuple[float, float], self.level_mask_alpha_range)  # set by start_phase2, which installs this
         c = self.config
         return levels_from_alpha(self.sp.alpha_grid(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
 
@@ -318,7 +319,9 @@ class ImageFitTrainer(ResumableTrainer):
             q = torch.tensor(c.level_mask_quantiles, dtype=torch.float32, device=self.device)
             lo, hi = torch.quantile(self.sp.alpha_grid.values().reshape(-1), q).tolist()
             self.level_mask_alpha_range = (lo, max(hi, lo * (1 + 1e-6)))
-            self.field.encoding.levels_fn = self.levels_at
+            from sp_plugins.encodings.level_mask import PerPointLevelMask  # (what __init__ put there)
+
+            cast(PerPointLevelMask, self.field.encoding).levels_fn = self.levels_at
 
     def rgb(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n 3"]:
         return torch.sigmoid(self.field(x))

@@ -18,7 +18,7 @@ the input's coordinates and metrics are relative to the ground truth's diagonal.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Mapping, Optional, Tuple, Type
+from typing import Literal, Mapping, Optional, Tuple, Type, cast
 
 import torch
 import trimesh
@@ -141,7 +141,7 @@ class PointCloudSDFTrainer(SDFTrainer):
         )
         if config.output_bias is not None and not config.geometric_init:
             with torch.no_grad():
-                self.field.mlp[-1].bias.fill_(config.output_bias)
+                cast(torch.nn.Linear, self.field.mlp[-1]).bias.fill_(config.output_bias)
         sp_config = self._setup_sp(bounds=(-1.0, 1.0), dim=3)
         self.optimizer = torch.optim.Adam(self._param_groups(sp_config))
         gamma = config.lr_final_ratio ** (1.0 / max(config.steps - 1, 1))

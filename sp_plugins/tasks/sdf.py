@@ -57,7 +57,7 @@ class SDFFitConfig(MeshedFitSettings):
 
 def signed_distance(
     mesh: trimesh.Trimesh, points: Float[np.ndarray, "n 3"], chunk: int = 8192
-) -> Float[np.ndarray, "n"]:
+) -> Float[np.ndarray, " n"]:
     """Signed distance to ``mesh`` (negative inside), ``chunk`` points at a time (trimesh's
     closest-point query holds large candidate arrays)."""
     out = np.empty(len(points))

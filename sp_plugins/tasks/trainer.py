@@ -76,6 +76,12 @@ class ResumableTrainer:
 
     _pending: list
     _history: dict
+    # set by each task's __init__
+    config: Any  # the task's own config dataclass
+    device: torch.device
+    field: NeuralField
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler  # only where the task has one (checked with getattr)
 
     @property
     def history(self) -> dict:

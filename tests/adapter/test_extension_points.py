@@ -7,7 +7,6 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import pytest
-import torch
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.model import SPModelBase

@@ -193,7 +193,6 @@ def test_a_dataclass_is_built_without_running_its_init():
 def test_a_recursive_config_and_a_shared_node_are_read_once():
     """An anchor its own child refers to (a cycle) and a node used twice. Kills: ``id(node) in seen`` -> ``not
     in`` (nothing checked), the ``continue`` -> ``break``."""
-    m = fx()
     built = load(f"&a !!python/object:{SP}.Dc {{lr: 1.0, child: *a}}")
     assert built.child is built
     seq = load("&s [1, *s]")

@@ -2,7 +2,6 @@
 run, and both leave the baseline's trajectory. A hook that stopped perturbing (or perturbed twice,
 or with another alpha) would break the first assertion; a direct run that did nothing, the second."""
 
-import dataclasses
 import sys
 from pathlib import Path
 

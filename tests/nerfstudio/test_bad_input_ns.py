@@ -303,7 +303,7 @@ def test_ns_train_no_device_at_all(cases):
 
 def test_ns_train_loss_turning_nan_stops_naming_the_step(cases):
     result, _, after = cases["train-nan"]
-    line = one_line_error(result, "training step", "the loss became", "--optimizers.fields.optimizer.lr", prog="ns-train")
+    one_line_error(result, "training step", "the loss became", "--optimizers.fields.optimizer.lr", prog="ns-train")
     assert not [p for p in after if p.endswith(".ckpt")], after  # no NaN checkpoint
 
 

@@ -12,7 +12,9 @@ from sp_plugins.nerfstudio.neus import NeuralangeloLiteModel, coarse_to_fine_sch
 
 def test_the_schedule_at_neuralangelos_own_settings():
     # 500k steps, warm-up 5000, 4 -> 16 levels one per 5000 steps (all on at 65k)
-    at = lambda step: coarse_to_fine_schedule(step, 5000, 65000, 4, 16)
+    def at(step):
+        return coarse_to_fine_schedule(step, 5000, 65000, 4, 16)
+
     assert at(0) == (4, 0, 0.0)
     assert at(2500) == (4, 0, 0.5)  # mid-warm-up: half the curvature weight, still the initial levels
     assert at(4999).active_levels == 4 and at(4999).warmup < 1

@@ -11,7 +11,6 @@ from tests.helpers.ns_configs import SDF_METHODS, tiny_sdf_config, run_recording
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from sp_plugins.core import AlphaSchedule
 from sp_plugins.nerfstudio.neus import NeuralangeloLiteModel, SPNeuSModel
-from sp_plugins.nerfstudio.runs import train
 
 
 def test_registry_lists_our_methods_with_descriptions():

@@ -1,6 +1,5 @@
 """The CPU mesher for ``ns-export marching-cubes``: guards on nerfstudio, then the coarse-to-fine mesher behind it."""
 
-import functools
 import importlib.metadata
 import inspect
 import sys
@@ -108,8 +107,9 @@ def test_only_an_sdf_of_our_field_gets_the_cpu_mesher_and_only_while_our_model_e
     other = torch.nn.Linear(3, 1)
     assert patch.scoped_marching_cubes(lambda x: other(x)[:, 0], resolution=16) == "host mesher" and len(calls) == 1
     assert patch.scoped_marching_cubes(_sphere, resolution=16) == "host mesher" and len(calls) == 2
-    assert patch.evaluates_our_field(lambda x: model.field.forward_geonetwork(x)[:, 0])
-    mesh = patch.scoped_marching_cubes(lambda x: model.field.forward_geonetwork(x)[:, 0] * 0 + _sphere(x), resolution=32)
+    # F821 waived on the next two lines: pyflakes takes the lambdas' `model` for the name deleted below (they run before)
+    assert patch.evaluates_our_field(lambda x: model.field.forward_geonetwork(x)[:, 0])  # noqa: F821
+    mesh = patch.scoped_marching_cubes(lambda x: model.field.forward_geonetwork(x)[:, 0] * 0 + _sphere(x), resolution=32)  # noqa: F821
     assert len(calls) == 2 and mesh.is_watertight
     monkeypatch.undo()
     del model

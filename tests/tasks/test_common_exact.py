@@ -8,10 +8,8 @@ CUDA's rules). Each test names the mutants it kills (``bench/mutation_study.py``
 from __future__ import annotations
 
 import errno
-import io
 import os
 import sys
-from pathlib import Path
 
 import pytest
 import torch

@@ -1,9 +1,19 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
+import torch
 
 from sp_plugins import SPConfig
+from sp_plugins.encodings import HashGrid
+from sp_plugins.encodings.level_mask import PerPointLevelMask, level_mask, levels_from_alpha
 from sp_plugins.tasks.fields import EncodingConfig
-from sp_plugins.tasks.image import ImageFitConfig, load_image, pixel_centres, psnr, save_image
+from sp_plugins.tasks.image import (
+    ImageFitConfig, draw_pixels, importance_weights, load_image, pixel_centres, psnr, save_image,
+)
 
 GRID_2D = EncodingConfig(levels=6, log2_table_size=12, base_resolution=4, max_resolution=64)
 
@@ -64,17 +74,6 @@ def test_image_io_round_trip_and_errors(tmp_path):
 
 
 # -- phase 2: alpha-map guided adaptive techniques ------------------------------------------------
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-import torch
-
-from sp_plugins.encodings import HashGrid
-from sp_plugins.encodings.level_mask import PerPointLevelMask, level_mask, levels_from_alpha
-from sp_plugins.tasks.image import draw_pixels, importance_weights
-
 ADAPTIVE = dict(
     steps=200, batch=4096, encoding=GRID_2D, hidden=(32,), adaptive_alpha=True, alpha_map_lr=0.02,
     sp=SPConfig(alpha0=0.02, schedule="step", end=0.5),
@@ -104,7 +103,10 @@ def test_a_high_alpha_query_gets_fewer_levels_than_a_low_alpha_query():
     assert torch.equal(level_mask(torch.tensor([2.5]), 4, 2), torch.tensor([[1.0, 1.0, 1.0, 1.0, 0.5, 0.5, 0.0, 0.0]]))
     grid = HashGrid(num_levels=6, features_per_level=2, log2_hashmap_size=10, base_resolution=4, max_resolution=64,
                     backend="torch", n_input_dims=2, init_scale=1.0)
-    alpha_of = lambda x: torch.where(x[:, 0] < 0.5, 1e-2, 1e-3)  # high alpha on the left
+
+    def alpha_of(x):  # high alpha on the left
+        return torch.where(x[:, 0] < 0.5, 1e-2, 1e-3)
+
     masked = PerPointLevelMask(grid, lambda x: levels_from_alpha(alpha_of(x), 1e-3, 1e-2, 6, 2))
     x = torch.tensor([[0.2, 0.5], [0.8, 0.5]], requires_grad=True)
     feats = masked(x)

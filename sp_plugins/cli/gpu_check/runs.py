@@ -143,7 +143,7 @@ def time_run(name: str, method: str, how: str, scene: Path, out: Path, device, s
     last += sizes.counted
     model = trainer.pipeline.model
     sp = getattr(model, "sp", None)
-    finite = bool(torch.isfinite(torch.stack([l.float() for l in losses])).all())
+    finite = bool(torch.isfinite(torch.stack([loss.float() for loss in losses])).all())
     result = {
         "method": method, "route": how, "setup_s": setup_s, "steps_timed": sizes.timed,
         "seconds_per_step": statistics.median(times), "seconds_per_step_mean": statistics.fmean(times),

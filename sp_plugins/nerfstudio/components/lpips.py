@@ -14,7 +14,7 @@ from typing import Any, ContextManager, Dict
 
 import torch
 
-from sp_plugins.adapter.lpips import DetachedMetric, MissingLPIPS, lpips_available, lpips_weights_path, offline_factory
+from sp_plugins.adapter.lpips import DetachedMetric, MissingLPIPS, lpips_available, lpips_weights_path
 
 __all__ = ["MissingLPIPS", "detach_lpips", "drop_missing_lpips", "lpips_available", "lpips_weights_path", "offline_lpips"]
 
