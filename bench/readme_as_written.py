@@ -133,6 +133,15 @@ def run(item: Item, work: Path, log_dir: Path) -> Dict:
             "date": time.strftime("%Y-%m-%d %H:%M")}
 
 
+def restate(record: Dict, item: Item) -> Dict:
+    """``record`` with the costs the text states today (a figure in the text may change after the run)."""
+    for c in record["commands"]:
+        c["stated_s"] = next((s for key, s in item.stated.items() if key in c["command"]), None)
+        c["slow"] = c["stated_s"] is not None and c["seconds"] > SLOW * c["stated_s"]
+    record["unmatched_stated"] = [key for key in item.stated if not any(key in c["command"] for c in record["commands"])]
+    return record
+
+
 def report(records: List[Dict], skipped: List[Dict]) -> str:
     def fmt(s: Optional[float]) -> str:
         if s is None:
@@ -192,7 +201,7 @@ def main(argv=None) -> int:
         wanted = (args.only is None or re.search(args.only, b.source)) and (
             not args.document or b.path.resolve() in wanted_docs)
         if item.key in state and (state[item.key]["rc"] == 0 or not wanted):
-            records.append(state[item.key])
+            records.append(restate(state[item.key], item))
             continue
         if not wanted:
             continue
