@@ -263,8 +263,8 @@ td,th{{border:1px solid #ccc;padding:.3em .6em;text-align:right}}td:first-child,
 img{{max-width:100%}}</style></head>
 <body><h1>sp-compare</h1><ul>{runs_list}</ul>
 <h2>Overall</h2><table><tr>{head}</tr>{body}</table>
-<h2>Per held-out view</h2><table><tr><th>view</th><th>PSNR A</th><th>SSIM A</th><th>PSNR B</th><th>SSIM B</th></tr>{per_view}</table>
 {images}
+<h2>Per held-out view</h2><table><tr><th>view</th><th>PSNR A</th><th>SSIM A</th><th>PSNR B</th><th>SSIM B</th></tr>{per_view}</table>
 <p>{"<br>".join(esc(n) for n in notes)}</p>
 </body></html>
 """
