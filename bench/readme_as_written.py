@@ -214,13 +214,20 @@ def main(argv=None) -> int:
         for c in record["commands"]:
             print(f"  {c['seconds']:8.1f} s  {c['command'][:120]}", flush=True)
         print(f"  exit {record['rc']}, {record['seconds']:.0f} s", flush=True)
+        write_results(records, skipped)
+    print(write_results(records, skipped))
+    return 1 if failed else 0
+
+
+def write_results(records: List[Dict], skipped: List[Dict]) -> str:
+    """``bench/results/readme_as_written.md`` / ``.json`` from the records so far (after every block: a study
+    stopped midway keeps what it measured)."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "readme_as_written.json").write_text(json.dumps({"records": records, "skipped": skipped}, indent=1))
     text = report(records, skipped)
     (RESULTS / "readme_as_written.md").write_text(
         "# The README and docs as written (`python -m bench.readme_as_written`)\n\n" + text + "\n")
-    print(text)
-    return 1 if failed else 0
+    return text
 
 
 if __name__ == "__main__":
