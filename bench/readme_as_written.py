@@ -122,15 +122,10 @@ def run(item: Item, work: Path, log_dir: Path) -> Dict:
     end = time.time()
     traced = [(float(m["t"].replace(",", ".")), m["cmd"]) for m in map(TRACE.match, log.read_text(errors="replace").splitlines()) if m]
     traced = [(t, c) for t, c in traced if c != "set +x"] + [(end, "")]
-    commands = []
-    for (t, cmd), (t_next, _) in zip(traced, traced[1:]):
-        stated = next((s for key, s in item.stated.items() if key in cmd), None)
-        commands.append({"command": cmd, "seconds": round(t_next - t, 1), "stated_s": stated,
-                         "slow": stated is not None and t_next - t > SLOW * stated})
-    unmatched = [key for key in item.stated if not any(key in c["command"] for c in commands)]
-    return {"key": item.key, "where": block.where, "section": block.section, "rc": rc, "seconds": round(end - start, 1),
-            "commands": commands, "unmatched_stated": unmatched, "log": str(log.relative_to(OUT)),
-            "date": time.strftime("%Y-%m-%d %H:%M")}
+    commands = [{"command": cmd, "seconds": round(t_next - t, 1)} for (t, cmd), (t_next, _) in zip(traced, traced[1:])]
+    return restate({"key": item.key, "where": block.where, "section": block.section, "rc": rc,
+                    "seconds": round(end - start, 1), "commands": commands, "log": str(log.relative_to(OUT)),
+                    "date": time.strftime("%Y-%m-%d %H:%M")}, item)
 
 
 def restate(record: Dict, item: Item) -> Dict:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
-from sp_plugins.cli.run_folder import Refused
+from sp_plugins.cli.run_folder import Refused, answer, model_sdf
 
 PROG = "sp-compare"
 CURVES = {"loss": "Train Loss", "psnr": "Train Metrics Dict/psnr", "alpha": "Train Metrics Dict/sp_alpha"}
@@ -137,17 +137,12 @@ def mesh_of(run: Run, resolution: int, gt) -> None:
     """The run's SDF meshed at ``resolution`` (None when the model has no SDF), with metrics against ``gt``."""
     import torch
 
-    model = run.pipeline.model
-    if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):
+    found = model_sdf(run.pipeline.model)
+    if found is None:
         return
     from sp_plugins.geometry import mesh_metrics, sparse_extract_mesh
 
-    aabb = model.scene_box.aabb.detach().cpu().double().numpy()
-    device = next(model.parameters()).device
-
-    def sdf(points: torch.Tensor) -> torch.Tensor:
-        return model.field.forward_geonetwork(points.to(device))[:, 0]
-
+    sdf, aabb, device = found
     with torch.no_grad():
         mesh = sparse_extract_mesh(sdf, (aabb[0], aabb[1]), resolution, device=device, progress=False)
     run.mesh = {"mesh": mesh, "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
@@ -281,12 +276,7 @@ def print_table(rows: List[List[str]]) -> None:
 
 # -- the command -----------------------------------------------------------------------------------
 def main(argv: Optional[List[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return compare(args)
-    except Refused as refused:
-        print(f"{PROG}: error: {refused}", file=sys.stderr)
-        return 2
+    return answer(PROG, compare, build_parser().parse_args(argv))
 
 
 def compare(args) -> int:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import List, Optional
 
 from sp_plugins.cli.run_folder import Refused as _Refused  # one line for the user; exit status 2
+from sp_plugins.cli.run_folder import answer
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,11 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return _export(args)
-    except _Refused as refused:
-        print(f"sp-export-mesh: error: {refused}", file=sys.stderr)
-        return 2
+    return answer("sp-export-mesh", _export, args)
 
 
 def _export(args) -> int:
@@ -56,7 +53,7 @@ def _export(args) -> int:
         raise _Refused(f"--resolution {args.resolution}: need at least 2 cells per axis (128 and up for a useful mesh)")
     if (args.box_min is None) != (args.box_max is None):
         raise _Refused("give both --box-min and --box-max, or neither (the model's scene box)")
-    from sp_plugins.cli.run_folder import load_saved_config, setup_pipeline
+    from sp_plugins.cli.run_folder import load_saved_config, model_sdf, setup_pipeline
 
     config = load_saved_config(args.load_config)
 
@@ -71,25 +68,18 @@ def _export(args) -> int:
 
     # our command: our models' input errors print as one line here too
     registry.install_for_process("input_error_hook", command="sp-export-mesh")
-    import torch
 
     from sp_plugins.geometry import save_mesh, sparse_extract_mesh
 
     pipeline, _ = setup_pipeline(args.load_config, config)
     model = pipeline.model
-    if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):
+    found = model_sdf(model)
+    if found is None:
         raise _Refused(f"--load-config {args.load_config}: {type(model).__name__} has no SDF field; sp-export-mesh meshes "
                        "SDF methods (for density fields use ns-export pointcloud or poisson)")
-    if args.box_min is None:
-        aabb = model.scene_box.aabb.detach().cpu().double().numpy()
-        lo, hi = aabb[0], aabb[1]
-    else:
-        lo, hi = args.box_min, args.box_max
+    sdf, aabb, device = found
+    lo, hi = (aabb[0], aabb[1]) if args.box_min is None else (args.box_min, args.box_max)
     model.eval()
-    device = next(model.parameters()).device
-
-    def sdf(points: torch.Tensor) -> torch.Tensor:
-        return model.field.forward_geonetwork(points.to(device))[:, 0]
 
     start = time.perf_counter()
     try:

@@ -8,12 +8,35 @@ line naming the file and what to do.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
-from typing import Any, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 
 class Refused(Exception):
     """One line for the user; exit status 2."""
+
+
+def answer(prog: str, command: Callable[[Any], int], args: Any) -> int:
+    """``command(args)``, with :class:`Refused` printed as ``PROG: error: ...`` and exit status 2."""
+    try:
+        return command(args)
+    except Refused as refused:
+        print(f"{prog}: error: {refused}", file=sys.stderr)
+        return 2
+
+
+def model_sdf(model) -> Optional[Tuple[Callable, Any, Any]]:
+    """``(sdf, aabb, device)`` of a nerfstudio model with an SDF field (``forward_geonetwork``, the callable nerfstudio
+    meshes; ``aabb`` the scene box as a 2x3 float64 array), or None for a model without one."""
+    if not hasattr(model.config, "sdf_field") or not hasattr(model.field, "forward_geonetwork"):
+        return None
+    device = next(model.parameters()).device
+
+    def sdf(points):
+        return model.field.forward_geonetwork(points.to(device))[:, 0]
+
+    return sdf, model.scene_box.aabb.detach().cpu().double().numpy(), device
 
 
 def versions() -> str:
