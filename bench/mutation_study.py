@@ -28,10 +28,12 @@ timeout, equivalent, pending, wall time, the survivors' diffs) and the table
 listed with its reason in ``bench/results/mutation_study/equivalent.json`` (module -> list of
 ``{"operator", "line", "reason"}``, ``line`` the original source line, stripped, and optionally
 ``occurrence``, cosmic-ray's index of the mutant, where only one of the line's mutants is); it is then counted
-as equivalent, not survived. The sessions live in ``$SP_MUTATION_DIR`` (default
-``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to start it afresh. After the
-module changed the study does so itself; after only its covering tests (or their list) changed, it
-runs the surviving mutants again and keeps the rest (a test added cannot revive a killed mutant).
+as equivalent, not survived. Which mutants each test was written for (and kills) is kept by hand in
+``bench/results/mutation_study/kills.json`` (pytest id -> note), not in the tests' docstrings. The sessions
+live in ``$SP_MUTATION_DIR`` (default ``~/.cache/sp-mutation-study``): delete a module's ``.sqlite`` there to
+start it afresh. After the module changed the study does so itself; after only its covering tests (or their
+list) changed, it runs the surviving mutants again and keeps the rest (a test added cannot revive a killed
+mutant).
 
 Each mutant's pytest runs in a fork of a server that imported torch & co. once
 (``bench/mutation_forkserver.py``): ``core/noise.py``'s 43 mutants took 65 s this way against 512 s

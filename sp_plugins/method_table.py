@@ -25,13 +25,15 @@ from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
 PROG = "python -m sp_plugins.method_table"
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = {"nerfstudio": "docs/guides/any-method.md", "sdfstudio": "docs/guides/sdfstudio.md"}
-"""Where each host's table lives in a checkout (the guide that explains ``sp-train`` / ``sp-sdfstudio-train``)."""
-
-
 def page(host: str, root: Path = ROOT) -> Path:
-    """The docs page holding ``host``'s table under ``root`` (a checkout's root)."""
-    return root / PAGES[host]
+    """The docs page holding ``host``'s table under ``root`` (a checkout's root): the host's
+    registry entry names it (:attr:`sp_plugins.adapter.hosts.Host.docs_page`)."""
+    from sp_plugins.adapter import hosts
+
+    docs_page = hosts.get(host).docs_page
+    if docs_page is None:
+        raise ValueError(f"host {host!r} names no docs page for its method table (Host.docs_page)")
+    return root / docs_page
 HEADS = {
     "nerfstudio": "| nerfstudio method | under `sp-train METHOD` |",
     "sdfstudio": "| sdfstudio method | under `sp-sdfstudio-train sp-<method>` |",
@@ -145,7 +147,7 @@ def table(host: str, outcomes: Optional[Dict[str, Tuple[int, str]]] = None) -> s
 
 
 def write(root: Path, host: str) -> Path:
-    """Refresh ``host``'s table in its docs page under ``root`` (:data:`PAGES`). Raises ``ValueError`` (one
+    """Refresh ``host``'s table in its docs page under ``root`` (its registry entry's ``docs_page``). Raises ``ValueError`` (one
     line) when the page has no such table; checked before the host is imported."""
     doc = page(host, root)
     text = doc.read_text() if doc.is_file() else ""

@@ -187,7 +187,7 @@ MUTATIONS: List[Mutation] = [
     Mutation("unseeded noise: every rank draws the same stream", "sp_plugins/core/preconditioner.py",
              "return (drawn + rank) % (1 << 63)", "return drawn % (1 << 63)", (PRECONDITIONER_EXACT,)),
     Mutation("config.yml: a subscription imports any module before its package is checked", "sp_plugins/adapter/safe_config.py",
-             "if not _within(generic, CLASS_PACKAGES):", "if False:", (SAFE_CONFIG_EXACT,)),
+             "if not _within(generic, self._allowed.classes):", "if False:", (SAFE_CONFIG_EXACT,)),
     Mutation("half precision rounded back", "sp_plugins/core/perturb.py",
              "x = x.to(compute_dtype(x.dtype))", "pass", (CORE,)),
     # -- the demo --------------------------------------------------------------------------------

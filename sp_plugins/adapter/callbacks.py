@@ -14,6 +14,7 @@ from typing import Any, Callable, List, Literal, Optional
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
+from sp_plugins.core.settings import SPSettings
 
 ALPHA_GRID_GROUP = "sp_alpha_grid"
 """Name of the optimizer param group holding a learnable alpha grid."""
@@ -46,7 +47,7 @@ def start_step(attributes: Any) -> Optional[int]:
     return None if start is None else int(start)
 
 
-def schedule_problem(config: SPConfig, total_steps: int, steps_flag: str = "--max-num-iterations") -> Optional[str]:
+def schedule_problem(config: SPSettings, total_steps: int, steps_flag: str) -> Optional[str]:
     """None when ``config``'s schedule fits a run of ``total_steps``; else the message to show,
     naming the flags a user typed."""
     try:  # only the end is checked against the run (alpha0, its units and final_ratio: SPConfig's own validation)
@@ -92,7 +93,7 @@ def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes:
     return make("before", update)
 
 
-def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, make: MakeCallback, steps_flag: str = "--max-num-iterations") -> List[Any]:
+def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
     """Everything a model with SP registers: the schedule (checked against the run's length, one
     line naming the flags when it does not fit), plus the alpha grid's learning rate."""
     total = trainer_total_steps(attributes)

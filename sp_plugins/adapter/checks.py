@@ -22,6 +22,7 @@ import zipfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, List, Optional, Sequence, Tuple
 
+from sp_plugins.adapter.hosts import Flags
 from sp_plugins.adapter.errors import InputError
 
 
@@ -117,24 +118,25 @@ def check_known_settings(config: object, prefix: str, source: Optional[str] = No
                      f"{' and '.join(parts)}; load it with the version that wrote it, or retrain (this is {_versions()})")
 
 
-def check_device(device_type: str, count: int = 1, flag: str = "--machine.device-type") -> None:
-    """``count`` devices of ``device_type`` (cpu, cuda, mps) exist here."""
+def check_device(device_type: str, count: int = 1, *, flags: Flags) -> None:
+    """``count`` devices of ``device_type`` (cpu, cuda, mps) exist here; errors name the host's ``flags``."""
     import torch
 
-    if count < 1:  # before nerfstudio's launcher, which stops with a traceback (world_size cannot be 0)
-        raise InputError(f"--machine.num-devices {count}: training needs at least one device; pass --machine.num-devices 1")
+    device, devices = flags.device, flags.devices
+    if count < 1:  # before the host's launcher, which stops with a traceback (world_size cannot be 0)
+        raise InputError(f"{devices} {count}: training needs at least one device; pass {devices} 1")
     if device_type == "cuda":
         available = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if available == 0:
-            raise InputError(f"{flag} cuda: CUDA is not available on this machine; pass {flag} cpu")
+            raise InputError(f"{device} cuda: CUDA is not available on this machine; pass {device} cpu")
         if count > available:
-            raise InputError(f"--machine.num-devices {count}: this machine has {available} CUDA device(s)")
+            raise InputError(f"{devices} {count}: this machine has {available} CUDA device(s)")
     elif device_type == "mps":
         if not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-            raise InputError(f"{flag} mps: Apple's MPS is not available on this machine; pass {flag} cpu")
-    if device_type != "cuda" and count > 1:  # nerfstudio's launcher asserts CUDA for more than one device
-        raise InputError(f"--machine.num-devices {count}: nerfstudio trains on more than one device only with "
-                         f"{flag} cuda; pass --machine.num-devices 1 (README: Multi-process training)")
+            raise InputError(f"{device} mps: Apple's MPS is not available on this machine; pass {device} cpu")
+    if device_type != "cuda" and count > 1:  # the hosts' launchers assert CUDA for more than one device
+        raise InputError(f"{devices} {count}: training on more than one device needs {device} cuda; "
+                         f"pass {devices} 1 (README: Multi-process training)")
 
 
 def existing_outputs(out: Path, names: Iterable[str], flag: str) -> List[str]:

@@ -9,7 +9,7 @@ dict keys stay the host's.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional, Set, TypeVar
+from typing import Any, Callable, Optional, Protocol, Set, TypeVar, runtime_checkable
 
 from sp_plugins.core import StochasticPreconditioner
 
@@ -33,6 +33,20 @@ class PreconditionerHandle:
     def __repr__(self) -> str:
         return (f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls}, "
                 f"reads={sorted(self.reads)})")
+
+
+@runtime_checkable
+class ReadPointField(Protocol):
+    """A field that declares where it queries a batch of samples: SP computes its offset there.
+
+    The one way to declare a read point, for any field class (a user's, a plugin's, ours): define
+    ``sp_read_positions`` on the class, in the field's own file; no seam is edited. A host's built-in
+    field classes that query elsewhere than the host's default get theirs from the host's method
+    table (``READ_POINTS`` in ``sp_plugins.<host>.table``), and the seam reads both the same way."""
+
+    def sp_read_positions(self, frustums: Any) -> Any:
+        """The positions ``[*bs, 3]`` this field queries for the host's sample geometry ``frustums``."""
+        ...
 
 
 class SPFieldMixin:

@@ -69,15 +69,21 @@ class SPModelBase:
     sp: StochasticPreconditioner
     config: Any  # the host model's (its config holds an ``sp`` field)
     training: bool  # nn.Module's
-    steps_flag = "--max-num-iterations"
-    """The flag that sets the run's length in this host's ``ns-train`` (named in errors)."""
+    steps_flag: str
+    """The flag that sets the run's length in this host's training command (named in errors): the
+    host's model sets it from its registry entry (:attr:`sp_plugins.adapter.hosts.Flags.steps`)."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        missing = unimplemented(cls) if issubclass(cls, torch.nn.Module) else ()
+        if not issubclass(cls, torch.nn.Module):
+            return
+        missing = unimplemented(cls)
         if missing:
             raise TypeError(f"{cls.__qualname__} puts SP on a host model but does not implement {', '.join(missing)} "
                             "(the methods SPModelBase declares abstract)")
+        if not isinstance(getattr(cls, "steps_flag", None), str):
+            raise TypeError(f"{cls.__qualname__} puts SP on a host model but sets no steps_flag "
+                            "(its host's Flags.steps, from the host registry)")
 
     # -- what a host provides ----------------------------------------------------------------------
     @abc.abstractmethod

@@ -34,5 +34,7 @@ from the paper, which does not run these hosts. About 0.5-1% of a Blender or ner
 diagonal, exponential to 0 over the first 20% of training; no reflection, so it is safe in
 contracted (unbounded) scenes. Bounded fields do better with ``--pipeline.model.sp.boundary reflect``."""
 
+BOX_FIELD = SPConfig(alpha0=0.02, end=0.2, schedule="exponential", boundary="reflect")
+"""A field that lives in the scene box (TensoRF's grid): :data:`POSITION_FIELD`, reflected into the box."""
 DEFAULT = POSITION_FIELD
 """What ``with_sp`` / ``sp-train`` use for a method we have no preset for."""

@@ -43,23 +43,37 @@ import re
 import typing
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Iterator, Optional
+from typing import Any, Iterator, NamedTuple, Optional, Tuple
 
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
+from sp_plugins.adapter import hosts as host_registry
 from sp_plugins.adapter.errors import InputError, first_line
 
-__all__ = ["ConfigRefused", "RunConfigLoader", "load_run_config", "reading_configs_safely", "weights_only_checkpoints"]
+__all__ = ["Allowed", "ConfigRefused", "allowed", "RunConfigLoader", "load_run_config", "reading_configs_safely", "weights_only_checkpoints"]
 
 PYTHON = "tag:yaml.org,2002:python/"
-PACKAGES = ("nerfstudio", "sp_plugins")
-"""Where config dataclasses, enums and instantiated classes may come from: the host's package
-(sdfstudio's is also named ``nerfstudio``) and ours."""
-CLASS_PACKAGES = PACKAGES + ("torch.optim",)
-"""Where a ``!!python/name`` class may come from (``torch.optim.adam.Adam``, ``torch.optim.lr_scheduler.MultiStepLR``)."""
-ENUM_PACKAGES = PACKAGES + ("nerfacc",)
-"""Where an enum may come from (sdfstudio's instant-ngp stores ``nerfacc.contraction.ContractionType``)."""
+CLASS_EXTRA = ("torch.optim",)
+"""Where else a ``!!python/name`` class may come from (``torch.optim.adam.Adam``, ``torch.optim.lr_scheduler.MultiStepLR``)."""
+ENUM_EXTRA = ("nerfacc",)
+"""Where else an enum may come from (sdfstudio's instant-ngp stores ``nerfacc.contraction.ContractionType``)."""
+
+
+class Allowed(NamedTuple):
+    """The packages each kind of tag may name."""
+
+    objects: Tuple[str, ...]
+    """Config dataclasses, enums and instantiated classes: ours and every registered host's
+    (:func:`sp_plugins.adapter.hosts.packages`; sdfstudio's is also named ``nerfstudio``)."""
+    classes: Tuple[str, ...]
+    enums: Tuple[str, ...]
+
+
+def allowed() -> Allowed:
+    """The allow-list, from the host registry."""
+    objects = host_registry.packages()
+    return Allowed(objects, objects + CLASS_EXTRA, objects + ENUM_EXTRA)
 FUNCTIONS = frozenset({"nerfstudio.data.utils.nerfstudio_collate.nerfstudio_collate"})
 """The only functions a config names (the data manager's ``collate_fn``); it is stored, not called."""
 PATHS = frozenset({"pathlib.PosixPath", "pathlib.WindowsPath", "pathlib.Path", "pathlib.PurePosixPath",
@@ -96,6 +110,8 @@ class RunConfigLoader(yaml.SafeLoader):
     def __init__(self, stream: Any) -> None:
         super().__init__(stream)
         self._names: dict = {}
+        self._allowed = allowed()
+        self._renamed = host_registry.renamed()
 
     # -- the check, on the composed nodes -----------------------------------------------------------
     def get_single_data(self) -> Any:
@@ -143,13 +159,13 @@ class RunConfigLoader(yaml.SafeLoader):
         if name in FUNCTIONS:
             self._resolve(name, node)
             return
-        if not _within(name, CLASS_PACKAGES):
+        if not _within(name, self._allowed.classes):
             raise _Refusal(node, "names something outside the host's and sp-plugins' packages")
         if not isinstance(self._resolve(name, node), type):
             raise _Refusal(node, "names something that is not a class")
 
     def _vet_object(self, name: str, node: Node) -> None:
-        if not _within(name, PACKAGES):
+        if not _within(name, self._allowed.objects):
             raise _Refusal(node, "would build an object from outside the host's and sp-plugins' packages")
         cls = self._resolve(name, node)
         if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
@@ -175,13 +191,13 @@ class RunConfigLoader(yaml.SafeLoader):
             if first is None or not first.tag.startswith(PYTHON + "name:"):
                 raise _Refusal(node, "may only subscribe a generic class the config names")
             generic = first.tag[len(PYTHON + "name:"):]
-            if not _within(generic, CLASS_PACKAGES):  # checked before _resolve imports it (an import runs its module)
+            if not _within(generic, self._allowed.classes):  # checked before _resolve imports it (an import runs its module)
                 raise _Refusal(first, "names something outside the host's and sp-plugins' packages")
             cls = self._resolve(generic, first)
             if not (isinstance(cls, type) and issubclass(cls, typing.Generic)):
                 raise _Refusal(node, "may only subscribe a generic class")
             return
-        if not _within(name, ENUM_PACKAGES):
+        if not _within(name, self._allowed.enums):
             raise _Refusal(node, f"would call {name}")
         cls = self._resolve(name, node)
         if not (isinstance(cls, type) and issubclass(cls, enum.Enum)):
@@ -191,8 +207,8 @@ class RunConfigLoader(yaml.SafeLoader):
 
     def _resolve(self, name: str, node: Node) -> Any:
         """``module.attr`` imported, only for names the callers checked are in an allowed package."""
-        if name not in self._names:
-            module_name, _, attr = name.rpartition(".")
+        if name not in self._names:  # a class a host renamed since the run was saved: its new path
+            module_name, _, attr = self._renamed.get(name, name).rpartition(".")
             if not module_name or not attr:
                 raise _Refusal(node, "needs a dotted name (module.Class)")
             try:

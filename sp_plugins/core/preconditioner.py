@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-from typing import TYPE_CHECKING, Any, Callable, Optional, TypeVar, cast
+from typing import Any, Callable, Optional, TypeVar, cast
 
 import torch
 from jaxtyping import Float
@@ -15,9 +15,8 @@ from sp_plugins.core.alpha_grid import AlphaGrid
 from sp_plugins.core.boundary import BoundsLike, as_bounds
 from sp_plugins.core.perturb import compute_dtype, perturb, perturbed_mean
 from sp_plugins.core.schedule import AlphaSchedule
+from sp_plugins.core.settings import SPSettings
 
-if TYPE_CHECKING:  # the config names this class as its _target: a type-only import the other way
-    from sp_plugins.core.config import SPConfig
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +57,7 @@ class StochasticPreconditioner(nn.Module):
     seeded from ``(seed, rank, step)`` (seeded runs) or the global generator (``seed=None``).
 
     Args:
-        config: the shared :class:`SPConfig`.
+        config: the shared settings (an :class:`~sp_plugins.core.config.SPConfig`).
         total_steps: length of training (resolves fractional ``end``); can be set later.
         scene_diagonal: needed when ``config.relative_to_diagonal``.
         bounds: the box for ``reflect`` / ``clamp`` and for the alpha grid.
@@ -71,7 +70,7 @@ class StochasticPreconditioner(nn.Module):
 
     def __init__(
         self,
-        config: SPConfig,
+        config: SPSettings,
         *,
         total_steps: Optional[int] = None,
         scene_diagonal: Optional[float] = None,

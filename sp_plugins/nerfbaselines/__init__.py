@@ -6,6 +6,8 @@ through the nerfstudio seam unchanged; this package only says which methods exis
 nerfbaselines' nerfstudio wrapper gets wrong for our methods (:mod:`~sp_plugins.nerfbaselines.method`):
 ``--set`` values typed to their field (:mod:`~sp_plugins.nerfbaselines.overrides`), the dataset's scene
 box (:mod:`~sp_plugins.nerfbaselines.scene_box`), ``rgb_fine`` outputs, LPIPS offline (the registry's
-``nerfbaselines_lpips`` patch). :mod:`~sp_plugins.nerfbaselines.sdfstudio_loader` loads our SDFStudio
-layout. Importing this package imports neither host.
+``nerfbaselines_lpips`` patch), and checks that a run does what its id promises about SP
+(:mod:`~sp_plugins.nerfbaselines.sp_state`). :mod:`~sp_plugins.nerfbaselines.sdfstudio_loader` loads our
+SDFStudio layout, :mod:`~sp_plugins.nerfbaselines.blender_loader` a Blender-format folder of your own.
+Importing this package imports neither host.
 """

@@ -4,6 +4,9 @@ it falls short for our methods:
 
 - the nerfstudio method comes from the spec id (:data:`sp_plugins.nerfbaselines.specs.ENTRIES`);
   ``<id>+sp`` puts SP on it with ``with_sp``;
+- the built model's SP state is checked against what the id promises, and recorded in ``hparams``
+  (:mod:`~sp_plugins.nerfbaselines.sp_state`); a ``--set pipeline.model.sp.enabled`` against an
+  ``+sp`` / ``+sp-off`` id is refused in one line, naming the id that trains so;
 - ``--set`` values are typed to their field and an unknown key is refused in one line
   (:mod:`~sp_plugins.nerfbaselines.overrides`), exit status 2, before the trainer is built;
 - models that name their image ``rgb_fine`` (vanilla-nerf, MipNeRF) render it as ``rgb``;
@@ -23,7 +26,7 @@ from typing import Any, Optional
 
 from nerfbaselines.methods.nerfstudio import NerfStudio
 
-from sp_plugins.nerfbaselines import scene_box, specs
+from sp_plugins.nerfbaselines import scene_box, sp_state, specs
 from sp_plugins.nerfbaselines.outputs import with_output_aliases
 from sp_plugins.nerfbaselines.overrides import OverrideError, apply_overrides
 from sp_plugins.patches import registry
@@ -33,6 +36,7 @@ __all__ = ["SPNerfStudio", "seed"]
 log = logging.getLogger("sp_plugins.nerfbaselines")
 PASSED = ("method", "pipeline.datamanager.dataparser")
 """Override keys nerfbaselines' wrapper itself interprets (the rest are ours to type and set)."""
+SP_ENABLED = "pipeline.model.sp.enabled"
 
 
 def refuse(message: str) -> None:
@@ -69,6 +73,7 @@ class SPNerfStudio(NerfStudio):
         # (read by nerfbaselines' __init__; a "method" key it would also try to set as a config field)
         self._default_nerfstudio_name = passed.pop("method", self._sp_entry.nerfstudio_name)
         self._sp_overrides = overrides
+        self._sp_state: dict = {}
         self._sp_box = None  # radiance methods keep the box nerfstudio's parser gives (as under ns-train)
         if self._sp_entry.sdf:
             try:
@@ -87,6 +92,7 @@ class SPNerfStudio(NerfStudio):
             apply_overrides(config, self._sp_overrides, self._sp_id)
         except OverrideError as err:
             refuse(str(err))
+        self._refuse_contradicting_set(config)
         if hasattr(config.pipeline.datamanager, "check_data"):  # nerfbaselines' loader read the folder, not ns-train's
             config.pipeline.datamanager.check_data = False
         parser = config.pipeline.datamanager.dataparser
@@ -104,8 +110,27 @@ class SPNerfStudio(NerfStudio):
         seed(self.config.machine.seed)
         with registry.scope("nerfstudio_lpips"):
             super()._setup(train_dataset, config_overrides)
+        self._sp_state = sp_state.model_state(self._trainer.pipeline.model)
+        sp_state.check(self._sp_id, sp_state.promised(self._sp_id, self.config), self._sp_state)
         if self.checkpoint is not None and self._loaded_step:
             self._restore_step_state(self._loaded_step - 1)
+
+    def _refuse_contradicting_set(self, config: Any) -> None:
+        """``--set pipeline.model.sp.enabled`` against an ``+sp`` / ``+sp-off`` id: the row would be
+        mislabelled; the other id trains so. (A plain id's SP follows its config: the run records it.)"""
+        if SP_ENABLED not in self._sp_overrides or not self._sp_entry.add_sp:
+            return
+        promise = sp_state.promised(self._sp_id, config)
+        if sp_state.config_enabled(config) != promise:
+            refuse(f"--set {SP_ENABLED}={self._sp_overrides[SP_ENABLED]}: {self._sp_id} trains with SP "
+                   f"{'on' if promise else 'off'}; train {sp_state.twin(self._sp_id)} for SP {'off' if promise else 'on'}")
+
+    def get_info(self):
+        """nerfbaselines' info, with what the built model does about SP in ``hparams`` (saved with the results)."""
+        info = super().get_info()
+        if self._sp_state:
+            info["hparams"] = {**info.get("hparams", {}), **sp_state.as_hparams(self._sp_state)}
+        return info
 
     def _restore_step_state(self, step: int) -> None:
         """State that depends on the step and lives outside the state dict (nerfacto's proposal

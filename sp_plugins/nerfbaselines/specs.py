@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from typing import Dict, NamedTuple
 
+from sp_plugins.nerfbaselines.blender_loader import LAYOUT, LAYOUT_KEY  # (json and os: the module imports no host)
+
 WRAPPER = "sp_plugins.nerfbaselines.method:SPNerfStudio"
 SP_SUFFIX = "+sp"
 SP_OFF_SUFFIX = "+sp-off"
@@ -63,12 +65,22 @@ _NERFACTO_BLENDER = {  # nerfbaselines' own blender preset of nerfacto (less its
     "pipeline.model.average_init_density": 1.0, "pipeline.model.camera_optimizer.mode": "off",
 }
 _NERFACTO_SP_SCENE = {**_SP_SCENE_PRESET, **_NERFACTO_BLENDER}
+BLENDER_LAYOUT = "blender-layout"
+"""The loader of a Blender-format folder of your own (:mod:`~sp_plugins.nerfbaselines.blender_loader`),
+and the preset every method of ours applies to what it loads."""
+_BLENDER_LAYOUT_PRESET = {  # what `ns-train <method> blender-data --data DIR` trains with
+    "@apply": [{LAYOUT_KEY: LAYOUT}],
+    "@description": "A Blender-format folder (our blender-layout loader): nerfstudio's blender-data parser (poses as "
+                    "given, white background), as ns-train ... blender-data --data DIR.",
+    "pipeline.datamanager.dataparser": "blender-data",
+}
 
 
 def method_spec(method_id: str) -> dict:
     entry = ENTRIES[method_id]
     kind = ("SP off (baseline of +sp), " if entry.sp_off else "SP on ") if entry.add_sp else ""
-    presets = {SP_SCENE: _NERFACTO_SP_SCENE if "nerfacto" in entry.nerfstudio_name else _SP_SCENE_PRESET}
+    presets: Dict[str, dict] = {SP_SCENE: _NERFACTO_SP_SCENE if "nerfacto" in entry.nerfstudio_name else _SP_SCENE_PRESET,
+                                 BLENDER_LAYOUT: _BLENDER_LAYOUT_PRESET}
     if entry.nerfstudio_name == "nerfacto" and entry.add_sp:
         presets.update({
             "blender": {"@apply": [{"dataset": "blender"}], **_NERFACTO_BLENDER},
@@ -101,6 +113,10 @@ def _register() -> None:
     register({
         "id": "sdfstudio-layout",
         "load_dataset_function": "sp_plugins.nerfbaselines.sdfstudio_loader:load_sdfstudio_dataset",
+    })
+    register({
+        "id": BLENDER_LAYOUT,
+        "load_dataset_function": "sp_plugins.nerfbaselines.blender_loader:load_blender_folder",
     })
     register({"id": SP_SCENE, "evaluation_protocol_class": "sp_plugins.nerfbaselines.protocol:SceneProtocol"})
     register({

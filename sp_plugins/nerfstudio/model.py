@@ -32,10 +32,10 @@ from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.nerfstudio import table
+from sp_plugins.nerfstudio.host import HOST
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
-from sp_plugins.nerfstudio.registration import preset_for
 from sp_plugins.nerfstudio.seam import attach_seam, check_reached, seam_fields
 
 __all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
@@ -100,6 +100,8 @@ def refuse_unreachable_settings(model_config: object) -> None:
 class SPModel(adapter_model.SPModelBase):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
+    steps_flag = HOST.flags.steps
+
     def populate_modules(self) -> None:
         install_process_settings(self)
         check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
@@ -126,7 +128,7 @@ class SPModel(adapter_model.SPModelBase):
     # -- what SPModelBase asks of a host -------------------------------------------------------------
     @classmethod
     def sp_preset(cls, model_config: Any) -> SPConfig:
-        return preset_for(cls.sp_host_class())
+        return table.preset_for(model_config)
 
     def sp_scene_aabb(self) -> torch.Tensor:
         return self.scene_box.aabb  # type: ignore[attr-defined]

@@ -35,7 +35,7 @@ from nerfstudio.models.vanilla_nerf import NeRFModel, VanillaModelConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sp_plugins.adapter import presets
-from sp_plugins.core import SPConfig
+from sp_plugins.nerfstudio import table
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig
 from sp_plugins.nerfstudio.components.hash_encoding import NerfactoHashGridModelConfig
@@ -71,8 +71,8 @@ def relu_field_method(name: str, *, stages: int, sp: bool, description: str) -> 
         hierarchy_stages=stages,
         num_samples=512,
         eval_num_rays_per_chunk=4096,
-        sp=dataclasses.replace(presets.RELU_FIELD, enabled=sp),
     )
+    model.sp = dataclasses.replace(table.preset_for(model), enabled=sp)
     config = checked_trainer(
         name,
         CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=16384, eval_num_rays_per_batch=4096),
@@ -92,7 +92,7 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
         num_importance_samples=128,
         eval_num_rays_per_chunk=1024,
     )
-    model.sp = dataclasses.replace(model.sp, enabled=sp)
+    model.sp = dataclasses.replace(table.preset_for(model), enabled=sp)
     config = checked_trainer(
         name,
         CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=1024),
@@ -103,11 +103,12 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
     return _with_sp_optimizer(config, description)
 
 
-def _generic(config: TrainerConfig, sp: SPConfig, description: str) -> MethodSpecification:
-    """A host method plus SP: the generic route (``with_sp``) with the method's preset."""
+def _generic(config: TrainerConfig, description: str) -> MethodSpecification:
+    """A host method plus SP: the generic route (``with_sp``), with the preset ``sp-train`` gives it
+    (:func:`sp_plugins.nerfstudio.table.preset_for`)."""
     from sp_plugins.nerfstudio.registration import with_sp
 
-    return with_sp(config, dataclasses.replace(sp), name=config.method_name, description=description)
+    return with_sp(config, name=config.method_name, description=description)
 
 
 def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
@@ -120,7 +121,7 @@ def vanilla_nerf_method(name: str, description: str) -> MethodSpecification:
             "temporal_distortion": {"optimizer": RAdamOptimizerConfig(lr=5e-4, eps=1e-08), "scheduler": None},
         },
     )
-    return _generic(config, presets.POSITION_FIELD, description)
+    return _generic(config, description)
 
 
 def nerfacto_method(name: str, description: str) -> MethodSpecification:
@@ -142,7 +143,7 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
         viewer_rays=1 << 15,
         steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=True,
     )
-    return _generic(config, presets.POSITION_FIELD, description)
+    return _generic(config, description)
 
 
 def tensorf_method(name: str, description: str) -> MethodSpecification:
@@ -167,4 +168,4 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
         viewer_rays=1 << 15,
         steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=False,
     )
-    return _generic(config, dataclasses.replace(presets.POSITION_FIELD, boundary="reflect"), description)
+    return _generic(config, description)

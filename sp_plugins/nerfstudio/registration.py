@@ -19,37 +19,14 @@ changes nothing in the process.
 from __future__ import annotations
 
 import copy
-import dataclasses
 from typing import Any, Dict, Optional, Tuple
 
-from sp_plugins.adapter import presets
-from sp_plugins.adapter.tables import lookup
-from sp_plugins.adapter.variants import convert, table_refusal, target_class
+from sp_plugins.adapter.variants import convert, target_class
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio import table
+from sp_plugins.nerfstudio.table import preset_for, refusal
 
-
-def _cuda_available() -> bool:
-    import torch
-
-    return torch.cuda.is_available()
-
-
-def refusal(config: Any) -> Optional[str]:
-    """Why SP cannot be put on the method of trainer config ``config`` (None when it can).
-
-    Decided from classes only (nothing is built): a method that passes can still be refused when
-    its model is built or after its first step (see :class:`sp_plugins.nerfstudio.model.SPModel`)."""
-    if type(config).__name__ == "ExternalMethodDummyTrainerConfig":
-        return "it is an external method that is not installed; install it, then it is listed here"
-    cuda = {path: (lambda why=why: None if _cuda_available() else why) for path, why in table.NEEDS_CUDA.items()}
-    return table_refusal(getattr(getattr(config, "pipeline", None), "model", None), table.REFUSED_MODELS, cuda)[1]
-
-
-def preset_for(model: type) -> SPConfig:
-    """A copy of the SP settings for host model class ``model`` (``table.PRESETS``)."""
-    found = lookup(table.PRESETS, model)
-    return dataclasses.replace(found[1] if found else presets.DEFAULT)
+__all__ = ["preset_for", "refusal", "sp_methods", "with_sp"]
 
 
 def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = None, description: Optional[str] = None):

@@ -23,7 +23,6 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from sp_plugins.adapter import presets
 from sp_plugins.core import SPConfig
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataManagerConfig
@@ -31,6 +30,7 @@ from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, 
 from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
 from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig
 from sp_plugins.nerfstudio.components.trainer import checked_trainer
+from sp_plugins.nerfstudio import table
 
 PAPER_HASH_GRID = dict(num_levels=16, base_res=16, max_res=2048, log2_hashmap_size=19, features_per_level=2)
 
@@ -70,7 +70,8 @@ def neus_method(name: str, *, hash_grid: bool, sp: bool, description: str) -> Me
     field = SPSDFFieldConfig(use_grid_feature=hash_grid, **(PAPER_HASH_GRID if hash_grid else {}))
     if hash_grid:  # a small MLP on the grid, as in nerfstudio's neus-facto
         field = dataclasses.replace(field, num_layers=2, num_layers_color=2, hidden_dim=256)
-    model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, sp=_sp(presets.NEUS, sp))
+    model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field)
+    model.sp = _sp(table.preset_for(model), sp)
     return MethodSpecification(config=sdf_trainer_config(name, model, 100_000, 5e-4, 5000), description=description)
 
 
@@ -78,10 +79,8 @@ def neuralangelo_method(name: str, *, sp: bool, description: str, alpha_grid: Op
     field = SPSDFFieldConfig(
         use_grid_feature=True, numerical_gradients=True, num_layers=2, num_layers_color=2, hidden_dim=256, **PAPER_HASH_GRID
     )
-    sp_config = _sp(presets.NEURALANGELO, sp)
+    model = NeuralangeloLiteModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, coarse_to_fine=not sp)
+    model.sp = _sp(table.preset_for(model), sp)
     if alpha_grid is not None:
-        sp_config = dataclasses.replace(sp_config, alpha_grid=alpha_grid)
-    model = NeuralangeloLiteModelConfig(
-        eval_num_rays_per_chunk=1024, sdf_field=field, sp=sp_config, coarse_to_fine=not sp
-    )
+        model.sp = dataclasses.replace(model.sp, alpha_grid=alpha_grid)
     return MethodSpecification(config=sdf_trainer_config(name, model, 500_000, 1e-3, 5000), description=description)

@@ -144,6 +144,11 @@ class SPSDFField(SPFieldMixin, SDFField):
             self.encoding.set_active_levels(int(self.active_levels))
 
     # -- queries ---------------------------------------------------------------------------------
+    def sp_read_positions(self, frustums: Frustums) -> Float[Tensor, "*bs 3"]:
+        """Where this field queries: the bins' starts (a :class:`~sp_plugins.adapter.field.ReadPointField`,
+        declared as any field of a user's would be)."""
+        return frustums.get_start_positions()
+
     def forward_geonetwork(self, inputs: Tensor) -> Tensor:
         serving_mesher(self)  # ns-export's mesher asks whether a callable evaluates our field
         return super().forward_geonetwork(inputs)
@@ -174,7 +179,7 @@ class SPSDFField(SPFieldMixin, SDFField):
         if self.config.perturb_sampler_queries and self.sp_active():
             from sp_plugins.nerfstudio.seam import perturbed_samples
 
-            ray_samples = perturbed_samples(ray_samples, self.sp, Frustums.get_start_positions)  # type: ignore[arg-type]
+            ray_samples = perturbed_samples(ray_samples, self.sp, self.sp_read_positions)  # type: ignore[arg-type]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
         return hidden[..., :1]

@@ -12,7 +12,7 @@ Every accessor then sees the same moved sample, with no host class touched:
   depends on directions and bins only, is unchanged), so an SDF's autograd eikonal gradient is taken
   at the moved point and a finite-difference stencil around it shares the one offset. The offset is
   computed where the field reads (its *read point*, :meth:`SeamField.sp_read_positions`): at the
-  start for SDF fields (nerfstudio's ``SDFField`` and its subclasses, :data:`READ_POINTS`), at the
+  start for SDF fields (nerfstudio's ``SDFField`` and its subclasses, ``table.READ_POINTS``), at the
   bin's midpoint for the others (a MipNeRF mean sits near it), so the box reflection is exact at
   the point queried. A field class that queries elsewhere defines ``sp_read_positions`` itself;
   the seam is not edited;
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import functools
 import inspect
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Mapping, Optional, Set, Tuple
@@ -48,17 +49,17 @@ import torch.nn.functional as F
 from nerfstudio.cameras.rays import Frustums, RaySamples
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.base_field import Field
-from nerfstudio.fields.sdf_field import SDFField
 from torch import Tensor, nn
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import SPFieldMixin
+from sp_plugins.adapter.tables import lookup
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import StochasticPreconditioner
-from sp_plugins.nerfstudio import variants
+from sp_plugins.nerfstudio import table, variants
 
-__all__ = ["READ_POINTS", "ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
-           "seam_fields", "takes_ray_samples"]
+__all__ = ["ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
+           "seam_fields", "table_read_point", "takes_ray_samples"]
 
 _READS: contextvars.ContextVar[Optional[Set[str]]] = contextvars.ContextVar("sp_seam_reads", default=None)
 """The read record of the field that is running on moved samples (None outside such a call)."""
@@ -70,10 +71,15 @@ POSITION_READ = "origins"
 ReadPoint = Callable[[Frustums], Tensor]
 """Where a field queries a batch of samples: ``frustums -> positions [*bs, 3]``."""
 
-READ_POINTS: Tuple[Tuple[type, ReadPoint], ...] = ((SDFField, Frustums.get_start_positions),)
-"""The built-in read points of host field classes (and their subclasses) that do not query at
-``get_positions()``, the default: nerfstudio's SDF fields query the bins' starts. (MipNeRF's
-Gaussian blob needs no entry: its mean moves with the midpoint's offset.)"""
+
+
+
+@functools.lru_cache(maxsize=None)
+def table_read_point(cls: type) -> str:
+    """The ``Frustums`` accessor instances of host field class ``cls`` query at: ``table.READ_POINTS``'
+    entry for it or its nearest base, else ``get_positions`` (looked up once per class)."""
+    found = lookup(table.READ_POINTS, cls)
+    return found[1] if found else "get_positions"
 
 
 @dataclass
@@ -144,13 +150,13 @@ class SeamField(SPFieldMixin):
 
     def sp_read_positions(self, frustums: Frustums) -> Tensor:
         """The positions ``[*bs, 3]`` this field queries for ``frustums``: SP's offset is computed
-        there. The field class's own ``sp_read_positions`` wins (define it to declare a new read
-        point: one method, in the field's file); else :data:`READ_POINTS`; else ``get_positions()``."""
+        there. The field class's own ``sp_read_positions`` wins (a
+        :class:`~sp_plugins.adapter.field.ReadPointField`: one method, in the field's file); else the
+        host table's entry (:func:`table_read_point`); else ``get_positions()``."""
         own = getattr(super(), "sp_read_positions", None)
         if own is not None:
             return own(frustums)
-        read = next((r for cls, r in READ_POINTS if isinstance(self, cls)), Frustums.get_positions)
-        return read(frustums)
+        return getattr(frustums, table_read_point(type(self)))()
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
         host_forward = super().forward  # type: ignore[misc]
@@ -240,7 +246,7 @@ def host_name(module: nn.Module) -> str:
 def check_reached(model: nn.Module, model_name: str, step: int, boundary: str = "none") -> None:
     """After the first training step with alpha > 0: at least one field was handed moved samples,
     they really moved, and every field handed them read their positions; a box ``boundary`` is
-    refused on a field that contracts space (other than an SDF, which lives in the box). Runs once
+    refused on a field that contracts space (unless ``table.BOX_FIELDS`` names it: an SDF lives in the box). Runs once
     per run; one device read (the first move)."""
     fields = seam_fields(model)
     called = [(name, f) for name, f in fields if f.sp_handle is not None and f.sp_handle.perturbed_calls > 0]
@@ -256,7 +262,7 @@ def check_reached(model: nn.Module, model_name: str, step: int, boundary: str = 
             f"{max(moved, default=0.0):g}): the perturbation is not applied; this is a bug of sp-plugins, please report it"
         )
     for name, f in called:
-        if boundary != "none" and getattr(f, "spatial_distortion", None) is not None and not isinstance(f, SDFField):
+        if boundary != "none" and getattr(f, "spatial_distortion", None) is not None and not lookup(table.BOX_FIELDS, type(f)):
             way_out = " (or --pipeline.model.disable-scene-contraction True)" if hasattr(getattr(model, "config", None), "disable_scene_contraction") else ""
             raise InputError(
                 f"--pipeline.model.sp.boundary {boundary} needs a bounded scene, but {host_name(f).rsplit('.', 1)[-1]} (model.{name}) "

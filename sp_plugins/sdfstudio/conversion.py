@@ -23,12 +23,9 @@ from typing import Any, Dict, Optional
 from sp_plugins.adapter.tables import lookup
 from sp_plugins.adapter.variants import convert, target_class
 from sp_plugins.core import SPConfig
-from sp_plugins.sdfstudio.table import FINAL_FD_STEP
+from sp_plugins.sdfstudio.table import FINAL_FD_STEP, replaces_coarse_to_fine
 
-
-def replaces_coarse_to_fine(model_config: Any) -> bool:
-    """True when the host config enables Neuralangelo's progressive hash encoding."""
-    return getattr(model_config, "enable_progressive_hash_encoding", False) is True
+__all__ = ["describe", "final_fd_step", "replaces_coarse_to_fine", "sp_model_config"]
 
 
 def final_fd_step(model: type, max_res: int) -> Optional[float]:

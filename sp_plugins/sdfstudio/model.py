@@ -26,7 +26,8 @@ from sp_plugins.adapter.callbacks import Where
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.core import SPConfig
-from sp_plugins.sdfstudio.registration import preset_for
+from sp_plugins.sdfstudio.host import HOST
+from sp_plugins.sdfstudio.table import preset_for
 from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS, SeamSDFField, check_reached
 
 __all__ = ["SDFFieldSPModel", "SPModel", "SPModelConfig"]
@@ -47,7 +48,7 @@ def unsupported_setting(sp: Any) -> str:
 class SPModel(adapter_model.SPModelBase):
     """Mixin for an sdfstudio ``Model``; list it before the host model class."""
 
-    steps_flag = "--trainer.max-num-iterations"
+    steps_flag = HOST.flags.steps
 
     def sp_bounds(self, aabb) -> Any:
         return CONTRACTED_BOUNDS

@@ -1,7 +1,7 @@
 """How SP methods reach sdfstudio's commands: ``with_sp`` for any SDF method, our entry-point
 group, and ``sp-<method>`` for every method sdfstudio registers; the names of
 :mod:`sp_plugins.nerfstudio.registration` (``with_sp``, :func:`refusal`, :func:`preset_for`,
-:func:`sp_methods`). What is known about single methods is in :mod:`sp_plugins.sdfstudio.table`.
+:func:`sp_methods`). What is known about single methods, and the rules and presets, are in :mod:`sp_plugins.sdfstudio.table`.
 
 ``with_sp(config)`` turns sdfstudio's own config of a method into ``sp-<method>``
 (:func:`sp_plugins.sdfstudio.conversion.sp_model_config`); a method that is already ours comes back
@@ -26,7 +26,6 @@ method never breaks the others. Cheap to import: the host loads on use.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import sys
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -34,9 +33,12 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-from sp_plugins.adapter.variants import refuse_or_switch_on, table_refusal, target_class
-from sp_plugins.sdfstudio import table
-from sp_plugins.sdfstudio.conversion import describe, replaces_coarse_to_fine, sp_model_config
+from sp_plugins.adapter.variants import refuse_or_switch_on, target_class
+from sp_plugins.sdfstudio.conversion import describe, sp_model_config
+from sp_plugins.sdfstudio.table import preset_for, refusal, replaces_coarse_to_fine
+
+__all__ = ["ENTRY_POINT_GROUP", "MethodSpecification", "REFUSED", "add_methods", "preset_for", "refusal", "sp_method",
+           "sp_methods", "with_sp"]
 
 if TYPE_CHECKING:
     from sp_plugins.core import SPConfig
@@ -54,38 +56,6 @@ class MethodSpecification:
 
     config: Any
     description: str
-
-
-def refusal(config: Any) -> Optional[str]:
-    """Why SP cannot be put on the method of sdfstudio trainer config ``config`` (None when it
-    can). Decided from classes only: nothing is built."""
-    from nerfstudio.fields.sdf_field import SDFFieldConfig
-    from nerfstudio.models.base_surface_model import SurfaceModel
-
-    model, reason = table_refusal(getattr(getattr(config, "pipeline", None), "model", None), table.REFUSED_MODELS)
-    model_config = config.pipeline.model if model is not None else None
-    if reason or model is None or hasattr(model_config, "sp"):
-        return reason
-    if not isinstance(getattr(model_config, "sdf_field", None), SDFFieldConfig):
-        return (
-            f"its model ({model.__name__}) has no SDF field (no sdf_field: SDFFieldConfig in {type(model_config).__name__}); "
-            "sdfstudio's SP enters at an SDF field's queries, and this is a radiance-field method"
-        )
-    if not issubclass(model, SurfaceModel):
-        return (
-            f"its model ({model.__name__}) is not an sdfstudio SurfaceModel, so its sdf_field is not the field it "
-            "renders with; sdfstudio's SP enters at a SurfaceModel's SDF field"
-        )
-    return None
-
-
-def preset_for(model_config: Any) -> "SPConfig":
-    """A copy of the paper's SP settings (Ling et al. 2025) for an sdfstudio host model config.
-
-    Decided by the config, not the model class as in nerfstudio (neus-facto and neus-facto-angelo
-    share ``NeuSFactoModel``): ``table.COARSE_TO_FINE_PRESET`` where the host enables Neuralangelo's
-    progressive hash encoding (SP then replaces coarse-to-fine), ``table.PRESET`` otherwise."""
-    return dataclasses.replace(table.COARSE_TO_FINE_PRESET if replaces_coarse_to_fine(model_config) else table.PRESET)
 
 
 def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] = None, description: Optional[str] = None) -> MethodSpecification:

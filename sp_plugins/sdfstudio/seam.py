@@ -147,9 +147,3 @@ class SeamSDFField(SPFieldMixin, SDFField):
         hidden = self.forward_geonetwork(self._sampler_positions(ray_samples)).view(*ray_samples.frustums.shape, -1)
         sdf, geo_feature = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
         return self.laplace_density(sdf), geo_feature
-
-
-SPSDFFieldConfig = SeamSDFFieldConfig
-SPSDFField = SeamSDFField
-"""The names before issue 45 (nerfstudio's adapter has an unrelated ``SPSDFField``): config.yml files
-saved then name them."""

@@ -1,22 +1,24 @@
 """The import graph of the ``sp_plugins`` package, read from its source (an ``ast`` walk; nothing is
 imported), for the no-cycle test.
 
-An edge ``a -> b`` is an import of ``sp_plugins`` module ``b`` in ``a``: at module level, or inside a
-function, except where the function-level import defers a host (``a`` imports no host when it
-loads, ``b`` does): that is what keeps a registration module cheap for a host's plugin discovery.
-Any other import inside a function would only hide a cycle, so it counts as if at module level.
-Imports under ``if TYPE_CHECKING:`` never run and are left out.
+An edge ``a -> b`` is an import of ``sp_plugins`` module ``b`` in ``a``, of one of three kinds: at
+module level, inside a function, or under ``if TYPE_CHECKING:`` (:data:`KINDS`). The no-cycle test
+counts all three: an import moved into a function or under ``TYPE_CHECKING`` still ties the two
+modules together, it only hides the cycle. Imports of the *hosts'* packages inside functions (a
+cheap registration module deferring a heavy host) are not edges of this graph at all.
 """
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
-from typing import Dict, Iterator, List, Set, Tuple
+from typing import Dict, Iterable, Iterator, List, Set, Tuple
+
+from sp_plugins.adapter import hosts
 
 PACKAGE = Path(__file__).resolve().parents[2] / "sp_plugins"
-HOSTS = ("nerfstudio", "scripts")
-"""The top-level packages of both hosts (sdfstudio's is also named ``nerfstudio``)."""
+HOSTS = tuple(sorted({p for h in hosts.hosts().values() for p in h.packages + h.imports}))
+"""The top-level packages of every registered host (sdfstudio's is also named ``nerfstudio``)."""
 
 
 def module_name(path: Path) -> str:
@@ -44,20 +46,31 @@ def _names(node: ast.AST, here: str, is_package: bool, modules: Set[str]) -> Lis
     return [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
 
 
-def _statements(tree: ast.AST) -> Iterator[Tuple[ast.AST, bool]]:
-    """``(import statement, inside a function)`` for every import not under ``if TYPE_CHECKING``."""
+KINDS = ("module", "function", "type_checking")
+"""Where an import statement sits: at module level, inside a function, under ``if TYPE_CHECKING:``."""
 
-    def walk(node: ast.AST, in_function: bool) -> Iterator[Tuple[ast.AST, bool]]:
+
+def _statements(tree: ast.AST) -> Iterator[Tuple[ast.AST, str]]:
+    """``(import statement, kind)`` for every import of the module (:data:`KINDS`; a
+    ``TYPE_CHECKING`` import inside a function counts as ``type_checking``)."""
+
+    def walk(node: ast.AST, kind: str) -> Iterator[Tuple[ast.AST, str]]:
         for child in ast.iter_child_nodes(node):
             if isinstance(child, ast.If) and _type_checking(child):
-                for other in child.orelse:
-                    yield from walk(other, in_function)
+                for stmt in child.body:
+                    yield from visit(stmt, "type_checking")
+                for stmt in child.orelse:
+                    yield from visit(stmt, kind)
                 continue
-            if isinstance(child, (ast.Import, ast.ImportFrom)):
-                yield child, in_function
-            yield from walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+            yield from visit(child, kind)
 
-    yield from walk(tree, False)
+    def visit(child: ast.AST, kind: str) -> Iterator[Tuple[ast.AST, str]]:
+        if isinstance(child, (ast.Import, ast.ImportFrom)):
+            yield child, kind
+        inner = "function" if kind == "module" and isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)) else kind
+        yield from walk(child, inner)
+
+    yield from walk(tree, "module")
 
 
 def _resolve(name: str, modules: Set[str]) -> str:
@@ -67,31 +80,51 @@ def _resolve(name: str, modules: Set[str]) -> str:
     return name
 
 
-def graph() -> Dict[str, Set[str]]:
-    """module -> the ``sp_plugins`` modules it imports (edges as the module docstring says)."""
+def edges() -> Dict[Tuple[str, str], Set[str]]:
+    """``(importer, imported)`` -> the kinds of statement that import it, over every ``sp_plugins`` module."""
     paths = sorted(PACKAGE.rglob("*.py"))
     modules = {module_name(p) for p in paths}
-    top: Dict[str, Set[str]] = {}
-    lazy: Dict[str, Set[str]] = {}
-    host_at_load: Set[str] = set()
+    out: Dict[Tuple[str, str], Set[str]] = {}
     for path in paths:
         here = module_name(path)
-        top[here], lazy[here] = set(), set()
-        for node, in_function in _statements(ast.parse(path.read_text(), str(path))):
+        out.setdefault((here, here), set())  # every module is a node
+        for node, kind in _statements(ast.parse(path.read_text(), str(path))):
             for name in _names(node, here, path.name == "__init__.py", modules):
-                if name.split(".")[0] in HOSTS and not in_function:
-                    host_at_load.add(here)
                 target = _resolve(name, modules) if name.startswith("sp_plugins") else ""
                 if target and target != here:
-                    (lazy if in_function else top)[here].add(target)
-    changed = True  # a module loads a host when it, or a module it imports at load time, does
+                    out.setdefault((here, target), set()).add(kind)
+    return out
+
+
+def graph(kinds: Iterable[str] = KINDS) -> Dict[str, Set[str]]:
+    """module -> the ``sp_plugins`` modules it imports by a statement of one of ``kinds``."""
+    wanted = set(kinds)
+    g: Dict[str, Set[str]] = {}
+    for (a, b), found in edges().items():
+        g.setdefault(a, set())
+        if a != b and found & wanted:
+            g[a].add(b)
+    return g
+
+
+def host_loaders() -> Set[str]:
+    """Modules that import a host package when they load (themselves or through a module-level import)."""
+    loads: Set[str] = set()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        here = module_name(path)
+        for node, kind in _statements(ast.parse(path.read_text(), str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if node.level == 0 else []
+            if kind == "module" and any(n.split(".")[0] in HOSTS for n in names):
+                loads.add(here)
+    top = graph(["module"])
+    changed = True
     while changed:
         changed = False
         for m, deps in top.items():
-            if m not in host_at_load and deps & host_at_load:
-                host_at_load.add(m)
+            if m not in loads and deps & loads:
+                loads.add(m)
                 changed = True
-    return {m: top[m] | {t for t in lazy[m] if m in host_at_load or t not in host_at_load} for m in top}
+    return loads
 
 
 def cycles(g: Dict[str, Set[str]]) -> List[List[str]]:
@@ -130,6 +163,8 @@ def cycles(g: Dict[str, Set[str]]) -> List[List[str]]:
 
 
 if __name__ == "__main__":
+    for upto in range(1, len(KINDS) + 1):
+        print(f"cycles counting {' + '.join(KINDS[:upto])} imports: {len(cycles(graph(KINDS[:upto])))}")
     g = graph()
     for c in cycles(g):
         print(" <-> ".join(c))

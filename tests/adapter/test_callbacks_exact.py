@@ -1,8 +1,7 @@
 """The host-neutral training callbacks that drive SP (sp_plugins.adapter.callbacks), exactly: the step and
 run length SP is moved to (fresh, resumed, sdfstudio's attributes without a trainer), when, the schedule
 refusal's bounds and line, the alpha grid's learning rate. Stand-in trainer attributes in both hosts'
-shapes; no host import. Each test names the mutants it kills (``bench/mutation_study.py``
-``sp_plugins/adapter/callbacks.py``)."""
+shapes; no host import. The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -58,7 +57,7 @@ def test_the_run_length_and_start_are_read_where_each_host_keeps_them():
 def test_the_schedule_refusal_bounds_and_its_line_name_the_flags_typed(end, fits):
     """A schedule may end at the last step of a run of 100 (``end`` 100 or 1.0), not after it (101). The
     refusal names ``--pipeline.model.sp.end`` and the host's run-length flag. A relative alpha (a
-    fraction of the diagonal) fits the same. Kills: the ``try`` swallowed, the flag default."""
+    fraction of the diagonal) fits the same."""
     for relative in (True, False):
         config = SPConfig(alpha0=0.02, schedule="step", end=end, relative_to_diagonal=relative)
         problem = cb.schedule_problem(config, 100, "--trainer.max-num-iterations")
@@ -69,17 +68,16 @@ def test_the_schedule_refusal_bounds_and_its_line_name_the_flags_typed(end, fits
             assert problem.endswith("give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step "
                                     "<= --trainer.max-num-iterations")
     if not fits:
-        assert "does not fit --max-num-iterations 100" in cb.schedule_problem(SPConfig(schedule="step", end=end), 100)
+        assert "does not fit --max-num-iterations 100" in cb.schedule_problem(SPConfig(schedule="step", end=end), 100, "--max-num-iterations")
 
 
 def test_a_fresh_nerfstudio_run_starts_sp_at_step_0_of_its_length_and_steps_before_every_iteration():
     """Registration moves SP to (start, total) at once; the one callback runs *before* each iteration and
     moves it to the trainer's step, with this run's length (also over a checkpoint of a run of another length,
-    loaded after registration). Kills: the start/total not set at registration, the callback placed after
-    the iteration, the step or total dropped in ``step_to``."""
+    loaded after registration)."""
     sp, make = preconditioner(), Made()
     sp.set_step(33, 1000)  # whatever it held
-    (callback,) = cb.sp_callbacks(sp, ns_attributes(total=200, start=0), make)
+    (callback,) = cb.sp_callbacks(sp, ns_attributes(total=200, start=0), make, "--max-num-iterations")
     assert make.asked == ["before"] and (int(sp.step), int(sp.total_steps)) == (0, 200)
     assert sp.alpha == pytest.approx(0.5)
     where, step_to = callback
@@ -94,16 +92,15 @@ def test_a_fresh_nerfstudio_run_starts_sp_at_step_0_of_its_length_and_steps_befo
 
 def test_a_resumed_run_continues_at_its_start_step():
     """``trainer._start_step`` (the checkpoint's step + 1) is where SP is moved at registration, so the
-    first resumed step has the alpha it would have had. Kills: ``start`` ignored (0 used)."""
+    first resumed step has the alpha it would have had."""
     sp = preconditioner()
-    cb.sp_callbacks(sp, ns_attributes(total=200, start=60), Made())
+    cb.sp_callbacks(sp, ns_attributes(total=200, start=60), Made(), "--max-num-iterations")
     assert int(sp.step) == 60 and sp.alpha == pytest.approx(0.5 * (1 - 60 / 100))
 
 
 def test_sdfstudio_s_attributes_keep_the_step_the_checkpoint_loaded():
     """sdfstudio's attributes carry no start step: SP stays at the step its state holds (0 on a fresh
-    run, the checkpoint's after a load), with the run's length set. Kills: ``int(sp.step) if start is
-    None else start`` swapped or 0 used."""
+    run, the checkpoint's after a load), with the run's length set."""
     sp = preconditioner()
     sp.set_step(42, 1000)  # as a loaded checkpoint left it
     cb.sp_callbacks(sp, sdf_attributes(total=200), Made(), "--trainer.max-num-iterations")
@@ -112,10 +109,10 @@ def test_sdfstudio_s_attributes_keep_the_step_the_checkpoint_loaded():
 
 def test_without_a_run_length_sp_keeps_its_saved_total():
     """No ``max_num_iterations`` (a loader, not a trainer): no check, no move; the callback keeps the
-    total in SP's state. Kills: ``if total is not None`` negated."""
+    total in SP's state."""
     sp = preconditioner()
     sp.set_step(5, 400)
-    (callback,) = cb.sp_callbacks(sp, SimpleNamespace(), Made())
+    (callback,) = cb.sp_callbacks(sp, SimpleNamespace(), Made(), "--max-num-iterations")
     assert (int(sp.step), int(sp.total_steps)) == (5, 400)
     callback[1](10)
     assert (int(sp.step), int(sp.total_steps)) == (10, 400)
@@ -131,15 +128,14 @@ def test_a_schedule_that_does_not_fit_is_refused_before_sp_moves():
 def test_the_alpha_grid_group_gets_the_configured_lr_and_no_other_group_does():
     """Every param group of the alpha grid's optimizer, ``lr`` and ``initial_lr`` (a resumed scheduler
     reads the latter), from ``--pipeline.model.sp.alpha-grid-lr``; other groups untouched; nothing done
-    without a grid or without that group. Kills: the early return's ``or`` -> ``and``, ``not in`` -> ``in``,
-    either key not written."""
+    without a grid or without that group."""
     sp = SPConfig(boundary="none", alpha_grid=True, alpha_grid_lr=3e-3).setup(dim=3)
     grid_opt = torch.optim.Adam([{"params": [torch.zeros(2, requires_grad=True)]}, {"params": [torch.zeros(3, requires_grad=True)]}], lr=1.0)
     for g in grid_opt.param_groups:
         g["initial_lr"] = 1.0
     field_opt = torch.optim.Adam([torch.zeros(2, requires_grad=True)], lr=0.1)
     optimizers = SimpleNamespace(optimizers={cb.ALPHA_GRID_GROUP: grid_opt, "fields": field_opt})
-    cb.sp_callbacks(sp, ns_attributes(total=10, start=0, optimizers=optimizers), Made())
+    cb.sp_callbacks(sp, ns_attributes(total=10, start=0, optimizers=optimizers), Made(), "--max-num-iterations")
     assert [(g["lr"], g["initial_lr"]) for g in grid_opt.param_groups] == [(3e-3, 3e-3)] * 2
     assert field_opt.param_groups[0]["lr"] == 0.1 and "initial_lr" not in field_opt.param_groups[0]
 
@@ -153,7 +149,8 @@ def test_the_alpha_grid_group_gets_the_configured_lr_and_no_other_group_does():
 
 
 def test_the_alpha_grid_optimizer_entry_is_adam_at_the_configured_lr_without_a_scheduler():
-    """Kills: ``eps=1e-15`` changed, the lr not the config's, a scheduler added."""
+    """The alpha grid's optimizer entry: Adam at the config's ``alpha_grid_lr`` with ``eps`` 1e-15, and no
+    scheduler."""
     made = cb.alpha_grid_optimizer(SPConfig(alpha_grid_lr=2e-3), lambda **kw: kw)
     assert made == {"optimizer": {"lr": 2e-3, "eps": 1e-15}, "scheduler": None}
 
@@ -161,8 +158,7 @@ def test_the_alpha_grid_optimizer_entry_is_adam_at_the_configured_lr_without_a_s
 @pytest.mark.parametrize("start, first", [(None, 0), (0, 0), (25, 25)])
 def test_a_models_own_schedule_is_applied_at_once_at_the_start_step_then_before_every_iteration(start, first):
     """FreeNeRF's mask and Neuralangelo's coarse-to-fine: ``at(step, total)`` at registration with the start
-    step (0 when the attributes do not say), then before each iteration. Kills: ``start or 0`` -> ``1``,
-    the immediate call dropped, the callback placed after."""
+    step (0 when the attributes do not say), then before each iteration."""
     calls, make = [], Made()
     where, update = cb.model_schedule_callback(lambda step, total: calls.append((step, total)),
                                                ns_attributes(total=80, start=start), make)

@@ -5,7 +5,7 @@ weights-only reason (torch's boilerplate dropped, the ``WeightsUnpickler error:`
 edge, ``describe_failure`` on real ``torch.load`` / ``torch.save`` failures (not found, a refused global, a
 damaged file, a partial checkpoint removed, an explicit traceback), the write errnos, ``wandb``, and which
 exceptions keep Python's report (None); ``is_network_error``, ``provider`` and ``build_failure``.
-Each test names the mutants it kills (``bench/mutation_study.py`` ``sp_plugins/adapter/errors.py``)."""
+The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -40,8 +40,7 @@ def cut(text: str, limit: int) -> str:
 
 # -- first_line ----------------------------------------------------------------------------------
 def test_first_line_keeps_the_first_stripped_line_of_a_message():
-    """Kills: ``or not text`` -> ``or text`` / ``and`` (a message gains its type's name), ``splitlines()[0]``
-    -> ``[1]`` / ``[-1]``."""
+    """``first_line`` is the message's first line, stripped, without the exception's type name."""
     assert errors.first_line(ValueError("  first\nsecond\nthird  ")) == "first"
     assert errors.first_line(RuntimeError("only")) == "only"
     assert errors.first_line(OSError(errno.EACCES, "Permission denied", "/x")) == "[Errno 13] Permission denied: '/x'"
@@ -49,8 +48,7 @@ def test_first_line_keeps_the_first_stripped_line_of_a_message():
 
 def test_first_line_names_the_type_of_an_empty_message_and_of_a_key_error():
     """A ``KeyError``'s str is the repr of its key: the type's name goes first; an empty (or blank) message
-    is the type's name alone. Kills: ``isinstance(exc, KeyError)`` negated, ``or`` -> ``and``,
-    ``': ' + text if text`` negated."""
+    is the type's name alone."""
     assert errors.first_line(KeyError("lr")) == "KeyError: 'lr'"
     assert errors.first_line(KeyError()) == "KeyError"
     assert errors.first_line(ValueError()) == "ValueError"
@@ -61,8 +59,7 @@ def test_first_line_names_the_type_of_an_empty_message_and_of_a_key_error():
 @pytest.mark.parametrize("limit", [200, 10, 4])
 def test_first_line_truncates_only_past_its_limit(limit):
     """A line of exactly ``limit`` characters is kept; ``limit + 1`` is cut to ``limit`` ending in ``...``
-    (the default limit is 200). Kills: ``<=`` -> ``<`` / ``>`` / ``==``..., ``limit - 3`` -> ``- 2`` / ``- 4`` /
-    ``+ 3``, ``200`` -> ``199`` / ``201``, the slice's bound."""
+    (the default limit is 200)."""
     at = "a" * limit
     over = "b" * (limit + 1)
     call = (lambda e: errors.first_line(e)) if limit == 200 else (lambda e: errors.first_line(e, limit))
@@ -78,23 +75,21 @@ def test_first_line_truncates_only_past_its_limit(limit):
                                        (errno.EACCES, READ_ONLY), (errno.EPERM, READ_ONLY), (errno.EROFS, READ_ONLY),
                                        (errno.ENOENT, ELSEWHERE), (errno.EISDIR, ELSEWHERE)])
 def test_write_failure_gives_each_errno_class_its_hint(code, hint):
-    """Kills: ``exc.errno in (ENOSPC, ...)`` -> ``not in``, ``in (EACCES, ...)`` -> ``not in``, the ``elif`` /
-    ``else`` order."""
+    """A failed write gives the hint of its errno's class: disk full, not writable (permission, read-only), or any
+    other."""
     exc = OSError(code, os.strerror(code), "/out/file.txt")
     assert errors.write_failure(exc) == f"/out/file.txt: cannot write ({os.strerror(code)}); {hint}"
 
 
 def test_write_failure_without_an_errno_asks_for_another_folder():
-    """An ``OSError`` with no errno (``errno`` None) and no strerror: the reason is its first line. Kills:
-    ``exc.strerror or first_line(exc)`` -> ``and`` (both branches of the name conditional)."""
+    """An ``OSError`` with no errno (``errno`` None) and no strerror: the reason is its first line."""
     exc = OSError("the writer gave up\nsecond line")
     assert errors.write_failure(exc) == f"the output: cannot write (the writer gave up); {ELSEWHERE}"
     assert errors.write_failure(exc, name="a.png") == f"the output: cannot write (a.png: the writer gave up); {ELSEWHERE}"
 
 
 def test_write_failure_names_the_place_given_else_the_file_else_the_output():
-    """Kills: ``what or exc.filename`` -> ``and`` (the file name instead of the place, or None), ``or "the
-    output"`` -> ``and``."""
+    """A failed write names the place given, else the exception's file, else "the output"."""
     with_file = OSError(errno.EROFS, "Read-only file system", "/ro/renders/a.png")
     no_file = OSError(errno.EROFS, "Read-only file system")
     assert errors.write_failure(with_file, what="--output-dir /ro") == \
@@ -106,7 +101,7 @@ def test_write_failure_names_the_place_given_else_the_file_else_the_output():
 
 
 def test_write_failure_puts_the_file_being_written_before_the_reason():
-    """Kills: ``if name`` negated (``None: ...`` or the name dropped)."""
+    """A failed write puts the name of the file being written before the reason, when one is given."""
     exc = OSError(errno.ENOSPC, "No space left on device", "/data/out")
     assert errors.write_failure(exc, what="/data/out", name="step-100.ckpt") == \
         f"/data/out: cannot write (step-100.ckpt: No space left on device); {DISK_FULL}"
@@ -119,8 +114,7 @@ def test_write_errnos_are_exactly_the_six_place_errnos():
 
 # -- _path_of, refused_global ----------------------------------------------------------------------
 def test_path_of_a_handle(tmp_path):
-    """A str or path is itself (a str); a file object its ``name`` when that is a str; else None. Kills:
-    ``isinstance(name, str)`` negated, the ``isinstance(handle, (str, PathLike))`` test negated."""
+    """A str or path is itself (a str); a file object its ``name`` when that is a str; else None."""
     assert errors._path_of("a/b.ckpt") == "a/b.ckpt"
     assert errors._path_of(Path("a") / "b.ckpt") == os.path.join("a", "b.ckpt")
     assert type(errors._path_of(Path("a"))) is str
@@ -159,9 +153,7 @@ def weights_only(*reasons: str) -> RuntimeError:
 
 
 def test_load_failure_reason_gives_torchs_reason_without_its_boilerplate():
-    """Kills: ``"Weights only load failed" not in text`` -> ``in``, ``if line.strip()`` negated, ``not
-    line.startswith(...)`` -> ``startswith``, ``split(marker, 1)[-1]`` -> ``[0]`` / ``[-2]`` / ``[1]`` (the
-    text before the marker, which is empty)."""
+    """A refused weights-only load gives torch's reason after its marker, without torch's boilerplate lines."""
     assert errors.load_failure_reason(weights_only("WeightsUnpickler error: Unsupported operand 153")) == \
         PREFIX + "Unsupported operand 153"
     assert errors.load_failure_reason(weights_only("WeightsUnpickler error:   Unsupported operand 7  ", "a detail")) == \
@@ -170,14 +162,13 @@ def test_load_failure_reason_gives_torchs_reason_without_its_boilerplate():
 
 
 def test_load_failure_reason_splits_at_the_first_marker_only():
-    """Kills: ``split(marker, 1)`` -> ``split(marker, 2)`` (the text after a second marker only) and
-    ``split(marker, 0)`` (the marker kept)."""
+    """The reason is the text after the first marker, a later marker kept in it."""
     exc = weights_only("WeightsUnpickler error: outer WeightsUnpickler error: inner")
     assert errors.load_failure_reason(exc) == PREFIX + "outer WeightsUnpickler error: inner"
 
 
 def test_load_failure_reason_of_boilerplate_only_is_refused():
-    """Kills: ``if r`` -> ``if not r`` (the empty reason of a bare marker joined), ``or "refused"`` -> ``and``."""
+    """A reason of boilerplate only (or a bare marker) reads "refused"; a later non-empty reason is given."""
     assert errors.load_failure_reason(weights_only()) == PREFIX + "refused"
     assert errors.load_failure_reason(weights_only("WeightsUnpickler error:")) == PREFIX + "refused"
     assert errors.load_failure_reason(weights_only("WeightsUnpickler error:", "WeightsUnpickler error: x")) == PREFIX + "x"
@@ -185,8 +176,7 @@ def test_load_failure_reason_of_boilerplate_only_is_refused():
 
 @pytest.mark.parametrize("limit", [120, 40])
 def test_load_failure_reason_truncates_only_past_its_limit(limit):
-    """The whole reason, prefix included, is at most ``limit`` (default 120) characters. Kills: ``<=`` ->
-    ``<``, ``limit - 3`` -> ``- 2`` / ``- 4``, ``120`` -> ``119`` / ``121``."""
+    """The whole reason, prefix included, is at most ``limit`` (default 120) characters."""
     call = (lambda e: errors.load_failure_reason(e)) if limit == 120 else (lambda e: errors.load_failure_reason(e, limit))
     at = "a" * (limit - len(PREFIX))
     over = "b" * (limit - len(PREFIX) + 1)
@@ -197,8 +187,7 @@ def test_load_failure_reason_truncates_only_past_its_limit(limit):
 
 @pytest.mark.parametrize("limit", [120, 30])
 def test_load_failure_reason_of_another_failure_is_its_first_line_at_the_same_limit(limit):
-    """Not a weights-only refusal: ``first_line(exc, limit)``. Kills: ``first_line(exc, limit)``'s limit
-    lost (200), ``120`` -> ``119`` / ``121``."""
+    """Not a weights-only refusal: ``first_line(exc, limit)``."""
     call = (lambda e: errors.load_failure_reason(e)) if limit == 120 else (lambda e: errors.load_failure_reason(e, limit))
     assert call(RuntimeError("invalid load key, 'j'.\nmore")) == "invalid load key, 'j'."
     assert call(RuntimeError("z" * limit)) == "z" * limit
@@ -220,8 +209,7 @@ def caught(call, *args, **kwargs) -> BaseException:
 
 
 def test_a_missing_checkpoint_is_not_found(tmp_path):
-    """Kills: ``while tb is not None`` -> ``is None`` (no frame found), ``co_name == name`` -> ``!=``,
-    ``exc.errno == ENOENT`` -> ``!=``, ``isinstance(exc, OSError)`` negated, ``and`` -> ``or``."""
+    """A checkpoint ``torch.load`` cannot find is "checkpoint not found", from a path or a string."""
     path = tmp_path / "none.ckpt"
     exc = caught(torch.load, path)
     assert errors.describe_failure(exc) == f"{path}: checkpoint not found"
@@ -261,14 +249,14 @@ class Unreadable(io.RawIOBase):
 @pytest.mark.parametrize("code", [errno.EPERM, errno.EIO, errno.EISDIR])
 def test_another_oserror_inside_torch_load_is_not_called_not_found(code):
     """An ``OSError`` of an errno below and above ``ENOENT`` (2) raised inside ``torch.load``: the file
-    cannot be read, it is not missing. Kills: ``errno == ENOENT`` -> ``<=`` / ``>=`` / ``<`` / ``>``."""
+    cannot be read, it is not missing."""
     exc = caught(torch.load, Unreadable(code, name="/ckpts/step-9.ckpt"))
     assert isinstance(exc, OSError) and exc.errno == code
     assert errors.describe_failure(exc) == "/ckpts/step-9.ckpt: " + UNREADABLE.format(errors.load_failure_reason(exc))
 
 
 def test_a_damaged_checkpoint_is_named_with_torchs_reason(tmp_path):
-    """Kills: ``refused`` negated (a damaged file called a refused global), the path of ``f`` lost."""
+    """A damaged checkpoint is named (by path or by its file object's name) with torch's reason."""
     path = tmp_path / "junk.ckpt"
     path.write_bytes(b"junk, not a checkpoint")
     exc = caught(torch.load, path)
@@ -279,14 +267,13 @@ def test_a_damaged_checkpoint_is_named_with_torchs_reason(tmp_path):
 
 
 def test_a_checkpoint_read_from_a_nameless_handle_is_the_checkpoint():
-    """Kills: ``_path_of(...) or "the checkpoint"`` -> ``and``."""
+    """A damaged checkpoint read from a nameless handle is called "the checkpoint"."""
     exc = caught(torch.load, io.BytesIO(b"junk, not a checkpoint"))
     assert errors.describe_failure(exc) == "the checkpoint: " + UNREADABLE.format(errors.load_failure_reason(exc))
 
 
 def test_a_refused_global_is_named_and_nothing_was_run(tmp_path):
-    """A checkpoint that pickles ``os.system``, loaded weights-only: torch refuses it. Kills: ``if refused``
-    negated."""
+    """A checkpoint that pickles ``os.system``, loaded weights-only: torch refuses it."""
     path = tmp_path / "evil.ckpt"
     torch.save({"call": os.system}, path)
     exc = caught(torch.load, path, weights_only=True)
@@ -299,8 +286,7 @@ def test_a_refused_global_is_named_and_nothing_was_run(tmp_path):
 
 
 def test_an_explicit_traceback_is_read_instead_of_the_exceptions_own(tmp_path):
-    """The hook passes the traceback it was given; ``exc.__traceback__`` may be gone. Kills: ``tb if tb is not
-    None`` -> ``is None``."""
+    """The hook passes the traceback it was given; ``exc.__traceback__`` may be gone."""
     path = tmp_path / "junk.ckpt"
     path.write_bytes(b"junk")
     exc = caught(torch.load, path)
@@ -323,7 +309,7 @@ def save(path):
 
 
 def test_a_load_or_save_outside_torch_is_not_torchs(tmp_path):
-    """Kills: ``co_name == name and ...endswith("torch/serialization.py")`` -> ``or``."""
+    """A failure in a function named ``load`` or ``save`` outside torch is not described as torch's."""
     for fn in (load, save):
         exc = caught(fn, tmp_path / "x")
         assert errors.describe_failure(exc) is None
@@ -347,8 +333,7 @@ class Raises:
 
 
 def test_a_failed_save_removes_its_partial_file_and_gives_the_strerror(tmp_path):
-    """Kills: ``save is not None`` -> ``is None``, ``path is not None and os.path.isfile(path)`` negated /
-    ``is None`` (the file stays), ``isinstance(exc, OSError) and exc.strerror`` -> ``or`` / negated."""
+    """A save that fails while writing removes its partial file and gives the OS's reason."""
     path = tmp_path / "step-5.ckpt"
     exc = caught(torch.save, {"w": torch.zeros(3), "x": Raises(OSError(errno.ENOSPC, "No space left on device"))}, path)
     assert path.is_file()
@@ -357,8 +342,7 @@ def test_a_failed_save_removes_its_partial_file_and_gives_the_strerror(tmp_path)
 
 
 def test_a_failed_save_of_another_error_gives_its_first_line(tmp_path):
-    """A non-``OSError`` (no ``strerror`` at all) and an ``OSError`` without one. Kills: ``and`` -> ``or``
-    (``AttributeError`` / ``None``), ``first_line(exc, 120)`` -> ``119`` / ``121``."""
+    """A non-``OSError`` (no ``strerror`` at all) and an ``OSError`` without one."""
     for exc_in, reason in [(ValueError("cannot pickle this\nmore"), "cannot pickle this"),
                            (OSError("the writer gave up"), "the writer gave up"),
                            (ValueError("v" * 120), "v" * 120),
@@ -370,14 +354,13 @@ def test_a_failed_save_of_another_error_gives_its_first_line(tmp_path):
 
 
 def test_a_failed_save_to_a_handle_is_the_checkpoint():
-    """Kills: ``path or 'the checkpoint'`` -> ``and``, ``path is not None and ...`` -> ``or`` (``isfile(None)``)."""
+    """A failed save to a handle is described as "the checkpoint", its reason kept."""
     exc = caught(torch.save, {"x": Raises(ValueError("nope"))}, io.BytesIO())
     assert errors.describe_failure(exc) == "the checkpoint: " + KEPT.format("nope")
 
 
 def test_a_failed_save_leaves_what_is_not_a_file(tmp_path):
-    """A save to a link to a folder fails; the link is not a file, so it stays. Kills: ``path is not None and
-    os.path.isfile(path)`` -> ``or`` (the link unlinked)."""
+    """A save to a link to a folder fails; the link is not a file, so it stays."""
     folder = tmp_path / "folder"
     folder.mkdir()
     link = tmp_path / "link"
@@ -390,8 +373,7 @@ def test_a_failed_save_leaves_what_is_not_a_file(tmp_path):
 @pytest.mark.skipif(not os.path.isfile("/proc/self/status"), reason="needs Linux's /proc")
 def test_a_file_that_cannot_be_removed_still_gets_its_line():
     """``/proc/self/status`` is a file no one (root included) may write or remove: the save fails, the
-    removal fails, the line is still given. Kills: ``except OSError`` -> another exception (the removal's
-    error escapes)."""
+    removal fails, the line is still given."""
     exc = caught(torch.save, {"a": 1}, "/proc/self/status")
     assert errors.describe_failure(exc) == "/proc/self/status: " + KEPT.format(errors.first_line(exc, 120))
     assert os.path.isfile("/proc/self/status")
@@ -399,15 +381,15 @@ def test_a_file_that_cannot_be_removed_still_gets_its_line():
 
 # -- describe_failure: the rest --------------------------------------------------------------------
 def test_an_input_error_is_its_own_message():
-    """Kills: ``isinstance(exc, InputError)`` negated."""
+    """An ``InputError`` is described by its own message, whole."""
     assert errors.describe_failure(InputError("data: no images\nsecond")) == "data: no images\nsecond"
     assert errors.describe_failure(InputError("x")) == "x"
 
 
 @pytest.mark.parametrize("code", sorted(errors.WRITE_ERRNOS))
 def test_a_write_errno_with_a_file_name_is_a_write_failure(code):
-    """Kills: ``exc.errno in WRITE_ERRNOS`` -> ``not in``, ``isinstance(exc, OSError)`` negated, ``and
-    exc.filename`` -> ``or`` / negated."""
+    """An ``OSError`` with a write errno and a file name is a write failure; without a file name, or another errno,
+    it is not."""
     exc = caught(open, "/nonexistent-root-folder/x")  # ENOENT: not a write errno
     assert errors.describe_failure(exc) is None
     exc = OSError(code, os.strerror(code), "/out/a.png")
@@ -417,7 +399,7 @@ def test_a_write_errno_with_a_file_name_is_a_write_failure(code):
 
 
 def test_other_exceptions_keep_pythons_report():
-    """Kills: the final ``return None`` reached with a message."""
+    """Any other exception has no description: Python's report stands."""
     for exc in (ValueError("x"), KeyError("k"), ZeroDivisionError(), OSError(errno.ENOENT, "No such file", "/a"),
                 OSError("plain")):
         assert errors.describe_failure(exc) is None
@@ -428,8 +410,8 @@ def wandb_error(name: str, module: str):
 
 
 def test_a_wandb_error_says_how_to_log_in():
-    """Kills: ``__module__.split(".")[0] == "wandb"`` -> ``!=`` / ``is`` / ``[1]`` / ``[-1]``, ``first_line(exc, 120)``
-    -> ``119`` / ``121``."""
+    """An error of the ``wandb`` package says how to log in or choose another ``--vis``, its message cut at 120
+    characters; a module that only contains "wandb" in its name is not wandb's."""
     tail = ("it needs an account: log in with `wandb login` (or set WANDB_MODE=offline), or pass --vis viewer "
             "(nerfstudio's web viewer) or --vis tensorboard")
     comm = wandb_error("CommError", fresh("wandb") + ".errors.errors")
@@ -455,13 +437,14 @@ def test_network_errors_are_recognised():
 @pytest.mark.parametrize("module", [*errors.NETWORK_MODULES, "requests.exceptions", "urllib3.exceptions",
                                     "huggingface_hub.utils._errors"])
 def test_an_oserror_of_a_download_library_is_a_network_error(module):
-    """Kills: ``in NETWORK_MODULES`` -> ``not in``, ``split(".")[0]`` -> ``[1]`` / ``[-1]``."""
+    """An ``OSError`` raised by a download library's module is a network error."""
     cls = type("DownloadError", (OSError,), {"__module__": fresh(module)})
     assert errors.is_network_error(cls("x")) is True
 
 
 def test_other_errors_are_not_network_errors():
-    """Kills: ``isinstance(exc, OSError) and ...`` -> ``or`` (a library's non-OSError), the final test negated."""
+    """A library's error that is not an ``OSError``, a plain ``OSError`` and one of a look-alike module are not
+    network errors."""
     not_os = type("HTTPError", (ValueError,), {"__module__": "requests.exceptions"})
     for exc in (not_os("x"), OSError("disk"), FileNotFoundError(errno.ENOENT, "No such file"), ValueError("x"),
                 type("E", (OSError,), {"__module__": "requestsx.exceptions"})("x"),
@@ -475,7 +458,7 @@ def host_class(module: str, name: str = "Field"):
 
 
 def test_the_hosts_own_classes_are_nerfstudios():
-    """Kills: ``top == "nerfstudio"`` -> ``!=`` / ``is`` (a split string is not the constant), ``[0]`` -> ``[1]``."""
+    """A class of a ``nerfstudio`` module (its name built at run time) is provided by nerfstudio."""
     assert errors.provider(host_class(fresh("nerfstudio") + ".fields.base_field")) == "nerfstudio"
     assert errors.provider(host_class("nerfstudio")) == "nerfstudio"
 
@@ -490,8 +473,7 @@ def dist_info(root: Path, folder: str, name: str, top: str, release: str = "") -
 
 
 def test_a_plugin_is_named_by_its_first_distribution_and_version(tmp_path, monkeypatch):
-    """A module two distributions declare (of different versions): the first one's name and its version. Kills:
-    ``dists[0]`` -> ``[1]`` / ``[-1]`` (in the name and in ``version(...)``), ``if not dists`` negated."""
+    """A module two distributions declare (of different versions): the first one's name and its version."""
     assert errors.provider(host_class("yaml.nodes")) == f"the plugin PyYAML {version('PyYAML')}"
     dist_info(tmp_path, "verdist_a-1.0.dist-info", "verdist_a", "sp_vermod", "1.0")
     dist_info(tmp_path, "verdist_b-2.0.dist-info", "verdist_b", "sp_vermod", "2.0")
@@ -507,8 +489,7 @@ def test_a_module_no_distribution_declares_is_named_by_its_top():
 
 
 def test_a_distribution_without_metadata_is_named_without_a_version(tmp_path, monkeypatch):
-    """Two ``.dist-info`` whose names are not their folders': ``version`` cannot find them. Kills: ``except
-    Exception`` -> another exception (``PackageNotFoundError`` escapes), ``dists[0]`` -> ``[1]`` / ``[-1]``."""
+    """Two ``.dist-info`` whose names are not their folders': ``version`` cannot find them."""
     dist_info(tmp_path, "fakedist-1.0.dist-info", "ghostdist", "ghostmod")
     dist_info(tmp_path, "fakedist2-1.0.dist-info", "ghostdist2", "ghostmod")
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -526,7 +507,7 @@ def test_a_distribution_whose_metadata_has_no_version_is_named_without_one(tmp_p
 
 
 def test_build_failure_of_a_network_error():
-    """Kills: ``not isinstance(exc, OSError)`` negated, ``if is_network_error(exc)`` negated."""
+    """A host model that cannot reach the network while it is built gets the network hint."""
     cls = host_class("nerfstudio.models.zipnerf", "ZipNerfModel")
     exc = ConnectionRefusedError("Connection refused")
     assert errors.build_failure(exc, cls, "building the model") == (
@@ -537,7 +518,7 @@ def test_build_failure_of_a_network_error():
 
 @pytest.mark.parametrize("size", [160, 161, 20])
 def test_build_failure_of_a_missing_file(size):
-    """Kills: ``first_line(exc, 160)`` -> ``159`` / ``161``."""
+    """A host model missing a file gets the missing-file hint, the exception's message cut at 160 characters."""
     cls = host_class("nerfstudio.models.lerf", "LERFModel")
     message = "f" * size
     shown = message if size <= 160 else cut(message, 160)

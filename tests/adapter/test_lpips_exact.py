@@ -1,8 +1,8 @@
 """LPIPS that never downloads (sp_plugins.adapter.lpips), exactly and without building the metric: where each
 backbone's weights are looked for, which backbone a call asks for, what stands in without them, the one log
 line per backbone, and the detached metric's device handling. A recording stand-in for the metric class
-(the real one's construction is tested in tests/nerfstudio/test_ns_lpips.py). Each test names the mutants it
-kills (``bench/mutation_study.py`` ``sp_plugins/adapter/lpips.py``)."""
+(the real one's construction is tested in tests/nerfstudio/test_ns_lpips.py). The mutants each test kills are listed in
+``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ def cache(hub, net_type):
 
 @pytest.mark.parametrize("net_type", ["alex", "vgg", "squeeze"])
 def test_each_backbone_is_looked_for_under_its_own_file_in_the_hub_cache(hub, net_type):
-    """Kills: the table's names swapped, ``checkpoints`` left out, the ``KeyError`` not caught."""
+    """Each backbone's weights are looked for under its own file in the hub's ``checkpoints``; an unknown backbone
+    has none."""
     assert not lpips.lpips_available(net_type)
     path = cache(hub, net_type)
     assert lpips.lpips_weights_path(net_type) == str(path) and lpips.lpips_available(net_type)
@@ -42,7 +43,7 @@ def test_each_backbone_is_looked_for_under_its_own_file_in_the_hub_cache(hub, ne
 
 
 def test_a_folder_in_place_of_the_weights_file_is_not_the_weights(hub):
-    """Kills: ``isfile`` -> ``exists``, ``path is not None and`` -> ``or``."""
+    """A folder in place of the weights file does not count as the weights."""
     os.makedirs(lpips.lpips_weights_path("alex"))
     assert not lpips.lpips_available("alex")
 
@@ -67,9 +68,7 @@ class Metric(torch.nn.Module):
 @pytest.mark.parametrize("args, kwargs, net_type", [((), {}, "alex"), (("vgg",), {}, "vgg"), ((), {"net_type": "squeeze"}, "squeeze"),
                                                     (("vgg",), {"net_type": "squeeze"}, "squeeze"), (("vgg", "mean"), {}, "vgg")])
 def test_the_backbone_asked_for_decides_and_the_real_metric_gets_the_same_arguments(hub, args, kwargs, net_type):
-    """``net_type`` from the keyword, else the first positional argument, else torchmetrics' default "alex".
-    Kills: ``args[0] if args`` -> ``if not args`` / ``args[-1]`` (a second positional argument, torchmetrics'
-    reduction), the default, the arguments not passed on, ``detach`` ignored."""
+    """``net_type`` from the keyword, else the first positional argument, else torchmetrics' default "alex"."""
     build = lpips.offline_factory(Metric)
     assert build.real is Metric
     assert isinstance(build(*args, **kwargs), lpips.MissingLPIPS)
@@ -81,7 +80,7 @@ def test_the_backbone_asked_for_decides_and_the_real_metric_gets_the_same_argume
 
 
 def test_without_weights_the_stand_in_gives_nan_after_one_line_per_backbone(hub, caplog):
-    """Kills: ``not in _warned`` -> ``in`` (never said, or said every time), ``add`` dropped."""
+    """Without weights the stand-in metric gives NaN, after one warning line per backbone (not one per build)."""
     build = lpips.offline_factory(Metric)
     with caplog.at_level(logging.WARNING, logger=lpips.__name__):
         stand_ins = [build(), build(), build("vgg"), build(net_type="vgg")]
@@ -94,7 +93,8 @@ def test_without_weights_the_stand_in_gives_nan_after_one_line_per_backbone(hub,
 
 
 def test_the_detached_metric_moves_to_its_inputs_device_only_when_it_differs():
-    """Kills: ``!=`` -> ``==`` (moved every call, or never), the moved metric not kept."""
+    """The detached metric moves to its inputs' device only when it differs, and keeps the moved metric; the model's
+    ``.to()`` does not move it."""
     inner = Metric()
     metric = lpips.DetachedMetric(inner)
     a, b = torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4)

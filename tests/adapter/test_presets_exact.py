@@ -26,7 +26,7 @@ def test_each_family_anneals_its_alpha0_exponentially_to_0_by_its_end(name, alph
 
 def test_neuralangelos_alpha_grid_variant_starts_at_003_with_lr_1e3_in_place_of_the_scalar():
     """The paper's adaptive variant: a grid initialised to alpha0, Adam lr 1e-3 on log-alpha, replacing (not
-    scaling) the annealed scalar. Kills: ``alpha_grid_init`` / ``alpha_grid_lr`` changed."""
+    scaling) the annealed scalar."""
     sp = presets.NEURALANGELO
     assert (sp.alpha_grid_init, sp.alpha_grid_lr, sp.alpha_grid_mode, sp.alpha_grid_parameterization) == (0.03, 1e-3, "replace", "log")
     assert sp.alpha_grid_init == sp.alpha0

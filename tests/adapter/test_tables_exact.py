@@ -1,7 +1,6 @@
 """The host method tables' lookups (sp_plugins.adapter.tables), exactly: ``lookup`` takes the most derived
 class a table names, ``merged`` lets a base's entry win over a subclass's (a host fact, e.g. a plain
-submodule of a host model, cannot be undone by a subclass). Kills (``bench/mutation_study.py``
-``sp_plugins/adapter/tables.py``): the MRO walked the other way, ``in`` -> ``not in``, the ``None`` guard."""
+submodule of a host model, cannot be undone by a subclass)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """SP variants of host classes (sp_plugins.adapter.variants), exactly and host-neutrally: the reversible
 name a saved ``config.yml`` carries, the class it resolves to in a fresh process, one variant per host
 class, the refusals' lines, and the config conversion every ``with_sp`` starts with. Stand-in host
-classes at this module's level (importable by path, as a host's are). Each test names the mutants it
-kills (``bench/mutation_study.py`` ``sp_plugins/adapter/variants.py``)."""
+classes at this module's level (importable by path, as a host's are). The mutants each test kills are listed in
+``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -45,16 +45,13 @@ class SPHostConfig(HostConfig):
 @pytest.mark.parametrize("path, text", [("a_b.C", "a_ub_dC"), ("x.y_z.W_", "x_dy_uz_dW_u"), ("plain", "plain"),
                                          ("__.._", "_u_u_d_d_u")])
 def test_a_class_path_encodes_to_an_identifier_and_decodes_back(path, text):
-    """``_`` -> ``_u`` (first: else the ``_`` of ``_d`` would be encoded too), ``.`` -> ``_d``. Kills: the
-    two replacements swapped or their order, the decoder's ``i += 1`` / ``i += 2`` changed, ``u`` / ``d``
-    swapped."""
+    """``_`` -> ``_u`` (first: else the ``_`` of ``_d`` would be encoded too), ``.`` -> ``_d``."""
     assert v.encode_path(path) == text and text.isidentifier()
     assert v.decode_path(text) == path
 
 
 def test_a_class_path_longer_than_256_characters_decodes_back():
-    """Past 256 the decoder's index and ``len(text)`` are no longer CPython's cached small ints. Kills:
-    ``while i < len(text)`` -> ``is not`` (the loop would run past the end)."""
+    """Past 256 the decoder's index and ``len(text)`` are no longer CPython's cached small ints."""
     path = "pkg_" * 40 + "mod." + "Cls_" * 30
     text = v.encode_path(path)
     assert len(text) > 256 and v.decode_path(text) == path
@@ -62,16 +59,14 @@ def test_a_class_path_longer_than_256_characters_decodes_back():
 
 @pytest.mark.parametrize("text", ["a_x", "a_", "_", "ab_dC_"])
 def test_text_the_encoder_could_not_have_written_is_refused(text):
-    """A lone ``_`` or one followed by anything but ``u`` / ``d``. Kills: ``not in`` -> ``in``, the slice
-    ``i + 1 : i + 2`` widened."""
+    """A lone ``_`` or one followed by anything but ``u`` / ``d``."""
     with pytest.raises(ValueError, match=rf"^not an encoded class path: {text!r}$"):
         v.decode_path(text)
 
 
 def test_class_paths_import_back_to_the_same_class():
     """``module.qualname``, nested classes too; the longest importable module prefix wins, and every shorter
-    one is tried after it. Kills: the cuts' range (its start ``1`` -> ``0`` / ``2``, every other cut), either
-    ``continue`` -> ``break``, the type check dropped."""
+    one is tried after it."""
     assert v.class_path(HostModel) == f"{__name__}.HostModel"
     assert v.import_class(v.class_path(HostModel)) is HostModel
     assert v.import_class(v.class_path(Outer.NestedModel)) is Outer.NestedModel
@@ -126,8 +121,8 @@ def factory():
 
 
 def test_a_variant_is_named_by_its_host_path_made_once_and_placed_in_the_module(factory):
-    """Kills: ``PREFIX`` / ``SEPARATOR`` order, the cache (``in`` -> ``not in``, the key), ``setattr`` dropped,
-    the mixin not first."""
+    """A variant is named by its host's encoded path, made once per process with the mixin first and placed in its
+    module."""
     f, module, made = factory
     name = f.name("Model", HostModel)
     assert name == "SPModel__" + v.encode_path(f"{__name__}.HostModel")
@@ -142,8 +137,7 @@ def test_a_variant_is_named_by_its_host_path_made_once_and_placed_in_the_module(
 
 def test_a_name_in_a_fresh_process_resolves_to_the_same_variant(factory):
     """What PyYAML does with ``!!python/name:holder.SPModel__...``: ``getattr(module, name)``; ``ModelConfig``
-    and ``Model`` names each resolve to their own kind. Kills: the decode skipped, ``startswith`` -> not,
-    the errors' kinds."""
+    and ``Model`` names each resolve to their own kind."""
     f, module, _ = factory
     name = f.name("ModelConfig", Outer.NestedModel)
     cls = getattr(module, name)
@@ -166,8 +160,7 @@ def test_a_kind_must_be_an_identifier_without_the_separator():
 
 
 def test_a_host_class_not_importable_by_its_path_is_refused_in_one_line(factory):
-    """A class made in a function: a saved config naming its variant could not be loaded. Kills:
-    ``is not`` -> ``is``, the ImportError not caught."""
+    """A class made in a function: a saved config naming its variant could not be loaded."""
     f, _, _ = factory
 
     class Local:
@@ -178,8 +171,7 @@ def test_a_host_class_not_importable_by_its_path_is_refused_in_one_line(factory)
 
 
 def test_a_builder_that_makes_the_wrong_class_is_refused(factory):
-    """Kills: any clause of ``issubclass and qualname == name and module == module`` dropped or ``and`` -> ``or``,
-    ``__module__ == self.module`` / ``__qualname__ == name`` -> ``<=``."""
+    """A builder that makes a class that is not a subclass of the host, or has another name or module, is refused."""
     f, _, _ = factory
     for wrong in (lambda host, n, m: v.subclass((object,), n, m),  # not a subclass
                   lambda host, n, m: v.subclass((host,), n + "X", m),  # another name
@@ -193,8 +185,7 @@ def test_a_builder_that_makes_the_wrong_class_is_refused(factory):
 
 
 def test_a_builder_may_name_its_class_with_an_equal_string_of_its_own(factory):
-    """A builder that spells the name it was given anew (an equal string, another object) makes the right class.
-    Kills: ``cls.__qualname__ == name`` / ``cls.__module__ == self.module`` -> ``is``."""
+    """A builder that spells the name it was given anew (an equal string, another object) makes the right class."""
     f, _, _ = factory
     f.builders["Model"] = lambda host, n, m: v.subclass((host,), "".join(list(n)), "".join(list(m)))
     f._made.clear()
@@ -203,7 +194,8 @@ def test_a_builder_may_name_its_class_with_an_equal_string_of_its_own(factory):
 
 
 def test_a_mixin_is_found_through_its_provider_module_or_refused():
-    """Kills: ``not in`` / ``and`` in :meth:`mixin`, the provider not imported, the LookupError's line."""
+    """A mixin is found by importing its provider module; one registered with another factory, or without a
+    provider, is refused in one line."""
     name = "_sp_variants_provider_probe"
     provider = _holder(name)
     holder = _holder("_sp_variants_holder_mixins")
@@ -225,8 +217,7 @@ PENDING: list = []
 
 
 def test_a_mixin_not_registered_yet_is_registered_by_importing_its_provider(tmp_path, monkeypatch):
-    """A saved config read in a fresh process: the variant module is imported, its mixin's module is not.
-    Kills: ``kind not in self._mixins`` -> ``in`` (the provider never imported)."""
+    """A saved config read in a fresh process: the variant module is imported, its mixin's module is not."""
     (tmp_path / "_sp_variants_provider_file.py").write_text(
         f"import {__name__} as t\nt.PENDING[-1].register('Field', t.Mixin)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -240,7 +231,8 @@ def test_a_mixin_not_registered_yet_is_registered_by_importing_its_provider(tmp_
 
 
 def test_field_default_calls_the_factory_and_refuses_a_field_without_one():
-    """Kills: ``is not MISSING`` -> ``is``, the factory returned uncalled."""
+    """A field's default comes from its factory (called anew each time) or its value; a field without one is
+    refused."""
     first, second = v.field_default(HostConfig, "names"), v.field_default(HostConfig, "names")
     assert first == ["a"] and first is not second
     assert v.field_default(HostConfig, "num_samples") == 64
@@ -255,8 +247,7 @@ def test_field_default_calls_the_factory_and_refuses_a_field_without_one():
 
 def test_convert_copies_every_init_field_but_the_target_and_applies_changes():
     """Deep copies (the SP config does not share lists with the host's), ``_target`` the new class's default
-    unless given, non-init fields left to the class. Kills: ``f.init and`` -> ``or``, ``!=`` -> ``==``, the
-    deep copy dropped, ``changes`` not applied."""
+    unless given, non-init fields left to the class."""
     host = HostConfig(num_samples=8, names=["x"])
     host.derived = 5
     out = v.convert(host, SPHostConfig, sp="on")
@@ -267,8 +258,7 @@ def test_convert_copies_every_init_field_but_the_target_and_applies_changes():
 
 def test_field_default_finds_a_field_named_by_a_parsed_string_and_a_default_equal_to_anything():
     """A field named as a flag hands it over (an equal string, not the literal); a default whose ``==`` says yes to
-    everything (a wildcard) is still a default. Kills: ``f.name == name`` -> ``is``, ``f.default is not MISSING``
-    -> ``!=``."""
+    everything (a wildcard) is still a default."""
 
     class Wildcard:
         def __eq__(self, other):
@@ -287,7 +277,7 @@ def test_field_default_finds_a_field_named_by_a_parsed_string_and_a_default_equa
 
 
 def test_convert_copies_a_field_whose_name_sorts_before_the_target():
-    """Kills: ``f.name != "_target"`` -> ``>`` (``_a`` and ``Upper`` sort before ``_target`` and would be dropped)."""
+    """``convert`` copies every field but ``_target``, names that sort before it included."""
 
     @dataclasses.dataclass
     class Host:
@@ -310,9 +300,7 @@ def test_target_class_is_the_type_a_config_instantiates_or_none():
 
 
 def test_table_refusal_names_the_first_reason_along_the_model_classes_mro():
-    """A table names a class or a base; a reason may be a callable (asked only then) giving a reason or None.
-    Kills: the MRO walk, ``if reason`` -> ``not``, the callable not called, ``hasattr(model_config, "sp")``
-    negated."""
+    """A table names a class or a base; a reason may be a callable (asked only then) giving a reason or None."""
 
     class Derived(HostModel):
         pass
@@ -331,8 +319,8 @@ def test_table_refusal_names_the_first_reason_along_the_model_classes_mro():
 
 
 def test_with_sp_starts_by_refusing_or_switching_an_sp_method_on():
-    """Kills: ``if reason`` negated, ``not hasattr`` -> ``hasattr``, the explicit ``sp`` not copied or not
-    winning, ``enabled=True`` -> ``False``."""
+    """A method SP cannot be put on is refused with its reason; a plain method is left off; an SP method gets a copy
+    of its ``sp`` switched on, or the ``sp`` given explicitly."""
     with pytest.raises(ValueError, match=r"^SP cannot be put on nerfacto: it has no field$"):
         v.refuse_or_switch_on("nerfacto", HostConfig(), "it has no field", None)
     assert v.refuse_or_switch_on("nerfacto", HostConfig(), None, None) is False

@@ -3,6 +3,7 @@ user's trainer) provides. Imports no host package, so it also runs where none is
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 from typing import Any, Callable, Dict, List
 
@@ -10,11 +11,25 @@ import torch
 from torch import nn
 
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.adapter.hosts import Flags, Host
 from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.adapter.model import SPModelBase
 from sp_plugins.core import SPConfig
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+# -- the toy host's method table (data, as a host's table.py) and its registry entry -------------------
+PRESET = SPConfig(alpha0=0.05, end=0.5)
+"""The toy host's one preset."""
+
+def preset_for(model_config: Any) -> SPConfig:
+    """The toy table's preset (a host table's ``preset_for``)."""
+    return dataclasses.replace(PRESET)
+
+
+HOST = Host(name="toy", packages=("tests",), table=__name__, flags=Flags(steps="--steps", device="--device", devices="--devices"))
+"""What the adapter needs to know of the toy host; :func:`sp_plugins.adapter.hosts.register` adds it
+(a host with a distribution names it in an entry point of ``sp_plugins.hosts`` instead)."""
 
 
 class ToyHostModel(nn.Module):
@@ -54,6 +69,8 @@ class ToyField(SPFieldMixin, nn.Module):
 class ToySP(SPModelBase):
     """The host's half: the methods :class:`SPModelBase` declares abstract."""
 
+    steps_flag = HOST.flags.steps
+
     def attach_sp(self) -> None:
         self.field.use_preconditioner(self.sp)
 
@@ -64,7 +81,7 @@ class ToySP(SPModelBase):
 
     @classmethod
     def sp_preset(cls, model_config: Any) -> SPConfig:
-        return SPConfig(alpha0=0.05, end=0.5)
+        return preset_for(model_config)
 
     def sp_scene_aabb(self) -> torch.Tensor:
         return BOX

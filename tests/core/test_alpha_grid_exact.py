@@ -2,8 +2,8 @@
 (linear interpolation of the stored values between cell centres that sit on the bounds, clamped at
 the edge, then mapped to alpha), each parameterisation's map both ways, the checkpoint conversion,
 its refusals at their edges and what it exports. The reference interpolation below is written from
-the definition, one point at a time. Each test names the mutants it kills
-(``bench/mutation_study.py sp_plugins/core/alpha_grid.py``)."""
+the definition, one point at a time. The mutants each test kills are listed in
+``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -55,8 +55,8 @@ def ramp(shape, seed=0) -> torch.Tensor:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_2d_grid_reads_the_interpolated_alpha_of_its_stored_values_on_uneven_bounds(kind):
-    """Kills: ``(x - lo)`` -> ``x ** lo`` / ``x % lo``, the ``* 2.0 - 1.0`` map's numbers,
-    ``align_corners=True`` -> False, and each parameterisation's map (``clamp_min(0.0)`` -> 1 / -1)."""
+    """A 2D grid on uneven bounds reads, at each point, the bilinear interpolation of its stored values mapped to
+    alpha by its parameterisation."""
     lo, hi = (-0.5, 1.0), (2.5, 3.0)
     grid = AlphaGrid(dim=2, resolution=(5, 4), init=0.1, bounds=(lo, hi), parameterization=kind)
     grid.set_values(ramp((4, 5)))
@@ -69,8 +69,7 @@ def test_a_2d_grid_reads_the_interpolated_alpha_of_its_stored_values_on_uneven_b
 
 
 def test_a_3d_grid_reads_its_corners_exactly_and_clamps_outside_its_bounds():
-    """Kills: ``align_corners=True`` -> False (the corners would read a blend), ``padding_mode``
-    border -> zeros (outside reads would fall), the bounds map's numbers."""
+    """A 3D grid reads its node values exactly at the nodes, and a point outside its bounds as the nearest border."""
     grid = AlphaGrid(dim=3, resolution=(3, 4, 2), init=0.1, bounds=(-2.0, 1.0))
     values = ramp((2, 4, 3), seed=1)
     grid.set_values(values)
@@ -84,7 +83,7 @@ def test_a_3d_grid_reads_its_corners_exactly_and_clamps_outside_its_bounds():
 
 
 def test_a_batch_of_any_shape_reads_alpha_in_that_shape():
-    """Kills: ``batch = x.shape[:-1]`` -> ``x.shape[:1]`` / ``x.shape[:+1]``."""
+    """A batch of points of any shape reads one alpha per point, in that shape."""
     grid = AlphaGrid(dim=3, resolution=4, init=0.2)
     grid.set_values(ramp((4, 4, 4), seed=2))
     x = torch.rand(3, 5, 7, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
@@ -96,9 +95,7 @@ def test_a_batch_of_any_shape_reads_alpha_in_that_shape():
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("alpha", [1e-4, 0.03, 0.7, 5.0])
 def test_each_parameterisation_stores_what_maps_back_to_alpha(kind, alpha):
-    """Kills: ``_from_alpha``'s inverse softplus ``a + log(-expm1(-a))`` -> ``a % ...``, its and
-    log's ``clamp_min(1e-30)`` -> 1.0, and the stored value of each kind (log alpha, alpha, inverse
-    softplus)."""
+    """Each parameterisation stores log alpha, alpha or inverse softplus alpha, which maps back to the alpha set."""
     grid = AlphaGrid(dim=2, resolution=3, init=alpha, parameterization=kind)
     stored = {"log": math.log(alpha), "alpha": alpha, "softplus": math.log(math.expm1(alpha))}[kind]
     assert torch.allclose(grid.param.double(), torch.full((1, 1, 3, 3), stored, dtype=torch.float64), rtol=1e-6, atol=1e-7)
@@ -106,8 +103,7 @@ def test_each_parameterisation_stores_what_maps_back_to_alpha(kind, alpha):
 
 
 def test_an_alpha_grid_reads_a_negative_stored_value_as_zero():
-    """Kills: ``raw.clamp_min(0.0)`` -> ``clamp_min(-1.0)`` (a step of Adam past 0 would read a
-    negative alpha) and ``-> clamp_min(1.0)``."""
+    """The ``alpha`` parameterisation reads a negative stored value as zero."""
     grid = AlphaGrid(dim=2, resolution=2, init=0.5, parameterization="alpha")
     with torch.no_grad():
         grid.param.copy_(torch.tensor([[[[-0.3, 0.2], [0.0, 0.9]]]]))
@@ -116,7 +112,7 @@ def test_an_alpha_grid_reads_a_negative_stored_value_as_zero():
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_parameterisation_named_by_a_parsed_string_reads_as_the_literal(kind):
-    """Kills: ``kind == "log"`` -> ``is`` (twice) and ``kind == "alpha"`` -> ``is`` (twice)."""
+    """A parameterisation named by a parsed (equal, not identical) string stores and reads as the literal."""
     literal = AlphaGrid(dim=2, resolution=3, init=0.3, parameterization=kind)
     other = AlphaGrid(dim=2, resolution=3, init=0.3, parameterization=parsed(kind))
     assert torch.equal(other.param, literal.param)
@@ -125,8 +121,7 @@ def test_a_parameterisation_named_by_a_parsed_string_reads_as_the_literal(kind):
 
 @pytest.mark.parametrize("stored, loaded", list(itertools.permutations(KINDS, 2)))
 def test_a_checkpoint_of_another_parameterisation_loads_as_the_same_alphas(stored, loaded):
-    """Kills: the conversion's maps (``clamp_min(1e-30)`` -> 1.0 in log and softplus, the inverse
-    softplus) on a grid whose alphas span 1e-4 .. 0.5."""
+    """A checkpoint of one parameterisation loads into another as the same alphas (from 1e-4 to 0.5)."""
     source = AlphaGrid(dim=2, resolution=(3, 2), init=0.1, parameterization=stored)
     values = torch.tensor([[1e-4, 0.02, 0.5], [0.3, 0.001, 0.07]], dtype=torch.float64)
     source.set_values(values)
@@ -139,7 +134,7 @@ def test_a_checkpoint_of_another_parameterisation_loads_as_the_same_alphas(store
 def test_an_alpha_checkpoint_with_a_zero_cell_loads_into_a_finite_grid(loaded):
     """An ``alpha`` grid stores 0 where Adam pushed a cell below it; loaded into a log or softplus
     grid it must stay finite (a -inf stored value reads NaN wherever interpolation gives it weight
-    0). Kills: ``clamp_min(1e-30)`` -> ``clamp_min(-1)`` in ``_from_alpha`` (log and softplus)."""
+    0)."""
     state = {"alpha": torch.tensor([[[[0.0, 0.2], [0.3, 0.4]]]])}
     grid = AlphaGrid(dim=2, resolution=2, init=0.1, parameterization=loaded)
     grid.load_state_dict(state)
@@ -152,8 +147,7 @@ def test_an_alpha_checkpoint_with_a_zero_cell_loads_into_a_finite_grid(loaded):
 
 def test_a_checkpoint_that_stores_two_parameterisations_is_refused():
     """Which of two stored grids is meant is not knowable: the first is converted and the other is
-    an unexpected key (strict loading refuses it). Kills: the conversion loop's ``break`` ->
-    ``continue`` (the second would silently overwrite the first)."""
+    an unexpected key (strict loading refuses it)."""
     grid = AlphaGrid(dim=2, resolution=2, init=0.1, parameterization="softplus")
     state = {"log_alpha": torch.zeros(1, 1, 2, 2), "alpha": torch.full((1, 1, 2, 2), 0.4)}
     with pytest.raises(RuntimeError, match=r'Unexpected key\(s\) in state_dict: "alpha"'):
@@ -161,8 +155,7 @@ def test_a_checkpoint_that_stores_two_parameterisations_is_refused():
 
 
 def test_the_defaults_are_a_3d_grid_of_128_cells_at_alpha_003_on_the_unit_cube():
-    """Kills: ``dim: int = 3`` -> 2 / 4, ``resolution = 128`` -> 127 / 129, ``init = 0.03`` ->
-    1.03 / -0.97, the default bounds ``(-1.0, 1.0)`` changed."""
+    """The defaults: a 3D log grid of 128 cells per axis at alpha 0.03 on [-1, 1]^3."""
     grid = AlphaGrid()
     assert (grid.dim, tuple(grid.param.shape), grid.init, grid.parameterization) == (3, (1, 1, 128, 128, 128), 0.03, "log")
     assert grid.lo.tolist() == [-1.0] * 3 and grid.hi.tolist() == [1.0] * 3
@@ -171,29 +164,27 @@ def test_the_defaults_are_a_3d_grid_of_128_cells_at_alpha_003_on_the_unit_cube()
 
 @pytest.mark.parametrize("init", [0.0, -0.5, math.inf, math.nan, -math.inf])
 def test_an_initial_alpha_that_is_not_a_finite_positive_number_is_refused(init):
-    """Kills: ``init > 0`` -> ``>= 0`` (0 accepted) / ``!= 0`` (negatives accepted) / ``> -1``, and
-    ``isfinite(init) and init > 0`` -> ``or`` (inf accepted)."""
+    """An initial alpha that is not a finite number > 0 (zero, negative, infinite, NaN) is refused in one line."""
     with pytest.raises(ValueError, match=r"^init=.*: the initial alpha must be a finite number > 0$"):
         AlphaGrid(dim=2, resolution=2, init=init)
 
 
 @pytest.mark.parametrize("init", [1e-6, 0.5, 3.0])
 def test_a_small_or_large_positive_initial_alpha_is_accepted(init):
-    """Kills: ``init > 0`` -> ``init > 1``."""
+    """Any finite positive initial alpha, small or large, is accepted and read back."""
     assert float(AlphaGrid(dim=2, resolution=2, init=init).values().mean()) == pytest.approx(init, rel=1e-5)
 
 
 @pytest.mark.parametrize("dim, resolution", [(3, (4, 4)), (3, (4, 4, 4, 4)), (2, (4,)), (2, 1), (3, (4, 1, 4)), (2, (2, 0))])
 def test_a_resolution_of_the_wrong_length_or_under_two_cells_is_refused(dim, resolution):
-    """Kills: ``len(res) != dim`` -> ``>`` / ``<`` (one of the two wrong lengths passes), ``or`` ->
-    ``and``, ``min(res) < 2`` -> ``< 1``."""
+    """A resolution with too few or too many sizes, or a size under two cells, is refused in one line."""
     with pytest.raises(ValueError, match=rf"^resolution=.*: need {dim} sizes, each >= 2$"):
         AlphaGrid(dim=dim, resolution=resolution)
 
 
 @pytest.mark.parametrize("dim, resolution", [(2, 2), (3, (2, 3, 2)), (2, (2, 7))])
 def test_two_cells_per_axis_is_enough(dim, resolution):
-    """Kills: ``min(res) < 2`` -> ``< 3``."""
+    """Two cells per axis is accepted; the grid has the resolution's shape."""
     res = [resolution] * dim if isinstance(resolution, int) else list(resolution)
     assert tuple(AlphaGrid(dim=dim, resolution=resolution).param.shape[2:]) == tuple(reversed(res))
 
@@ -211,8 +202,7 @@ def test_a_grid_that_is_not_2d_or_3d_is_refused(dim):
     torch.full((1, 2, 3), 0.1),  # one more axis
 ])
 def test_set_values_refuses_a_grid_of_another_shape(bad):
-    """Kills: the shape check ``!=`` -> ``>`` / ``<`` / ``is`` and its ``or`` -> ``and``, and the
-    ``param.shape[2:]`` it compares (and names) -> ``[1:]`` / ``[3:]``."""
+    """``set_values`` refuses values of another shape, naming the shape needed and the one given."""
     grid = AlphaGrid(dim=2, resolution=(3, 2), init=0.1)
     with pytest.raises(ValueError, match=rf"^set_values: need \(2, 3\) positive alphas, got {re.escape(str(tuple(bad.shape)))}$"):
         grid.set_values(bad)
@@ -220,7 +210,7 @@ def test_set_values_refuses_a_grid_of_another_shape(bad):
 
 @pytest.mark.parametrize("bad_value", [0.0, -0.2])
 def test_set_values_refuses_an_alpha_that_is_not_positive(bad_value):
-    """Kills: ``alpha > 0`` -> ``>= 0`` (a zero accepted) / ``!= 0`` (a negative accepted)."""
+    """``set_values`` refuses a zero or negative alpha and leaves the grid unchanged."""
     grid = AlphaGrid(dim=2, resolution=(3, 2), init=0.1)
     values = torch.full((2, 3), 0.1)
     values[1, 2] = bad_value
@@ -230,7 +220,7 @@ def test_set_values_refuses_an_alpha_that_is_not_positive(bad_value):
 
 
 def test_its_repr_names_dim_shape_init_and_parameterisation():
-    """Kills: ``param.shape[2:]`` -> ``[1:]`` / ``[3:]`` in ``extra_repr``."""
+    """Its repr names the dimension, the stored shape, the initial alpha and the parameterisation."""
     grid = AlphaGrid(dim=3, resolution=(4, 3, 2), init=0.025, parameterization="softplus")
     assert grid.extra_repr() == "dim=3, shape=(2, 3, 4), init=0.025, parameterization=softplus"
 
@@ -243,15 +233,13 @@ def test_its_repr_names_dim_shape_init_and_parameterisation():
     ((25611, 8), (5.0, 50.5)),      # taller than 10:1: clamped at 10
 ])
 def test_a_2d_maps_figure_is_5_inches_wide_and_as_tall_as_its_clamped_aspect(shape, size):
-    """Kills: each number of ``min(max(H / W, 0.1), 10.0)`` and ``(5, 5 * aspect + 0.5)``, and ``/``
-    -> any other operator."""
+    """A 2D map's figure is 5 inches wide and 5 times its aspect (clamped to [0.1, 10]) plus half an inch tall."""
     assert map_figure_size(shape) == pytest.approx(size, rel=1e-12)
 
 
 def test_the_exported_map_colours_alpha_from_zero_into_nested_folders(tmp_path):
     """The colour scale starts at alpha 0 (half the largest alpha is the colour map's middle), and
-    the PNG is written into folders that do not exist yet. Kills: ``vmin=0.0`` -> 1.0 / -1.0,
-    ``mkdir(parents=True)`` -> False."""
+    the PNG is written into folders that do not exist yet."""
     import matplotlib
     from PIL import Image
 
@@ -269,7 +257,7 @@ def test_the_exported_map_colours_alpha_from_zero_into_nested_folders(tmp_path):
 
 
 def test_a_3d_grid_exports_its_volume_as_npy_last_axis_x(tmp_path):
-    """Kills: the ``dim == 3`` branch's suffix and array (``values()`` as stored, ``[D, H, W]``)."""
+    """A 3D grid exports its alphas as a ``.npy`` volume, ``[D, H, W]`` (last axis x), in a folder it makes."""
     grid = AlphaGrid(dim=3, resolution=(4, 3, 2), init=0.1)
     values = ramp((2, 3, 4), seed=3)
     grid.set_values(values)

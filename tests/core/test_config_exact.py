@@ -1,7 +1,7 @@
 """SP's one configuration (sp_plugins.core.config), exactly: every default as the README's table of SP
 settings documents it, and each validation bound at its edge with its one-line message, so a flag typed on
-any method is refused the same way when the config is made. Each test names the mutants it kills
-(``bench/mutation_study.py`` ``sp_plugins/core/config.py``)."""
+any method is refused the same way when the config is made. The mutants each test kills are listed in
+``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -10,18 +10,23 @@ import dataclasses
 import pytest
 
 from sp_plugins.core import SPConfig, StochasticPreconditioner
+from sp_plugins.core.settings import SPSettings
 
 NAN, INF = float("nan"), float("inf")
 
 
 def test_the_defaults():
-    """Kills: every default's literal changed (+1 / -1 / flipped)."""
+    """Each setting of ``SPConfig`` has its documented default (SP on, alpha0 0.01 on an exponential schedule with
+    final ratio 1e-3 ending at 0.2 of training, Gaussian noise reflected at the box, one sample, no grid), and
+    the settings come first (``enabled``, ``alpha0``), ``_target`` last (``SPConfig`` adds it to ``SPSettings``)."""
     c = SPConfig()
     assert c._target is StochasticPreconditioner
     assert (c.enabled, c.alpha0, c.relative_to_diagonal, c.schedule, c.end, c.final_ratio) == (True, 0.01, False, "exponential", 0.2, 1e-3)
     assert (c.noise, c.boundary, c.num_samples, c.alpha_grid, c.alpha_grid_mode) == ("gaussian", "reflect", 1, False, "replace")
     assert (c.alpha_grid_resolution, c.alpha_grid_init, c.alpha_grid_lr, c.alpha_grid_parameterization, c.seed) == (32, None, 1e-3, "log", None)
-    assert [f.name for f in dataclasses.fields(SPConfig)][:3] == ["_target", "enabled", "alpha0"]
+    names = [f.name for f in dataclasses.fields(SPConfig)]
+    assert names[:2] == ["enabled", "alpha0"] and names[-1] == "_target"
+    assert names[:-1] == [f.name for f in dataclasses.fields(SPSettings)]
 
 
 @pytest.mark.parametrize("name, accepted, refused, message", [
@@ -34,8 +39,7 @@ def test_the_defaults():
     ("alpha_grid_resolution", [2, 3, 128], [1, 0, -4], "alpha_grid_resolution={}: must be >= 2"),
 ])
 def test_each_bound_at_its_edge(name, accepted, refused, message):
-    """Kills: each comparison moved across its edge (``>=`` -> ``>``, ``< 1`` -> ``<= 1``, ``< 2`` -> ``<= 2`` ...),
-    ``isfinite and`` -> ``or``, the ``is not None`` guard, a check dropped."""
+    """Each numeric setting accepts the values at its edge and refuses those just past it, in its one line."""
     for value in accepted:
         assert getattr(SPConfig(**{name: value}), name) == value or value is None
     for value in refused:
@@ -53,13 +57,13 @@ def test_each_bound_at_its_edge(name, accepted, refused, message):
     ("alpha_grid_parameterization", "exp", "alpha_grid_parameterization='exp'"),
 ])
 def test_each_named_choice_is_checked(name, value, message):
-    """Kills: ``not in`` -> ``in`` for the schedule and the grid mode, a kind's check dropped."""
+    """Each named choice outside its list is refused in its one line."""
     with pytest.raises(ValueError, match=f"^{message}".replace("(", r"\(").replace(")", r"\)")):
         SPConfig(**{name: value})
 
 
 def test_validation_runs_when_the_config_is_made_and_again_on_demand():
-    """Kills: ``__post_init__`` not validating (a bad flag accepted until the schedule is built, mid-setup)."""
+    """A bad value is refused when the config is made, and one set afterwards by ``validate()``."""
     config = SPConfig()
     config.alpha0 = -1.0  # set after construction (a config file): validate() still finds it
     with pytest.raises(ValueError, match=r"^alpha0=-1\.0"):

@@ -19,8 +19,7 @@ def gen(seed: int) -> torch.Generator:
 @pytest.mark.parametrize("kind", NOISE_KINDS)
 def test_a_kind_named_by_an_equal_string_draws_that_kind(kind):
     """A kind read from a command line or a file is an equal string, not the same object as the
-    literal. Kills: ``kind == "gaussian"`` / ``kind == "uniform"`` -> ``is`` (a parsed "gaussian" drawn
-    as the squared Gaussian)."""
+    literal."""
     parsed = "".join(list(kind))  # equal, not interned
     assert parsed == kind and parsed is not kind
     out = sample_noise((64, 3), parsed, generator=gen(3), dtype=torch.float64)
@@ -29,8 +28,7 @@ def test_a_kind_named_by_an_equal_string_draws_that_kind(kind):
 
 def test_kind_is_a_keyword_and_the_rest_keyword_only():
     """``sample_noise(shape, kind=..., generator=...)`` as documented; ``generator`` cannot be passed by
-    position (a third positional argument would silently be taken for it). Kills: the ``*`` of the
-    signature turned into ``/``."""
+    position (a third positional argument would silently be taken for it)."""
     out = sample_noise((16,), kind="uniform", generator=gen(1), dtype=torch.float64)
     torch.testing.assert_close(out, noise_reference((16,), "uniform", gen(1), torch.float64), rtol=0, atol=1e-12)
     with pytest.raises(TypeError):

@@ -1,7 +1,7 @@
 """Finite-difference stencils (sp_plugins.core.stencil), exactly: on a two-dimensional batch, with kinds named by
 parsed strings, and every unknown kind refused, by every function that takes one. (``tests/core/test_stencil.py``
-checks accuracy on one batch dimension, where axis 1 is axis -1.) Each test names the mutants it kills
-(``bench/mutation_study.py sp_plugins/core/stencil.py``)."""
+checks accuracy on one batch dimension, where axis 1 is axis -1.) The mutants each test kills are listed in
+``bench/results/mutation_study/kills.json``."""
 
 import pytest
 import torch
@@ -20,9 +20,7 @@ def quadratic(p):
 @pytest.mark.parametrize("kind", ["6pt", "4pt"])
 def test_gradient_and_laplacian_on_a_two_dimensional_batch(kind):
     """Centres [2, 5, 3] with their values [2, 5]: the gradient [2, 5, 3] and the Laplacian [2, 5] of a quadratic,
-    exact up to rounding. Kills:
-    ``values.shape[-1]`` -> ``[1]`` / ``[+1]``, ``values.sum(-1)`` -> ``sum(1)`` / ``sum(+1)``, ``values.shape[:-1]``
-    -> ``[:1]`` / ``[:+1]`` in finite_differences."""
+    exact up to rounding."""
     c = torch.rand(2, 5, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     grad, lap = finite_differences(quadratic, c, 1e-3, kind, centre_values=quadratic(c))
     x, y, z = c.unbind(-1)
@@ -32,8 +30,7 @@ def test_gradient_and_laplacian_on_a_two_dimensional_batch(kind):
 
 def test_kinds_named_by_parsed_strings_and_by_keyword(monkeypatch):
     """Equal strings that are not the literals (as a parsed flag) build the same offsets, gradient and Laplacian,
-    also when the offsets are not cached yet; the kind may be passed by keyword. Kills: each ``kind == "6pt"`` /
-    ``"4pt"`` -> ``is``, the signature's ``*`` -> ``/``."""
+    also when the offsets are not cached yet; the kind may be passed by keyword."""
     c = torch.rand(7, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     for kind in ("6pt", "4pt"):
         literal = [t.clone() for t in (stencil_offsets(kind, dtype=torch.float64), *finite_differences(quadratic, c, 1e-3, kind, quadratic(c)))]
@@ -48,8 +45,7 @@ def test_kinds_named_by_parsed_strings_and_by_keyword(monkeypatch):
 def test_an_unknown_kind_is_refused_by_every_function(kind, monkeypatch):
     """Kinds that sort before "4pt", after "6pt" or between them are refused with the line, by the offsets, the
     gradient and the Laplacian (which used to take any kind as "4pt", silently; before ``check_stencil_kind``
-    the offsets' ``kind == "6pt"`` -> ``>=`` and ``kind == "4pt"`` -> ``<=`` survived too). Kills: the check's
-    ``not in`` -> ``in``, the check dropped from stencil_offsets or from the Laplacian."""
+    the offsets' ``kind == "6pt"`` -> ``>=`` and ``kind == "4pt"`` -> ``<=`` survived too)."""
     monkeypatch.setattr(stencil, "_OFFSETS", {})
     message = f"^stencil={kind!r} is not a stencil; allowed values: 6pt, 4pt$"
     values = torch.zeros(2, 6)

@@ -4,12 +4,14 @@ One module fixture trains ``sp-nerfacto`` three steps through ``nerfbaselines tr
 on a bundled scene (Blender layout, loaded by nerfbaselines' own Blender loader through the
 ``nb-info.json`` sp-scene writes); ``render``, ``evaluate`` and ``generate-dataset-results`` run on
 what it wrote. An SDF method trains on the SDFStudio layout (our loader) and gets the dataset's box.
+A Blender-format folder of one's own (no ``nb-info.json``) trains through our Blender-layout loader.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import tarfile
 from pathlib import Path
@@ -172,3 +174,32 @@ def test_sdf_method_gets_the_dataset_box_and_scores_as_ours(scene, nb_server):
     assert json.loads((out / f"checkpoint-{STEPS}" / "sp-scene-box.json").read_text())["aabb"] == box
     results = json.loads((out / f"results-{STEPS}.json").read_text())["metrics"]
     assert abs(results["psnr"] - our_psnr(untar(out / f"predictions-{STEPS}.tar.gz"))) < 1e-3, results
+
+
+def own_blender_folder(blender: Path, root: Path) -> Path:
+    """What a user has: the transforms files (without ``w`` / ``h``, as nerf_synthetic's) and the images
+    of an sp-scene Blender folder, no ``nb-info.json`` nor anything else sp-scene writes."""
+    root.mkdir()
+    for split in ("train", "val", "test"):
+        meta = json.loads((blender / f"transforms_{split}.json").read_text())
+        (root / f"transforms_{split}.json").write_text(json.dumps({k: v for k, v in meta.items() if k not in ("w", "h")}))
+        shutil.copytree(blender / split, root / split)
+    return root
+
+
+def test_own_blender_folder_trains_as_blender_data_with_sp_on(scene, tmp_path, nb_server):
+    """``nerfbaselines train --data DIR`` on a Blender-format folder: our loader finds it, our preset puts
+    it on nerfstudio's blender-data parser (as ``ns-train ... blender-data --data DIR``), and what the run
+    did about SP is in the checkpoint's and the results' hparams."""
+    mine = own_blender_folder(scene / "blender", tmp_path / "my-object")
+    out = tmp_path / "nerfacto+sp"
+    nb("train", "--method", "nerfacto+sp", "--backend", "python", "--data", str(mine), "--output", str(out),
+       *BUDGET, *NERFACTO, server=nb_server)
+    checkpoint = out / f"checkpoint-{STEPS}"
+    info = json.loads((checkpoint / "nb-info.json").read_text())
+    assert info["applied_presets"] == ["blender-layout"] and info["dataset_metadata"]["layout"] == "blender"
+    assert "BlenderDataParserConfig" in (checkpoint / "config.yml").read_text()
+    results = json.loads((out / f"results-{STEPS}.json").read_text())
+    assert math.isfinite(results["metrics"]["psnr"])
+    for hparams in (info["hparams"], results["nb_info"]["hparams"]):
+        assert hparams["sp_run.enabled"] is True and hparams["sp_run.fields"] and hparams["sp_run.alpha0"] > 0

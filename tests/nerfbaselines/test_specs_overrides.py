@@ -92,7 +92,7 @@ def test_specs_reach_nerfbaselines_through_its_entry_point():
                  "nerfacto+sp", "mipnerf+sp", "vanilla-nerf+sp"):
         assert name in methods, name
         assert nerfbaselines.get_method_spec(name)["backends_order"][0] == "python"
-    assert "sdfstudio-layout" in nerfbaselines.get_supported_dataset_loaders()
+    assert {"sdfstudio-layout", "blender-layout"} <= nerfbaselines.get_supported_dataset_loaders()
     assert "sp-scene" in nerfbaselines.get_supported_evaluation_protocols()
     # nerfacto+sp keeps nerfbaselines' own nerfacto presets, so the two are a like-for-like pair
     ours, theirs = (nerfbaselines.get_method_spec(m)["presets"] for m in ("nerfacto+sp", "nerfacto"))

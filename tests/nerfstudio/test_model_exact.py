@@ -1,7 +1,7 @@
 """The host wiring of SP in our nerfstudio models (sp_plugins.nerfstudio.model), exactly: which losses
 the non-finite watch reads and at which step, which optimizer groups its message names, which SP
-options a baseline refuses. Each test names the mutants of the study (``bench/mutation_study.py``)
-it was written for; each was shown failing on them."""
+options a baseline refuses. The mutants of the study (``bench/mutation_study.py``) each test
+was written for are listed in ``bench/results/mutation_study/kills.json``; each was shown failing on them."""
 
 from __future__ import annotations
 
@@ -49,8 +49,7 @@ def _model(step: int = 0) -> _Model:
 
 def test_the_watch_reads_training_losses_at_sp_s_step_and_never_evaluation_losses():
     """A NaN training loss is recorded at the step SP is at; an evaluation loss, NaN or not, is never
-    recorded (``ns-eval`` and the trainer's eval steps must not stop a run). Kills: ``if self.training``
-    -> ``if not self.training`` in ``get_loss_dict``."""
+    recorded (``ns-eval`` and the trainer's eval steps must not stop a run)."""
     model = _model(step=7)
     model.losses = {"rgb_loss": torch.tensor(NAN), "interlevel_loss": torch.tensor(0.5)}
     model.eval()
@@ -75,8 +74,7 @@ def test_finite_training_losses_record_no_divergence():
 def test_the_divergence_line_names_every_group_but_sp_s_alpha_grid_in_the_host_s_order():
     """The learning rates a diverged run is told to lower are the host's groups, never SP's alpha grid
     (its own lr flag is ``--pipeline.model.sp.alpha-grid-lr``). The group name compared is an equal
-    string that is not the constant itself, as a name read back from a config would be. Kills:
-    ``g != ALPHA_GRID_GROUP`` -> ``is not``, ``>``, ``<``, ``>=``, ``<=``, ``==``, ``is``."""
+    string that is not the constant itself, as a name read back from a config would be."""
     model = _model()
     grid_name = "".join(["sp_alpha", "_grid"])
     assert grid_name == ALPHA_GRID_GROUP and grid_name is not ALPHA_GRID_GROUP
@@ -90,8 +88,7 @@ def test_the_divergence_line_names_every_group_but_sp_s_alpha_grid_in_the_host_s
 @pytest.mark.parametrize("num_samples", [1, 2, 4])
 def test_a_baseline_refuses_exactly_the_options_that_act_only_through_sp(num_samples):
     """With SP off, ``num_samples`` 1 (the default: one draw) is no option at all and is accepted; 2 or
-    more (averaged draws) would be silently ignored and is refused, naming the value. Kills:
-    ``config.num_samples > 1`` -> ``> 0`` (every baseline refused) and -> ``> 2``."""
+    more (averaged draws) would be silently ignored and is refused, naming the value."""
     config = SPConfig(enabled=False, num_samples=num_samples)
     if num_samples == 1:
         refuse_inert_options(config)
@@ -149,9 +146,7 @@ def _grid_model(mode: str):
 def test_an_alpha_grid_that_got_no_gradient_or_a_zero_one_is_refused_after_the_first_step(mode):
     """A learnable alpha grid on a field that detaches the positions it reads (no gradient: ``grad`` None)
     or whose output does not depend on them (a zero gradient) cannot learn: refused in one line after the
-    first step, naming the host model and the flag; a field that reads them passes. Kills: ``p.grad is
-    None or not bool(p.grad.any())`` -> ``and`` (a zero gradient passed; None crashed), ``grid is not None
-    and`` -> ``or``."""
+    first step, naming the host model and the flag; a field that reads them passes."""
     ok = _grid_model("read")
     assert any(p.grad is not None and bool(p.grad.any()) for p in ok.sp.alpha_grid.parameters())
     ok.check_sp_reached(0)
@@ -170,9 +165,7 @@ def _plugin_config(host, **flags):
 def test_a_box_boundary_on_a_contracting_model_is_refused_from_its_config_unless_contraction_is_off():
     """Known from the config before the run writes anything: a model whose field contracts space (nerfacto and
     a plugin's subclass of it) gets no box boundary while contraction is on; off (its flag True) it may. A
-    plugin's config without the flag is taken as contraction on (what its nerfacto model does). Kills:
-    ``getattr(model_config, flag, False)`` -> ``True`` (a plugin's contracting model passed), ``flag is None or``
-    -> ``and``, ``boundary != "none"`` -> ``==`` / ``>`` / ``is not``; and the way out named only where a flag exists."""
+    plugin's config without the flag is taken as contraction on (what its nerfacto model does)."""
     from nerfstudio.models.nerfacto import NerfactoModel
     from nerfstudio.models.semantic_nerfw import SemanticNerfWModel
 

@@ -131,8 +131,7 @@ def test_a_field_that_reads_no_position_of_its_samples_is_refused_naming_it():
 
 
 def test_plain_submodules_stay_plain():
-    """Plain names are attribute paths, nested ones too. Kills: ``name == p`` -> ``name is p`` (a
-    path that ``named_modules`` builds is not the table's literal), found by the mutation study."""
+    """Plain names are attribute paths, nested ones too."""
     model = Holder()
     assert attach_seam(model, preconditioner(), plain={"field": "why"}) == []
     assert not isinstance(model.field, SeamField)
@@ -255,8 +254,7 @@ def test_samples_handed_over_unmoved_stop_the_run(monkeypatch):
 @pytest.mark.parametrize("boundary", ["reflect", "clamp"])
 def test_a_box_boundary_on_a_field_that_contracts_space_is_refused_after_the_first_step(boundary):
     """Both box boundaries (not only ``reflect``) are refused on a field with a spatial distortion
-    that is not an SDF field. Kills: ``boundary != "none"`` -> ``boundary > "none"`` ("clamp" sorts
-    before "none") and ``!=`` -> ``is not`` (a parsed "none" is not the literal), found by the mutation study."""
+    that is not an SDF field."""
     model = Holder()
     model.field.spatial_distortion = nn.Identity()  # as nerfacto's field with scene contraction on
     attach_seam(model, preconditioner(alpha=1e-2, boundary=boundary))
@@ -288,9 +286,7 @@ class NoArguments(nn.Module):
 
 def test_submodules_whose_forward_has_no_readable_signature_are_not_fields():
     """``attach_seam`` walks every submodule a host built; one whose ``forward`` signature cannot be
-    read, or that takes no argument, is not a field and does not stop it. Kills: either exception of
-    ``except (TypeError, ValueError)`` no longer caught, ``if not params: return False`` -> ``True``
-    (found by the mutation study)."""
+    read, or that takes no argument, is not a field and does not stop it."""
     model = Holder()
     model.builtin, model.nothing, model.no_arguments = BuiltinForward(), NoForward(), NoArguments()
     assert attach_seam(model, preconditioner()) == ["field"]
@@ -316,8 +312,7 @@ class TensorOrSamples(Probe):
 def test_the_model_itself_is_never_a_seam_field_and_calls_without_samples_are_the_hosts():
     """``attach_seam`` swaps the classes of the model's fields, never the model's own (even when its
     forward takes ``ray_samples``); a seam field called with anything but ``RaySamples`` runs the host's
-    forward untouched while training. Kills: ``module is model or ...`` -> ``and``, and
-    ``if args and isinstance(args[0], RaySamples)`` -> ``or`` (found by the mutation study)."""
+    forward untouched while training."""
     model = FieldLikeModel()
     model.sp = preconditioner()  # the model owns its preconditioner, as SPModelBase does
     assert attach_seam(model, model.sp) == ["field"]
@@ -331,8 +326,7 @@ def test_the_model_itself_is_never_a_seam_field_and_calls_without_samples_are_th
 
 def test_a_plain_submodule_does_not_stop_the_fields_after_it():
     """A plain submodule (one ``table.PLAIN_FIELDS`` names, e.g. a background model) listed before a
-    field: the field after it still gets the seam. Kills: the plain case's ``continue`` -> ``break``
-    (found by the mutation study)."""
+    field: the field after it still gets the seam."""
     model = Holder()
     model.later = Probe()
     assert attach_seam(model, preconditioner(), plain={"field": "why"}) == ["later"]
@@ -341,8 +335,7 @@ def test_a_plain_submodule_does_not_stop_the_fields_after_it():
 
 def test_a_move_that_is_not_a_number_or_not_recorded_stops_the_run():
     """A first move of NaN (the perturbation produced no number) is no move, and neither is none
-    recorded (largest move 0). Kills: ``m > 0`` -> ``m != 0`` in the reach check and the message's
-    ``max(moved, default=0.0)`` -> ``1.0`` / ``-1.0`` (found by the mutation study)."""
+    recorded (largest move 0)."""
     model = Holder()
     attach_seam(model, preconditioner(alpha=1e-2, boundary="none"))
     model.field.sp_handle.perturbed_calls = 1
@@ -356,8 +349,7 @@ def test_a_move_that_is_not_a_number_or_not_recorded_stops_the_run():
 
 def test_a_field_class_defined_in_a_function_still_gets_the_seam():
     """A field class no path imports (defined in a function, as a plugin's factory may) gets a local
-    seam subclass, once per class, and is moved like any other. Kills: ``except ValueError`` in
-    ``seam_class`` no longer caught (found by the mutation study)."""
+    seam subclass, once per class, and is moved like any other."""
 
     class LocalProbe(Probe):
         pass
@@ -373,8 +365,7 @@ def test_a_field_class_defined_in_a_function_still_gets_the_seam():
 
 def test_an_sp_model_names_the_host_model_it_is_built_on():
     """``sp_host_class()`` of an SP model variant is the host's model class (what presets, tables and
-    error lines look up), not one of ours. Kills: its ``not c.__module__.startswith("sp_plugins.")``
-    with the ``not`` dropped (found by the mutation study)."""
+    error lines look up), not one of ours."""
     from nerfstudio.models.vanilla_nerf import NeRFModel
 
     from sp_plugins.nerfstudio import variants
@@ -385,9 +376,7 @@ def test_an_sp_model_names_the_host_model_it_is_built_on():
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_sp_training_callbacks_run_at_every_iteration_where_named(where):
     """The host hook SP's schedule and first-step check ride on: nerfstudio runs it at every step, at the
-    named place. Kills (the mutation study of ``nerfstudio/model.py``): ``update_every_num_iters=1`` -> ``2``
-    (the schedule would advance every other step) and ``where == "before"`` -> ``!=`` (the place swapped).
-    (``== "before"`` -> ``>=`` is equivalent: of the two places only "before" sorts at or after "before".)"""
+    named place."""
     from sp_plugins.nerfstudio.model import SPModel
     from tests.helpers.exact import check_runs_every_iteration_where_named
 

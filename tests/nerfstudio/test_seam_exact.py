@@ -2,8 +2,9 @@
 the paper's ``x + alpha * eps`` folded into the scene box, computed here from the raw draws with
 the reference of ``tests/core/test_properties.py`` (not with the library's ``perturb``).
 
-Each test names, in its docstring, the mutation of ``sp_plugins/nerfstudio/seam.py`` (or of the
-model wiring) it kills; the important ones are in ``tests/mutations.py``.
+The mutation of ``sp_plugins/nerfstudio/seam.py`` (or of the
+model wiring) each test kills is listed in
+``bench/results/mutation_study/kills.json``; the important ones are in ``tests/mutations.py``.
 """
 
 from __future__ import annotations
@@ -64,8 +65,8 @@ def reference(x, alpha, eps, boundary="reflect"):
 
 
 def test_positions_are_x_plus_alpha_eps_reflected_into_the_scene_box():
-    """Kills: the offset not applied (``origins + (q - x)`` -> ``origins``), its sign flipped, or the
-    draw taken at the start for a field that reads midpoints (its read point ignored)."""
+    """The moved samples' positions are ``x + alpha * eps`` reflected into the scene box, for the fixed draw of
+    ``eps``."""
     rs = samples()
     x = rs.frustums.get_positions()
     moved = perturbed_samples(rs, preconditioner())
@@ -78,8 +79,7 @@ def test_positions_are_x_plus_alpha_eps_reflected_into_the_scene_box():
 
 def test_sdf_fields_read_starts_moved_by_the_offset_computed_at_the_start():
     """SDF fields read ``get_start_positions()``: the start of every bin with a length is exactly the
-    reflected ``start + alpha * eps`` and the midpoint moves by that same offset. Kills: the read point
-    dropped (the offset then computed at the midpoint: starts near a wall leave the box)."""
+    reflected ``start + alpha * eps`` and the midpoint moves by that same offset."""
     rs = samples()
     start, mid = rs.frustums.get_start_positions(), rs.frustums.get_positions()
     assert ((rs.frustums.ends - rs.frustums.starts) > 0).all()
@@ -92,7 +92,7 @@ def test_sdf_fields_read_starts_moved_by_the_offset_computed_at_the_start():
 
 def test_gaussian_means_move_by_the_offset_and_the_covariance_stays():
     """MipNeRF reads ``get_gaussian_blob()``: its mean is the plain mean plus the exact offset of the
-    midpoint, its covariance the plain one, bit for bit. Kills: MipNeRF's means not moved (issue 31)."""
+    midpoint, its covariance the plain one, bit for bit."""
     rs = samples()
     x, blob = rs.frustums.get_positions(), rs.frustums.get_gaussian_blob()
     moved = perturbed_samples(rs, preconditioner()).frustums.get_gaussian_blob()
@@ -126,7 +126,7 @@ class Holder(nn.Module):
 
 def test_k_draws_average_the_field_at_k_exact_offsets():
     """``num_samples`` K = 3: the field's output is the mean of its K outputs at the K consecutive
-    draws, each reflected. Kills: the K-draw average dropped (only the first draw kept, or the sum)."""
+    draws, each reflected."""
     model = Holder(Probe())
     attach_seam(model, preconditioner(num_samples=3))
     rs = samples()
@@ -148,9 +148,7 @@ class ArgsProbe(Probe):
 @pytest.mark.parametrize("how", ["positional", "keyword"])
 def test_the_field_gets_the_moved_samples_in_their_place_and_its_other_arguments_as_passed(how):
     """``forward(samples, True, "x", flag=1)`` or ``forward(ray_samples=samples, ...)``: the field reads the
-    moved samples, exactly, where it was handed the plain ones, and every other argument as given.
-    Kills: the field's second positional argument dropped (``(samples, *args[1:])`` -> ``args[2:]``,
-    which the other tests let pass), the samples put back at the wrong place."""
+    moved samples, exactly, where it was handed the plain ones, and every other argument as given."""
     model = Holder(ArgsProbe())
     attach_seam(model, preconditioner())
     rs = samples()
@@ -164,9 +162,7 @@ def test_the_field_gets_the_moved_samples_in_their_place_and_its_other_arguments
 
 def test_the_reach_record_keeps_the_first_calls_largest_move_exactly():
     """What the reach check reads: one moved call counted per field call, and the first call's largest
-    move ``max |q - x|`` (the origins' shift), kept when later calls draw again. Kills: the move
-    recorded as another quantity (``moved - plain`` -> ``moved // plain``, found by the mutation study,
-    which passes the check even when nothing moved)."""
+    move ``max |q - x|`` (the origins' shift), kept when later calls draw again."""
     model = Holder(Probe())
     attach_seam(model, preconditioner())
     rs = samples()
@@ -202,8 +198,7 @@ class SDFProbe(SDFField):
 def test_k_draws_of_an_sdf_field_recompute_normals_and_alpha_from_the_mean():
     """An SDF field's K = 4 draws: SDF and gradient are the means over the K exact offsets taken at
     the starts; normals are the unit mean gradient and alpha is ``get_alpha(mean SDF, mean gradient)``,
-    not the means of the per-draw normals and alphas. Kills: the normals (or alpha) not recomputed
-    after averaging, and the SDF fields' read point dropped."""
+    not the means of the per-draw normals and alphas."""
     model = Holder(SDFProbe())
     attach_seam(model, preconditioner(alpha=0.3, num_samples=4))
     rs = samples()
@@ -231,8 +226,7 @@ class NormalsProbe(Probe):
 
 def test_k_draws_of_predicted_normals_without_a_gradient_are_the_mean_of_the_draws():
     """Only fields with a gradient head get their normals recomputed after averaging; a field that
-    predicts normals keeps the mean of its K = 2 draws (not re-normalised, no KeyError). Kills:
-    ``not isinstance(outputs, dict) or GRADIENT not in outputs`` -> ``and`` (found by the mutation study)."""
+    predicts normals keeps the mean of its K = 2 draws (not re-normalised, no KeyError)."""
     model = Holder(NormalsProbe())
     attach_seam(model, preconditioner(num_samples=2))
     rs = samples()
@@ -256,8 +250,7 @@ class SDFProbeNoAlpha(SDFProbe):
 
 def test_k_draws_of_an_sdf_field_add_no_alpha_it_did_not_return():
     """Alpha is recomputed from the mean only when the field returned one: the outputs' heads are
-    the field's. Kills: ``ALPHA in outputs and SDF in outputs and hasattr(field, "get_alpha")`` with
-    its last ``and`` -> ``or`` (found by the mutation study)."""
+    the field's."""
     model = Holder(SDFProbeNoAlpha())
     attach_seam(model, preconditioner(alpha=0.3, num_samples=2))
     rs = samples()
@@ -280,8 +273,7 @@ class SDFProbeOwnNormals(SDFProbe):
 
 def test_one_draw_leaves_every_head_as_the_field_computed_it():
     """K = 1: the outputs are the field's own at the exact moved starts; nothing is recomputed after
-    the single draw (the recomputation is for means of K > 1 draws). Kills: ``num_samples > 1`` ->
-    ``> 0`` / ``>= 1`` (found by the mutation study)."""
+    the single draw (the recomputation is for means of K > 1 draws)."""
     model = Holder(SDFProbeOwnNormals())
     attach_seam(model, preconditioner(alpha=0.3))
     rs = samples()
@@ -296,9 +288,7 @@ def test_one_draw_leaves_every_head_as_the_field_computed_it():
 def test_gradients_reach_the_input_with_the_folds_sign_and_a_learnable_alpha_grid_exactly():
     """d(w . q)/d origins is ``w`` times +-1 (-1 where the fold mirrored the coordinate), and
     d(w . q)/d (alpha grid) equals the reparameterised ``sum_i w_i * fold'_i * eps_i * d alpha_i / d grid``,
-    computed here by autograd through the reference formula on a copy of the grid. Kills: the
-    offset detached from the alpha grid (``sp(x)`` under ``no_grad`` or ``(q - x).detach()``) and a
-    fold whose derivative is +1 everywhere."""
+    computed here by autograd through the reference formula on a copy of the grid."""
     sp = preconditioner(alpha=0.0, alpha_grid=True, alpha_grid_init=0.35, alpha_grid_resolution=4)
     with torch.no_grad():
         sp.alpha_grid.set_values(0.1 + 0.5 * torch.rand(4, 4, 4, generator=torch.Generator().manual_seed(3)))
@@ -345,8 +335,7 @@ def model_of(name: str, **sp):
 def test_a_models_field_reads_x_plus_alpha0_times_the_box_diagonal_eps_folded_into_its_scene_box(name):
     """The model wiring: with ``relative_to_diagonal`` the field's encoding reads (positions, or
     MipNeRF's Gaussian means) ``x + alpha0 * |diagonal of the scene box| * eps`` folded into that
-    scene box. Kills: the preconditioner built over another box (``sp_bounds``), the diagonal not
-    applied (``scene_diagonal=box_diagonal(aabb)`` dropped) and MipNeRF's means not moved."""
+    scene box."""
     from sp_plugins.nerfstudio.seam import seam_fields
 
     model = model_of(name, alpha0=0.05, relative_to_diagonal=True)
@@ -366,8 +355,7 @@ def test_a_models_field_reads_x_plus_alpha0_times_the_box_diagonal_eps_folded_in
 def test_a_numerical_gradient_stencil_sits_around_the_moved_start_with_one_offset():
     """``sp-neuralangelo-lite`` (numerical gradients): the SDF network is queried at the moved start
     ``fold(start + alpha eps)`` in the scene box, then at that point +- step e_i for every sample:
-    all six stencil points share the one offset. Kills: a stencil around the plain start, a draw per
-    stencil point, and the SDF field's offset taken at the midpoint."""
+    all six stencil points share the one offset."""
     from nerfstudio.data.scene_box import SceneBox
     from tests.helpers.ns_configs import shrink_sdf_model
 

@@ -49,6 +49,45 @@ def test_view_indices_kinds_and_errors(blender_outputs):
         view_indices(blender_outputs, 2, "best")  # type: ignore[arg-type]
 
 
+def test_random_selection_is_a_seeded_sorted_subset_of_the_size_asked_for(blender_outputs):
+    """``random`` keeps ``n`` distinct views, sorted, drawn from the whole training split: the same seed gives the
+    same views whatever the global RNG's state (and leaves that state alone), other seeds give other subsets,
+    unlike ``first`` and ``spread``, which do not depend on the seed, and over seeds every view can be drawn."""
+    total = len(blender_outputs.image_filenames)
+    with torch.random.fork_rng(devices=[]):  # the global state this test sets is not left to the others
+        torch.manual_seed(123)
+        state = torch.get_rng_state()
+        chosen = {seed: view_indices(blender_outputs, 3, "random", seed=seed) for seed in range(40)}
+        assert torch.equal(torch.get_rng_state(), state)  # the global generator is not drawn from
+        for seed, ids in chosen.items():
+            assert len(ids) == 3 and len(set(ids)) == 3 and ids == sorted(ids) and 0 <= ids[0] and ids[-1] < total, (seed, ids)
+            torch.manual_seed(seed + 1000)  # another global state: the same views
+            assert view_indices(blender_outputs, 3, "random", seed=seed) == ids
+    subsets = {tuple(ids) for ids in chosen.values()}
+    assert len(subsets) > 10  # 56 subsets of 3 of 8 views: the seed decides
+    assert set().union(*subsets) == set(range(total))  # no view left out of every draw
+    for other in ("first", "spread"):
+        fixed = view_indices(blender_outputs, 3, other)
+        assert all(view_indices(blender_outputs, 3, other, seed=seed) == fixed for seed in (0, 1, 7))
+        assert subsets != {tuple(fixed)}
+    assert view_indices(blender_outputs, total, "random", seed=5) == list(range(total))
+
+
+def test_the_data_manager_trains_on_the_random_views_of_its_seed(tiny_scene):
+    """``--pipeline.datamanager.train-view-selection random --pipeline.datamanager.train-view-seed S`` trains on
+    the views ``view_indices`` draws with seed S; another seed, other views."""
+    parser = BlenderDataParserConfig(data=tiny_scene / "blender")
+    outputs = parser.setup().get_dataparser_outputs("train")
+    a = view_indices(outputs, 3, "random", seed=0)
+    b_seed = next(seed for seed in range(1, 50) if view_indices(outputs, 3, "random", seed=seed) != a)
+    for seed in (0, b_seed):
+        config = CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(data=tiny_scene / "blender"), train_views=3,
+                                          train_view_selection="random", train_view_seed=seed)
+        dm = config.setup(device="cpu", test_mode="val")
+        want = [outputs.image_filenames[i].name for i in view_indices(outputs, 3, "random", seed=seed)]
+        assert [p.name for p in dm.train_dataparser_outputs.image_filenames] == want, seed
+
+
 def test_subset_keeps_images_cameras_and_per_image_metadata_together(tiny_scene):
     outputs = SDFStudioDataParserConfig(data=tiny_scene / "sdfstudio").setup().get_dataparser_outputs("train")
     outputs.metadata["depth_filenames"] = [f"d{i}" for i in range(len(outputs.image_filenames))]

@@ -16,8 +16,8 @@ from sp_plugins.nerfstudio import variants
 
 
 def test_an_sp_model_config_is_the_hosts_with_sp_and_targets_the_sp_model():
-    """Kills: the bases' order, the ``_target`` default not the SP model of the host's target, the preset not
-    ``presets.DEFAULT`` or shared between configs (``dataclasses.replace`` dropped), the dataclass decorator."""
+    """An SP model config is a dataclass of the SP config and the host's, with the host's defaults, its own copy of
+    ``presets.DEFAULT`` and the SP model of the host's target."""
     cls = variants.variant("ModelConfig", NerfactoModelConfig)
     assert cls.__bases__ == (SPModelConfig, NerfactoModelConfig) and dataclasses.is_dataclass(cls)
     a, b = cls(), cls()

@@ -39,7 +39,7 @@ def _model(sp: SPConfig, field=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)),
 def test_sp_folds_into_the_contraction_s_range_whatever_the_scene_box(aabb):
     """sdfstudio's SDF field is queried in contracted space, whose range is ``[-2, 2]^3`` for every
     scene box: the preconditioner's bounds are that range (the scene box only sets the diagonal a
-    relative alpha is measured in). Kills: ``sp_bounds`` returning the scene box (the base's)."""
+    relative alpha is measured in)."""
     from sp_plugins.sdfstudio.seam import CONTRACTED_BOUNDS
 
     assert CONTRACTED_BOUNDS == (-2.0, 2.0)
@@ -54,8 +54,7 @@ def test_sp_folds_into_the_contraction_s_range_whatever_the_scene_box(aabb):
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_only_one_draw_per_query_is_accepted(k):
     """The contraction moves each query once, so K draws cannot be averaged: K = 1 (the default) is
-    accepted, K >= 2 refused naming K and the fix. Kills: ``k > 1`` -> ``k > 0`` / ``k > 2`` / ``k >= 1``
-    (``!=`` is equivalent: SPConfig holds K >= 1)."""
+    accepted, K >= 2 refused naming K and the fix."""
     from sp_plugins.sdfstudio.model import unsupported_setting
 
     problem = unsupported_setting(SPConfig(num_samples=k))
@@ -90,7 +89,7 @@ def test_a_field_that_is_not_the_seam_s_is_refused_naming_it():
 
 def test_averaged_draws_are_refused_when_the_model_is_built_and_the_field_is_left_plain():
     """``attach_sp`` refuses ``num_samples`` 2 (runs not started by ``sp-sdfstudio-train``, which checks
-    first) before the field gets a preconditioner. Kills: the refusal's ``if problem`` negated or removed."""
+    first) before the field gets a preconditioner."""
     field = tiny_field(numerical=False)
     model = _model(SPConfig(num_samples=2), field)
     model.sp = model.build_preconditioner()
@@ -123,8 +122,7 @@ def test_the_first_step_check_names_the_host_model_and_the_step():
 
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_sp_training_callbacks_run_at_every_iteration_where_named(where):
-    """The host hook SP's schedule and first-step check ride on: at every step, at the named place.
-    Kills: ``update_every_num_iters=1`` -> ``2`` / ``0``, ``where == "before"`` -> ``!=`` (places swapped)."""
+    """The host hook SP's schedule and first-step check ride on: at every step, at the named place."""
     from sp_plugins.sdfstudio.model import SPModel
     from tests.helpers.exact import check_runs_every_iteration_where_named
 

@@ -4,7 +4,7 @@ contraction's range ``[-2, 2]^3``, computed here from the raw draws with the ref
 ``tests/core/test_properties.py`` and a contraction written here (not the library's ``perturb`` or
 the host's ``SceneContraction``).
 
-Each test names, in its docstring, the mutation it kills; the important ones are in
+The mutation each test kills is listed in ``bench/results/mutation_study/kills.json``; the important ones are in
 ``tests/mutations.py``.
 """
 
@@ -69,9 +69,7 @@ def starts(samples) -> torch.Tensor:
 
 def test_the_query_is_the_contracted_start_plus_alpha_eps_folded_into_the_contracted_range_and_the_stencil_shares_it():
     """The centre query of every sample is ``fold(contract(start) + alpha * eps)`` into ``[-2, 2]^3``,
-    and the six stencil points are that centre +- delta e_i exactly. Kills: the perturbation applied
-    before the contraction (``handle.sp(x)`` then contracted: alpha in scene units far away), the
-    box folded into the unit cube instead of the contraction's range, and a stencil drawn per point."""
+    and the six stencil points are that centre +- delta e_i exactly."""
     field, sp = tiny_field(numerical=True, fd_step=0.01), preconditioner()
     field.use_preconditioner(sp)
     field.train()
@@ -90,9 +88,7 @@ def test_the_query_is_the_contracted_start_plus_alpha_eps_folded_into_the_contra
 
 def test_queries_fold_at_both_walls_of_the_contracted_range():
     """The same rays mirrored (towards +z): far samples contract towards the upper wall at +2 and
-    fold there, exactly as the reference folds into ``[-2, 2]^3``. Kills: ``CONTRACTED_BOUNDS``'s
-    upper end moved (``(-2.0, 2.0)`` -> ``(-2.0, 3.0)``; the rays towards -z only test the lower
-    wall), found by the mutation study."""
+    fold there, exactly as the reference folds into ``[-2, 2]^3``."""
     import dataclasses
 
     field, sp = tiny_field(numerical=False), preconditioner()
@@ -112,9 +108,7 @@ def test_queries_fold_at_both_walls_of_the_contracted_range():
 
 
 def test_the_eikonal_gradient_is_taken_at_the_reference_point():
-    """With autograd normals the field's gradient is d sdf / d q at ``q = fold(contract(x) + alpha eps)``.
-    Kills: the gradient taken at the plain contracted point (the perturbation outside the tensor the
-    host differentiates)."""
+    """With autograd normals the field's gradient is d sdf / d q at ``q = fold(contract(x) + alpha eps)``."""
     from nerfstudio.field_components.field_heads import FieldHeadNames
 
     field, sp = tiny_field(numerical=False), preconditioner()
@@ -130,8 +124,7 @@ def test_the_eikonal_gradient_is_taken_at_the_reference_point():
 def test_the_reach_record_counts_each_moved_query_and_keeps_the_first_move_exactly():
     """What the reach check reads: one moved contraction call per training query, and the first
     query's largest move ``max |fold(c + alpha eps) - c|``, kept (a later query does not replace it);
-    the model's check then passes. Kills: the count not kept (``perturbed_calls += 1`` -> ``*=`` / ``-=``),
-    the first move not recorded or recorded as another quantity (``moved - plain`` -> ``moved + plain``)."""
+    the model's check then passes."""
     from torch import nn
 
     from sp_plugins.sdfstudio.seam import check_reached
@@ -155,9 +148,7 @@ def test_the_reach_record_counts_each_moved_query_and_keeps_the_first_move_exact
 def test_the_samplers_queries_are_the_hosts_at_the_plain_starts_or_when_asked_at_the_moved_ones():
     """``get_sdf`` (NeuS up-sampling) and ``get_density`` (VolSDF's sampler) while training: by default
     exactly sdfstudio's own ``SDFField`` methods; with ``perturb_sampler_queries`` the same computation
-    at ``fold(start + alpha eps)`` (no contraction: the host's samplers query uncontracted starts).
-    Kills: any change to the override's slicing, split or reshape (``get_density`` was called by no
-    test before), and the sampler switch ignored."""
+    at ``fold(start + alpha eps)`` (no contraction: the host's samplers query uncontracted starts)."""
     from nerfstudio.fields.sdf_field import SDFField
 
     from tests.helpers.exact import folded_query
@@ -185,8 +176,7 @@ def test_the_samplers_queries_are_the_hosts_at_the_plain_starts_or_when_asked_at
 
 def test_the_alpha_grid_gradient_through_the_contraction_is_the_eps_weighted_value():
     """A learnable alpha grid over the contracted range: d(sum sdf)/d(grid) equals autograd through
-    ``fold(c + alpha_grid(c) * eps)``, ``c = contract(x)``, on a copy of the grid. Kills: the grid
-    read at the plain scene positions or its gradient cut (``handle.sp(plain.detach())``)."""
+    ``fold(c + alpha_grid(c) * eps)``, ``c = contract(x)``, on a copy of the grid."""
     from nerfstudio.field_components.field_heads import FieldHeadNames
 
     field, sp = tiny_field(numerical=False), preconditioner(alpha=0.0, alpha_grid=True, alpha_grid_init=0.1, alpha_grid_resolution=4)
@@ -223,8 +213,7 @@ def neus_model(**sp):
 
 def test_the_model_folds_into_the_contracted_range_with_alpha_relative_to_the_scene_diagonal():
     """``sp-neus`` with ``relative_to_diagonal``: the field queries ``fold(contract(x) + alpha0 *
-    diagonal * eps)`` into ``[-2, 2]^3``, the diagonal the scene box's (3 sqrt 3 here). Kills: the
-    model's ``sp_bounds`` returning the scene box, and the diagonal not applied."""
+    diagonal * eps)`` into ``[-2, 2]^3``, the diagonal the scene box's (3 sqrt 3 here)."""
     model = neus_model(alpha0=0.03, relative_to_diagonal=True)
     model.sp.set_step(0, 10)
     model.train()
@@ -238,7 +227,7 @@ def test_more_than_one_draw_is_refused_naming_the_flag():
     """sdfstudio's seam perturbs each query once (sdfstudio's ``get_outputs`` is not wrapped), so
     ``num_samples`` K > 1 cannot average K draws there: the model refuses it (``InputError``), naming
     the flag, instead of training a single draw silently (found by this test: it used to build and
-    train K = 1). Kills: the refusal dropped."""
+    train K = 1)."""
     from sp_plugins.adapter.errors import InputError
 
     with pytest.raises(InputError, match=r"--pipeline\.model\.sp\.num-samples 3 .*sdfstudio"):

@@ -13,8 +13,8 @@ pytestmark = pytest.mark.usefixtures("patched")
 
 
 def test_an_sp_model_config_keeps_the_hosts_settings_with_the_seams_sdf_field():
-    """Kills: the ``sdf_field`` default not converted (the host's class: no ``fd_step``), not the host's
-    values, shared between configs; the preset not ``presets.NEUS`` or shared; ``_target`` not the SP model."""
+    """An SP model config keeps the host's settings, with its own seam SDF field config (the host's values) and its
+    own copy of ``presets.NEUS``, and targets the SP model."""
     from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
     from sp_plugins.adapter import presets
@@ -37,7 +37,7 @@ def test_an_sp_model_config_keeps_the_hosts_settings_with_the_seams_sdf_field():
 
 
 def test_a_model_that_is_not_a_surface_model_is_refused_naming_it():
-    """Kills: ``not issubclass`` -> ``issubclass``."""
+    """A model that is not an sdfstudio surface model is refused in one line naming it."""
     from nerfstudio.models.nerfacto import NerfactoModel
 
     from sp_plugins.sdfstudio import variants

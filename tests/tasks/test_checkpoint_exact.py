@@ -2,7 +2,7 @@
 writes (the payload, its format and version) and what an interrupted save leaves (nothing), which stale
 files are cleaned, each refusal of a load in its one line (missing, unreadable, a pickled global, not
 ours, another version, another task), the data digest, and the settings comparison a resume makes.
-Each test names the mutants it kills (``bench/mutation_study.py`` ``sp_plugins/tasks/checkpoint.py``)."""
+The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -19,14 +19,14 @@ globals()[LONG.__name__] = LONG  # where pickle looks it up
 
 
 def test_the_checkpoint_is_checkpoint_pt_in_the_output_folder(tmp_path):
-    """Kills: ``Path(out) / CHECKPOINT_NAME`` with any other operator."""
+    """The checkpoint is ``checkpoint.pt`` in the output folder, given as a path or a string."""
     assert ckpt.checkpoint_path(tmp_path) == tmp_path / "checkpoint.pt"
     assert ckpt.checkpoint_path(str(tmp_path)) == tmp_path / "checkpoint.pt"
 
 
 def test_a_save_writes_the_payload_with_format_and_version_1_and_leaves_no_temporary(tmp_path):
     """The file holds the payload plus ``format`` / ``version`` 1, replaces an earlier one, and no
-    temporary file is left; a load of it for its task gives it back. Kills: VERSION 1 -> 0 / 2."""
+    temporary file is left; a load of it for its task gives it back."""
     path = ckpt.checkpoint_path(tmp_path)
     path.write_bytes(b"an earlier checkpoint")
     assert ckpt.save(path, {"task": "sdf", "step": 3, "w": torch.arange(3.0)}) == path
@@ -47,8 +47,7 @@ class Interrupt:
 def test_an_interrupted_save_removes_its_temporary_and_keeps_the_earlier_checkpoint(tmp_path):
     """A save stopped by Ctrl-C (a ``BaseException``, not an ``Exception``) mid-write deletes its temporary
     file and re-raises; the previous checkpoint is untouched. A save into a folder that is not there raises
-    the write's own error (no second one from the clean-up). Kills: ``except BaseException`` replaced,
-    the clean-up's ``missing_ok=True`` -> False."""
+    the write's own error (no second one from the clean-up)."""
     path = ckpt.checkpoint_path(tmp_path)
     ckpt.save(path, {"task": "image", "step": 1})
     before = path.read_bytes()
@@ -62,9 +61,7 @@ def test_an_interrupted_save_removes_its_temporary_and_keeps_the_earlier_checkpo
 
 def test_remove_stale_deletes_the_temporaries_and_the_checkpoint_only_when_asked(tmp_path):
     """Every ``.checkpoint.pt.tmp-*`` goes (a killed writer's); the checkpoint only with
-    ``checkpoint_too``, and asking for it when there is none is fine; other files stay. Kills: the
-    temporaries' loop skipped, ``if checkpoint_too`` negated, the checkpoint's ``missing_ok=True`` ->
-    False."""
+    ``checkpoint_too``, and asking for it when there is none is fine; other files stay."""
     for name in (".checkpoint.pt.tmp-12", ".checkpoint.pt.tmp-345", "checkpoint.pt", "mesh.ply", "checkpoint.pt.tmp-1"):
         (tmp_path / name).write_text(name)
     ckpt.remove_stale(tmp_path, False)
@@ -82,16 +79,14 @@ def refused(path, task="sdf") -> str:
 
 
 def test_a_missing_checkpoint_is_one_line(tmp_path):
-    """Kills: ``not path.is_file()`` with ``not`` dropped or doubled."""
+    """``--resume`` without a checkpoint is refused in one line saying how a run writes one."""
     assert refused(tmp_path / "checkpoint.pt") == (f"--resume: no checkpoint in {tmp_path} (checkpoint.pt is missing); "
                                                    "a run writes one with --checkpoint-every N")
 
 
 def test_a_damaged_file_is_one_line_with_torch_s_reason(tmp_path):
     """Bytes that are no pickle: the weights-only unpickler's reason (the first byte, ``n`` = 110, is no
-    opcode it allows); a checkpoint cut in half: torch's first line, cut at 200 characters. Kills: ``except
-    Exception`` replaced, the pickled-global branch taken for a plain failure (``if name`` negated),
-    ``load_failure_reason(exc, 200)`` -> 199 / 201."""
+    opcode it allows); a checkpoint cut in half: torch's first line, cut at 200 characters."""
     path = tmp_path / "checkpoint.pt"
     path.write_bytes(b"not a checkpoint at all")
     assert refused(path) == f"--resume: {path} cannot be read as an sp-fit checkpoint (weights-only unpickling: Unsupported operand 110)"
@@ -106,8 +101,7 @@ def test_a_damaged_file_is_one_line_with_torch_s_reason(tmp_path):
 
 def test_a_pickled_global_is_refused_unrun_and_the_detail_is_cut_at_200(tmp_path):
     """A checkpoint (ours in every other way) holding an instance of a class is not unpickled: the line
-    names the class, cut to 200 characters of detail. Kills: ``weights_only=True`` -> False (it would load
-    and run it), ``if name`` negated, ``detail[:200]`` -> 199 / 201."""
+    names the class, cut to 200 characters of detail."""
     path = tmp_path / "checkpoint.pt"
     torch.save({"format": "sp-fit-checkpoint", "version": 1, "task": "sdf", "x": LONG()}, path)
     detail = f"it holds a pickled {__name__}.{LONG.__name__}, which weights-only loading refuses; nothing in it was run"
@@ -117,8 +111,7 @@ def test_a_pickled_global_is_refused_unrun_and_the_detail_is_cut_at_200(tmp_path
 
 @pytest.mark.parametrize("payload", [[1, 2], {"version": 1, "task": "sdf"}, {"format": "sp-fit-checkpoint!", "version": 1, "task": "sdf"}])
 def test_something_else_saved_with_torch_is_not_ours(tmp_path, payload):
-    """A list, a dict without our format, another format. Kills: ``not isinstance(payload, dict)`` with
-    ``not`` dropped, ``or`` -> ``and`` (a list has no ``get``), ``!= FORMAT`` -> ``==`` (and the rest)."""
+    """A list, a dict without our format, another format."""
     path = tmp_path / "checkpoint.pt"
     torch.save(payload, path)
     assert refused(path) == f"--resume: {path} is not an sp-fit checkpoint"
@@ -126,8 +119,7 @@ def test_something_else_saved_with_torch_is_not_ours(tmp_path, payload):
 
 @pytest.mark.parametrize("version", [0, 2, None])
 def test_another_version_is_refused_naming_both(tmp_path, version):
-    """Versions 0, 2 and none: refused with the file's and ours. Kills: ``!= VERSION`` -> ``<`` / ``>``
-    / ``==`` (and the rest), VERSION 1 -> 0 / 2."""
+    """Versions 0, 2 and none: refused with the file's and ours."""
     path = tmp_path / "checkpoint.pt"
     torch.save({"format": "sp-fit-checkpoint", "version": version, "task": "sdf"}, path)
     assert refused(path) == (f"--resume: {path} was written by another version of sp-fit (format {version}, this one reads 1); "
@@ -135,8 +127,7 @@ def test_another_version_is_refused_naming_both(tmp_path, version):
 
 
 def test_a_checkpoint_of_another_task_is_refused_and_its_own_is_loaded(tmp_path):
-    """Kills: ``task != task`` -> ``==`` / ``<`` / ``>`` / ``is not`` (a string read back is not the caller's
-    object), the format check's ``!=`` -> ``is not``."""
+    """A checkpoint of another task is refused naming both tasks; the task's own loads (its name built at run time)."""
     path = ckpt.save(tmp_path / "checkpoint.pt", {"task": "image", "step": 5})
     assert refused(path, "pointcloud") == f"--resume: {path} is a checkpoint of sp-fit image, not sp-fit pointcloud"
     assert refused(path, "dft") == f"--resume: {path} is a checkpoint of sp-fit image, not sp-fit dft"  # either order
@@ -145,9 +136,7 @@ def test_a_checkpoint_of_another_task_is_refused_and_its_own_is_loaded(tmp_path)
 
 
 def test_file_digest_is_the_sha256_of_all_the_bytes(tmp_path):
-    """Over 1 MiB (more than one block), a small file, an empty one, and None. Kills: the block loop
-    skipped, a block size of 0 (``1 & 20``, ``1 >> 20``, ``1 // 20``, ``0 << 20``) or not an int
-    (``1 / 20``), ``path is None`` -> ``is not`` / negated."""
+    """Over 1 MiB (more than one block), a small file, an empty one, and None."""
     data = bytes(range(256)) * 4500
     for name, content in (("big", data), ("small", b"abc"), ("empty", b"")):
         (tmp_path / name).write_bytes(content)
@@ -156,8 +145,7 @@ def test_file_digest_is_the_sha256_of_all_the_bytes(tmp_path):
 
 
 def test_flatten_names_nested_settings_with_dots_and_tuples_become_lists():
-    """Kills: the loop skipped, ``isinstance(value, Mapping)`` negated, ``name + "."`` changed,
-    ``isinstance(value, tuple)`` negated."""
+    """``flatten`` names nested settings with dots, in order, and turns tuples into lists."""
     flat = ckpt.flatten({"steps": 3, "hidden": (64, 64), "sp": {"alpha0": 0.5, "grid": {"on": True}}, "l": [1]})
     assert flat == {"steps": 3, "hidden": [64, 64], "sp.alpha0": 0.5, "sp.grid.on": True, "l": [1]}
     assert type(flat["hidden"]) is list and list(flat) == ["steps", "hidden", "sp.alpha0", "sp.grid.on", "l"]
@@ -166,8 +154,7 @@ def test_flatten_names_nested_settings_with_dots_and_tuples_become_lists():
 
 def test_differences_are_name_current_saved_in_current_s_order_then_the_saved_only():
     """Equal values (also equal floats that are different objects) are no difference; a setting only one
-    side has is None on the other. Kills: ``!= a[k]`` -> ``==`` / ``is not`` (and the rest), either
-    ``is missing`` -> ``is not`` / negated."""
+    side has is None on the other."""
     saved = {"steps": 100, "lr": float("0.001"), "sp": {"alpha0": 0.5, "end": 0.2}, "old": 1}
     current = {"seed": 0, "sp": {"end": 0.2, "alpha0": 0.25}, "lr": float("1e-3"), "steps": 200}
     assert ckpt.differences(saved, current) == [("seed", 0, None), ("sp.alpha0", 0.25, 0.5), ("steps", 200, 100), ("old", None, 1)]

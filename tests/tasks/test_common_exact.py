@@ -2,8 +2,7 @@
 to what and which are refused with which line (CUDA / MPS availability set by the test), the stage lines
 and their timing, the counting bar, the output folder's checks, the all-or-none result files, the loss
 curve's figure, the running mean, and the step timer on the CPU and with CUDA events (stand-ins that keep
-CUDA's rules). Each test names the mutants it kills (``bench/mutation_study.py``
-``sp_plugins/tasks/common.py``)."""
+CUDA's rules). The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -32,9 +31,7 @@ def refusal(name) -> str:
 
 
 def test_auto_is_cuda_only_where_it_is_available(monkeypatch):
-    """``auto``, None (and the default) give ``cuda`` with CUDA, else the CPU. Kills: ``name is None`` ->
-    ``is not``, ``or`` -> ``and``, ``== "auto"`` -> ``!=`` / ``is`` (and the other comparisons), the
-    availability check negated."""
+    """``auto``, None (and the default) give ``cuda`` with CUDA, else the CPU."""
     cuda(monkeypatch, False)
     assert resolve_device("auto") == resolve_device(None) == resolve_device() == torch.device("cpu")
     cuda(monkeypatch, True, 1)
@@ -45,10 +42,7 @@ def test_auto_is_cuda_only_where_it_is_available(monkeypatch):
 
 def test_cuda_names_are_checked_against_the_machine(monkeypatch):
     """With 3 CUDA devices ``cuda``, ``cuda:0`` to ``cuda:2`` resolve and ``cuda:3`` is refused naming
-    cuda:0 to cuda:2 (3, not 2: ``count >> 1`` is ``count - 1`` for 2); without CUDA any cuda name is refused. Kills: ``type == "cuda"`` -> ``!=`` / negated,
-    ``not torch.cuda.is_available()`` with ``not`` dropped, ``index is not None`` -> ``is``, ``and`` ->
-    ``or``, ``index >= count`` -> ``>`` / ``<`` / ``==`` (and the rest), ``count - 1`` -> ``+``, ``- 0``,
-    ``- 2``, ``>> 1``."""
+    cuda:0 to cuda:2 (3, not 2: ``count >> 1`` is ``count - 1`` for 2); without CUDA any cuda name is refused."""
     cuda(monkeypatch, True, 3)
     assert [resolve_device(n) for n in ("cuda", "cuda:0", "cuda:2")] == [torch.device("cuda"), torch.device("cuda", 0), torch.device("cuda", 2)]
     assert refusal("cuda:3") == "--device cuda:3: this machine has 3 CUDA device(s), cuda:0 to cuda:2"
@@ -60,8 +54,7 @@ def test_cuda_names_are_checked_against_the_machine(monkeypatch):
 
 
 def test_mps_only_where_apple_s_backend_is_there(monkeypatch):
-    """``mps`` resolves where ``torch.backends.mps`` says it is available, else one line. Kills:
-    ``type == "mps"`` -> ``!=``, the check's ``not`` dropped, its ``and`` -> ``or``."""
+    """``mps`` resolves where ``torch.backends.mps`` says it is available, else one line."""
     cuda(monkeypatch, False)
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     assert refusal("mps") == "--device mps: Apple's MPS is not available on this machine; use --device cpu (or auto)"
@@ -72,8 +65,7 @@ def test_mps_only_where_apple_s_backend_is_there(monkeypatch):
 def test_other_devices_and_non_devices_are_refused_in_one_line(monkeypatch):
     """A device type torch knows but the tasks do not run on (meta, xpu) names the choices; a name that
     is no device at all (torch raises RuntimeError) or a value torch refuses with ValueError (an index
-    past 64 bits) says so with the flag. Kills: ``type != "cpu"`` -> ``==`` (the CPU refused, meta
-    accepted), either exception type of the ``except`` replaced."""
+    past 64 bits) says so with the flag."""
     cuda(monkeypatch, False)
     for name in ("meta", "xpu"):
         assert refusal(name) == f"--device {name}: the fitting tasks run on {CHOICES}"
@@ -94,9 +86,7 @@ class Clock:
 
 def test_stage_names_the_step_and_its_seconds(monkeypatch, capsys):
     """Enabled by default: ``prefix: what ...`` before, ``prefix: what: done in 2.3 s`` after (4.34 - 2.0
-    seconds, one decimal; the end at least twice the start, where ``%`` is not ``-``); nothing when disabled. Kills: the contextmanager decorator removed,
-    ``enabled`` defaulting to False, either ``if enabled`` negated, ``perf_counter() - start`` with any
-    other operator."""
+    seconds, one decimal; the end at least twice the start, where ``%`` is not ``-``); nothing when disabled."""
     monkeypatch.setattr(common.time, "perf_counter", Clock(2.0, 4.34, 5.0, 6.0))
     with stage("meshing"):
         print("inside", file=sys.stderr)
@@ -107,8 +97,7 @@ def test_stage_names_the_step_and_its_seconds(monkeypatch, capsys):
 
 def test_the_counting_bar_counts_the_points_and_clears_itself(capsys):
     """The wrapped function returns ``fn``'s output; the bar (shown by default) counts every point it was
-    called on, with SI-scaled numbers, and leaves no line behind when closed. Kills: ``enabled`` defaulting
-    to False, ``disable=not enabled`` -> ``enabled``, ``unit_scale`` / ``leave`` flipped."""
+    called on, with SI-scaled numbers, and leaves no line behind when closed."""
     f, bar = counting_bar(lambda x: x * 2, 10, "pts")
     assert torch.equal(f(torch.ones(3)), torch.full((3,), 2.0))
     f(torch.zeros(4, 3))
@@ -124,8 +113,7 @@ def test_the_counting_bar_counts_the_points_and_clears_itself(capsys):
 
 def test_the_output_folder_is_refused_only_when_it_holds_results_and_no_overwrite(tmp_path):
     """A new nested folder is created (parents too); one holding none of the outputs is used as is; one
-    holding some is refused naming them unless ``overwrite``. Kills: ``existing and not overwrite`` ->
-    ``or`` / its ``not`` dropped / negated, ``parents=True`` / ``exist_ok=True`` -> False."""
+    holding some is refused naming them unless ``overwrite``."""
     nested = tmp_path / "a" / "b"
     assert prepare_output_dir(nested, ["mesh.ply", "metrics.json"], False) == nested and nested.is_dir()
     assert prepare_output_dir(nested, ["mesh.ply", "metrics.json"], False) == nested  # exists, holds none
@@ -139,8 +127,7 @@ def test_the_output_folder_is_refused_only_when_it_holds_results_and_no_overwrit
 
 def test_a_folder_that_cannot_be_made_is_one_line(tmp_path):
     """``--out`` a dangling link: nothing is there to refuse, the probe passes (its parent is writable),
-    and making the folder fails (File exists): one ``ValueError`` naming ``--out``. Kills: the ``except
-    OSError`` replaced."""
+    and making the folder fails (File exists): one ``ValueError`` naming ``--out``."""
     link = tmp_path / "out"
     link.symlink_to(tmp_path / "gone" / "away")
     with pytest.raises(ValueError) as e:
@@ -150,9 +137,7 @@ def test_a_folder_that_cannot_be_made_is_one_line(tmp_path):
 
 def test_staged_results_land_together_and_removed_ones_go(tmp_path):
     """On success every staged file is renamed into place (the temporary names gone) and each removed
-    name is deleted, also one that was not there. Kills: the rename / remove loops skipped, ``exc is
-    None`` -> ``is not`` / negated, ``self.out / name`` with another operator, ``missing_ok=True`` -> False
-    for the removed names."""
+    name is deleted, also one that was not there."""
     (tmp_path / "old.png").write_text("stale")
     (tmp_path / "a.txt").write_text("before")
     with StagedOutputs(tmp_path) as staged:
@@ -168,9 +153,7 @@ def test_staged_results_land_together_and_removed_ones_go(tmp_path):
 def test_an_error_in_the_block_leaves_the_earlier_results_and_is_not_swallowed(tmp_path):
     """A non-OS error in the block propagates as it is (not turned into a write failure, not
     suppressed), the staged files are deleted, earlier results and files to remove stay; a staged name
-    whose temporary path cannot be unlinked (a folder) does not replace the error. Kills: the ``return
-    False`` after the clean-up -> True, ``isinstance(exc, OSError)`` negated, the clean-up loop skipped,
-    the clean-up's ``except OSError`` replaced."""
+    whose temporary path cannot be unlinked (a folder) does not replace the error."""
     (tmp_path / "a.txt").write_text("before")
     with pytest.raises(RuntimeError, match="^boom$"):
         with StagedOutputs(tmp_path) as staged:
@@ -185,8 +168,7 @@ def test_an_error_in_the_block_leaves_the_earlier_results_and_is_not_swallowed(t
 def test_an_os_error_names_the_file_it_hit_else_the_last_staged(tmp_path):
     """An ``OSError`` whose file is one of the staged temporary paths names that result; one without a
     file name names the last staged (the file being written); nothing is left. The failing file is staged
-    after one whose name sorts after it (``c.png`` before ``b.json``). Kills: ``exc.filename and ... ==
-    tmp.name`` -> ``or`` / ``!=`` / ``<=`` (which named c.png)."""
+    after one whose name sorts after it (``c.png`` before ``b.json``)."""
     out = str(tmp_path)
     with pytest.raises(ValueError) as e:
         with StagedOutputs(tmp_path) as staged:
@@ -210,8 +192,7 @@ def test_a_rename_that_would_fail_leaves_every_earlier_result(tmp_path, fault):
     """All or none at the commit too: a staged file that was never written, or a result name that is a
     folder (``--overwrite`` keeps it), is found before any rename, so the earlier run's ``a.ply`` stays and
     the line names the file and says nothing was written (before the fix ``a.ply`` was already replaced
-    when ``b.json``'s rename failed: a line saying "unchanged" over a changed folder). Kills: the commit's
-    ``except OSError`` replaced."""
+    when ``b.json``'s rename failed: a line saying "unchanged" over a changed folder)."""
     (tmp_path / "a.ply").write_text("before")
     if fault == "a folder there":
         (tmp_path / "b.json").mkdir()
@@ -232,10 +213,7 @@ def test_the_loss_curve_figure(tmp_path, monkeypatch):
     """6 x 4 inches at 110 dpi (a 660 x 440 PNG); each curve a line of width 1 against its index unless
     ``xs``; each mark a grey dashed line of width 0.8 with its label at the top (y 1.0 in axes units,
     size 8); log scale unless ``log=False``; the title only when given; the legend at size 8; the grid
-    at alpha 0.3. Kills: figsize 6 / 4, dpi 110, lw 1 / 0.8, y 1.0, fontsize 8 (text and legend), grid 0.3
-    each +-1; the curve and mark loops skipped; ``xs is not None`` -> ``is`` / negated; ``if log`` /
-    ``if title`` negated; the signature's ``*`` -> ``/`` (``curves`` and ``path`` are passed by name, an option
-    by position is refused)."""
+    at alpha 0.3."""
     from PIL import Image
     import matplotlib.pyplot as plt
 
@@ -267,10 +245,7 @@ def test_the_loss_curve_figure(tmp_path, monkeypatch):
 def test_smooth_is_the_running_mean_over_the_window():
     """Window 3 over six values: the mean of the last (up to) 3, exactly; a window longer than the
     values: the mean so far; window 1 or 0 and no values: the values as they are (even where a cumulative
-    sum would round: 1e16 then 1); one value: its float. Kills: ``window <= 1`` -> ``< 1`` / ``<= 2`` /
-    ``<= 0``, ``len(values) == 0`` -> ``!=`` / ``== 1``, ``or`` -> ``and``, the check negated, the
-    leading zero's size 1 -> 0 / 2, the loop skipped, ``i - window + 1`` / ``max(0, ...)`` /
-    ``c[i + 1] - c[lo]`` / ``(i + 1 - lo)`` with any other operator or constant."""
+    sum would round: 1e16 then 1); one value: its float."""
     assert smooth([1.0, 2.0, 3.0, 4.0, 5.0, 6.0], 3) == [1.0, 1.5, 2.0, 3.0, 4.0, 5.0]
     assert smooth([2.0, 4.0, 9.0], 5) == [2.0, 3.0, 5.0]
     assert smooth([4.0, 8.0, 2.0, 6.0], 2) == [4.0, 6.0, 5.0, 4.0]
@@ -283,13 +258,9 @@ def test_smooth_is_the_running_mean_over_the_window():
 
 
 def test_the_step_timer_on_the_cpu(monkeypatch):
-    """On the CPU (or no device) each step's time is ``perf_counter`` at its end minus at its start; the
-    times are readable, replaceable (a resume) and summed by ``total``. Kills: ``device is not None`` ->
-    ``is`` / negated, ``and type == "cuda"`` -> ``or`` / ``!=``, ``self._cuda`` negated in either place,
-    the start assertion's ``is not`` -> ``is``, ``perf_counter() - start`` with any other operator, the
-    ``times`` / ``total`` properties and the setter undecorated. (Each end at least twice its start: below
-    that ``end % start`` is ``end - start``.) Apple's ``mps`` (and any device but CUDA) times the same way:
-    kills ``type == "cuda"`` -> ``>=`` ("mps" sorts after "cuda": it read CUDA events)."""
+    """On the CPU (or no device) each step's time is ``perf_counter`` at its end minus at its start; the times are
+    readable, replaceable (a resume) and summed by ``total``. Apple's ``mps`` (and any device but CUDA) times the
+    same way."""
     monkeypatch.setattr(common.time, "perf_counter", Clock(1.0, 2.25, 3.0, 6.125, 7.0, 14.5))
     for timer, device in ((StepTimer("cpu"), torch.device("cpu")), (StepTimer(), None), (StepTimer("mps"), torch.device("mps"))):
         assert timer.device == device
@@ -324,9 +295,7 @@ class Event:
 
 def test_the_step_timer_reads_cuda_events_in_seconds(monkeypatch):
     """On CUDA a step records a start and an end event (both with timing) on the device's stream; the
-    times are the events' milliseconds / 1000, read when asked, once. Kills: ``type == "cuda"`` ->
-    ``!=``, ``enable_timing=True`` -> False (either event), the pending loop skipped, ``/ 1000.0`` ->
-    ``* 1000.0`` / 1001 / 999 (and the other operators)."""
+    times are the events' milliseconds / 1000, read when asked, once."""
     monkeypatch.setattr(torch.cuda, "Event", Event)
     monkeypatch.setattr(torch.cuda, "current_stream", lambda device=None: device)
     timer = StepTimer("cuda:0")

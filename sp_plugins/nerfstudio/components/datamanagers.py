@@ -40,6 +40,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
 
 from sp_plugins.adapter.checks import check_device
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.nerfstudio.host import HOST
 from sp_plugins.nerfstudio.components.views import ViewSelection, select_views
 
 
@@ -332,7 +333,7 @@ class CheckedDataManager(VanillaDataManager):
         from sp_plugins.nerfstudio.model import install_process_settings
 
         install_process_settings(self)  # while our data manager exists: its input errors print as one line
-        check_device(torch.device(device).type, flag="--machine.device-type")
+        check_device(torch.device(device).type, flags=HOST.flags)
         self._checks = config.check_data and test_mode != "inference"
         if self._checks:
             data = config.data if config.data is not None else config.dataparser.data

@@ -29,6 +29,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from sp_plugins.adapter.checks import check_checkpoint_file, check_device, check_known_settings
 from sp_plugins.adapter.errors import InputError, write_failure
+from sp_plugins.nerfstudio.host import HOST
 
 _STEP_FILE = re.compile(r"^step-(\d+)\.ckpt$")
 
@@ -70,7 +71,7 @@ def preflight(config: TrainerConfig) -> None:
     if model is not None and hasattr(model, "sp"):
         check_known_settings(model, "pipeline.model")  # a --load-config written by another version
         refuse_unreachable_settings(model)
-    check_device(config.machine.device_type, config.machine.num_devices)
+    check_device(config.machine.device_type, config.machine.num_devices, flags=HOST.flags)
     dm = getattr(pipeline, "datamanager", None)
     # also a host's data manager on a dataparser we know (sp-train on a host method): its workers would
     # hang behind a damaged image's traceback
