@@ -20,8 +20,9 @@ def lookup(table: Mapping[str, V], cls: Optional[type]) -> Optional[Tuple[str, V
 
 
 def merged(table: Mapping[str, Dict[str, V]], cls: type) -> Dict[str, V]:
-    """The entries of every class in ``cls``'s MRO, merged (a base's entry wins over a subclass's)."""
+    """The entries of every class in ``cls``'s MRO, merged; where two name the same key, the most
+    derived class wins, as in :func:`lookup`."""
     out: Dict[str, V] = {}
-    for base in cls.__mro__:
+    for base in reversed(cls.__mro__):
         out.update(table.get(class_path(base), {}))
     return out

@@ -1,6 +1,6 @@
 """The host method tables' lookups (sp_plugins.adapter.tables), exactly: ``lookup`` takes the most derived
-class a table names, ``merged`` lets a base's entry win over a subclass's (a host fact, e.g. a plain
-submodule of a host model, cannot be undone by a subclass)."""
+class a table names, and ``merged`` gathers the entries of every class with the same rule where two name
+one key (issue 55: the two used to disagree)."""
 
 from __future__ import annotations
 
@@ -28,8 +28,10 @@ def test_lookup_takes_the_most_derived_class_the_table_names():
     assert lookup(table, None) is None and lookup({}, Leaf) is None
 
 
-def test_merged_gathers_every_class_and_a_base_wins_over_a_subclass():
+def test_merged_gathers_every_class_and_the_most_derived_wins_as_in_lookup():
     table = {class_path(Base): {"field": "base's", "a": 1}, class_path(Leaf): {"field": "leaf's", "b": 2}}
-    assert merged(table, Leaf) == {"field": "base's", "a": 1, "b": 2}
+    assert merged(table, Leaf) == {"field": "leaf's", "a": 1, "b": 2}
     assert merged(table, Middle) == {"field": "base's", "a": 1}
+    flat = {class_path(Base): "base's", class_path(Leaf): "leaf's"}
+    assert lookup(flat, Leaf)[1] == merged({k: {"field": v} for k, v in flat.items()}, Leaf)["field"]
     assert merged({}, Leaf) == {}
