@@ -154,4 +154,4 @@ PATCH = nerfstudio_patch(
     "nerfstudio_sdf_field", TESTED_NERFSTUDIO_VERSIONS, lambda patch: check_nerfstudio_sdf_field(), torch_tcnn_fallback,
     ((PATCHED_MODULE, PATCHED_ATTRIBUTE), (PATCHED_MODULE, "SDFField")),
     changes=f"{PATCHED_MODULE}.{PATCHED_ATTRIBUTE}: a namespace whose Encoding is our torch HashGrid (no tiny-cuda-nn, or no CUDA)",
-    scope_text="the construction of our SDF field's host part (SPSDFField.__init__)")
+    scope_text="the construction of our SDF field's host part (CoarseToFineSDFField.__init__)")

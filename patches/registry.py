@@ -342,6 +342,3 @@ def release(name: str, key: Optional[int] = None) -> None:
 def held() -> Tuple[str, ...]:
     return tuple(_held)
 
-
-def installed_for_process() -> Tuple[str, ...]:
-    return tuple(_installed)

@@ -18,7 +18,7 @@ API::
             trainer.step()
     counter.counts                              # {"path:line": n}, all sites
     counter.ops                                 # {"path:line": {"aten._local_scalar_dense": n, ...}}
-    counter.ours()                              # the sites inside sp_plugins (and method_configs, patches)
+    counter.ours()                              # the sites inside sp_plugins (and patches)
     counter.report()                            # one line per site, most frequent first
     SyncCounter(devices={"cuda"})               # on a GPU run: only ops on CUDA tensors (a CPU
                                                 # scalar's .item() does not stall the stream)
@@ -28,7 +28,7 @@ API::
                                                 # site (torch.cuda.set_sync_debug_mode's warnings)
 
 A site is ``path:line`` of the innermost frame outside torch, the line that asked for the value:
-ours when it lies inside ``sp_plugins`` (its ``method_configs`` and ``patches`` included; the path
+ours when it lies inside ``sp_plugins`` (its ``patches`` included; the path
 from the package's parent, ``sp_plugins/tasks/image.py:358``), the host's otherwise, also when our
 mixin called the host's method that syncs (path relative to its ``sys.path`` entry:
 ``nerfstudio/model_components/ray_samplers.py:120``).
@@ -79,11 +79,11 @@ skipped when finding the frame that made the call."""
 
 
 def _our_roots() -> tuple[str, ...]:
-    """Folders whose files are ours: the package, and the mapped method_configs / patches."""
+    """Folders whose files are ours: the package, and the mapped patches."""
     import importlib.util
 
     roots = [os.path.dirname(os.path.abspath(__file__))]
-    for name in ("sp_plugins.method_configs", "sp_plugins.patches"):
+    for name in ("sp_plugins.patches",):
         try:
             spec = importlib.util.find_spec(name)
         except (ImportError, ValueError):
@@ -94,12 +94,12 @@ def _our_roots() -> tuple[str, ...]:
 
 
 def _display(path: str, roots: tuple[str, ...]) -> str:
-    """``sp_plugins/...`` for ours (method_configs / patches under their package names), else the
+    """``sp_plugins/...`` for ours (patches under its package name), else the
     path relative to its longest ``sys.path`` entry."""
     package = roots[0]
     if path.startswith(package):
         return "sp_plugins/" + path[len(package):].replace(os.sep, "/")
-    for root, name in zip(roots[1:], ("method_configs", "patches")):
+    for root, name in zip(roots[1:], ("patches",)):
         if path.startswith(root):
             return f"sp_plugins/{os.path.basename(root.rstrip(os.sep)) or name}/" + path[len(root):].replace(os.sep, "/")
     best = max((p for p in map(os.path.abspath, filter(None, sys.path)) if path.startswith(p + os.sep)), key=len, default=None)

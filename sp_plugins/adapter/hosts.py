@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib.metadata import entry_points
 from types import MappingProxyType
-from typing import Callable, Dict, Mapping, Optional, Tuple
+from typing import Any, Callable, Dict, Mapping, Optional, Tuple
 
-__all__ = ["ENTRY_POINT_GROUP", "Flags", "Host", "get", "hosts", "packages", "register", "renamed", "unregister"]
+__all__ = ["ENTRY_POINT_GROUP", "Flags", "Host", "get", "hosts", "packages", "register", "renamed", "renamed_attribute", "unregister"]
 
 ENTRY_POINT_GROUP = "sp_plugins.hosts"
 
@@ -130,6 +130,17 @@ def packages() -> Tuple[str, ...]:
     for host in hosts().values():
         out.extend(p for p in host.packages if p not in out)
     return tuple(out)
+
+
+def renamed_attribute(module: str, name: str) -> Any:
+    """A module's ``__getattr__`` for the names its host renamed (:attr:`Host.renamed`): the class now
+    at the new path, so a ``config.yml`` saved before the rename still loads, with any YAML loader
+    (the host's own commands included); ``AttributeError`` for any other name."""
+    new = renamed().get(f"{module}.{name}")
+    if new is None:
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+    new_module, _, attr = new.rpartition(".")
+    return getattr(importlib.import_module(new_module), attr)
 
 
 def renamed() -> Mapping[str, str]:

@@ -45,7 +45,6 @@ GROUND_HALF_SIZE = 0.7 * BACKDROP_RADIUS
 """Half the side of the square ground plane (it stays inside the backdrop sphere)."""
 
 OBJECT, GROUND, BACKDROP = 0, 1, 2
-PART_NAMES = ("object", "ground", "backdrop")
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Dict, NamedTuple
 
 from sp_plugins.nerfbaselines.blender_loader import LAYOUT, LAYOUT_KEY  # (json and os: the module imports no host)
+from sp_plugins.nerfstudio import table  # our method names (torch, no host)
 
 WRAPPER = "sp_plugins.nerfbaselines.method:SPNerfStudio"
 SP_SUFFIX = "+sp"
@@ -37,8 +38,10 @@ class Entry(NamedTuple):
     """``with_sp``, then SP switched off (the ``+sp-off`` ids)."""
 
 
-OURS = ("sp-nerfacto", "sp-mipnerf", "sp-vanilla-nerf", "sp-tensorf", "sp-relu-field", "relu-field", "relu-field-flat")
-OURS_SDF = ("sp-neus", "sp-neus-hashgrid", "neus-hashgrid", "sp-neuralangelo-lite", "neuralangelo-lite")
+OURS = tuple(m for m in table.OUR_METHODS if m not in table.SP_OFF_METHODS)
+"""Our radiance-field methods (the nerfstudio table's), less those that are no SP method's baseline
+(freenerf-lite): a table row here is SP against its baseline."""
+OURS_SDF = table.OUR_SDF_METHODS
 NERFSTUDIO_BASELINES = ("mipnerf", "vanilla-nerf")
 """nerfstudio methods nerfbaselines 1.2.12 has no spec for (its ``nerf`` and ``tensorf`` are other code)."""
 SP_ON = ("nerfacto", "mipnerf", "vanilla-nerf")

@@ -36,7 +36,7 @@ from sp_plugins.nerfstudio.host import HOST
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
-from sp_plugins.nerfstudio.seam import attach_seam, check_reached, seam_fields
+from sp_plugins.nerfstudio.seam import attach_seam, check_reached
 
 __all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
@@ -141,10 +141,6 @@ class SPModel(adapter_model.SPModelBase):
     def sp_plain_fields(self) -> Dict[str, str]:
         return merged(table.PLAIN_FIELDS, type(self))
 
-    def sp_fields(self) -> List[torch.nn.Module]:
-        """The fields that carry the seam."""
-        return [f for _, f in seam_fields(self)]  # type: ignore[arg-type]
-
     def attach_sp(self) -> None:
         host = class_path(self.sp_host_class())
         if not attach_seam(self, self.sp, self.sp_plain_fields()):  # type: ignore[arg-type]
@@ -152,9 +148,6 @@ class SPModel(adapter_model.SPModelBase):
                 f"SP cannot reach {host}: none of its modules is a nerfstudio Field or takes ray_samples in forward, so "
                 "no query would be perturbed"
             )
-
-    def perturbed_calls(self) -> int:
-        return sum(f.sp_handle.perturbed_calls for f in self.sp_fields() if f.sp_handle is not None)  # type: ignore[union-attr]
 
     def check_sp_reached(self, step: int) -> None:
         """After the first training step with alpha > 0: the fields read the moved positions, and a

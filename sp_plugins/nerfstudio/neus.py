@@ -45,7 +45,7 @@ from sp_plugins.nerfstudio.components.colliders import bound_surface_rays
 from sp_plugins.adapter.callbacks import model_schedule_callback, trainer_total_steps
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
-from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, SPSDFField, SPSDFFieldConfig
+from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, CoarseToFineSDFField, CoarseToFineSDFFieldConfig
 
 
 GRID_GROUP = "field_grid"
@@ -62,7 +62,7 @@ class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
     """NeuS with stochastic preconditioning at the SDF field's queries."""
 
     _target: Type = field(default_factory=lambda: SPNeuSModel)
-    sdf_field: SPSDFFieldConfig = field(default_factory=SPSDFFieldConfig)
+    sdf_field: CoarseToFineSDFFieldConfig = field(default_factory=CoarseToFineSDFFieldConfig)
     """The SDF field (NeuS: frequency encoding only; hash grid with use_grid_feature)."""
     cos_anneal_end: float = 0.5
     """NeuS cosine annealing reaches 1 here: a fraction of training (<= 1) or a step count."""
@@ -76,7 +76,7 @@ class SPNeuSModelConfig(SPModelConfig, NeuSModelConfig):
 
 class SPNeuSModel(SPModel, NeuSModel):
     config: SPNeuSModelConfig
-    field: SPSDFField
+    field: CoarseToFineSDFField
 
     def populate_modules(self) -> None:
         from sp_plugins.patches.nerfstudio_marching_cubes import hold_for
@@ -137,8 +137,8 @@ class NeuralangeloLiteModelConfig(SPNeuSModelConfig):
     """Neuralangelo on NeuS's renderer: hash grid, numerical gradients, curvature loss, coarse-to-fine."""
 
     _target: Type = field(default_factory=lambda: NeuralangeloLiteModel)
-    sdf_field: SPSDFFieldConfig = field(
-        default_factory=lambda: SPSDFFieldConfig(
+    sdf_field: CoarseToFineSDFFieldConfig = field(
+        default_factory=lambda: CoarseToFineSDFFieldConfig(
             use_grid_feature=True, numerical_gradients=True, num_layers=2, num_layers_color=2, hidden_dim=256, geo_feat_dim=256
         )
     )

@@ -1,4 +1,4 @@
-"""Trainer configs of the radiance methods (the ``method_configs`` modules only pick one).
+"""Trainer configs of the radiance methods (:mod:`sp_plugins.nerfstudio.methods` only picks one each).
 
 - ReLU fields (paper: 256^3 grid, Adam lr 0.03, alpha0 0.003 over the first 8000 steps; 28k steps
   of 16k rays x 512 samples): ``relu-field`` (4-stage coarse-to-fine), ``relu-field-flat`` and

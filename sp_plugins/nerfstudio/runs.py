@@ -18,14 +18,14 @@ if TYPE_CHECKING:  # host modules are imported where they are used: shrink() ser
     from nerfstudio.plugins.types import MethodSpecification
 
 ENTRY_POINT_GROUP = "nerfstudio.method_configs"
-OUR_PACKAGE = "sp_plugins.method_configs"
+OUR_MODULE = "sp_plugins.nerfstudio.methods"
 
 
 def our_methods() -> Dict[str, MethodSpecification]:
     """Every method sp-plugins registers, by name, loaded from its entry point."""
     specs = {}
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.value.startswith(OUR_PACKAGE):
+        if ep.value.partition(":")[0] == OUR_MODULE:
             specs[ep.name] = ep.load()
     return specs
 

@@ -1,4 +1,4 @@
-"""Trainer configs of the SDF methods (the ``method_configs`` modules only pick one).
+"""Trainer configs of the SDF methods (:mod:`sp_plugins.nerfstudio.methods` only picks one each).
 
 Paper settings (Ling et al. 2025) kept as defaults, with schedule ends as fractions of training so
 that shortened runs keep their shape:
@@ -27,7 +27,7 @@ from sp_plugins.core import SPConfig
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
 from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataManagerConfig
 from sp_plugins.nerfstudio.neus import GRID_GROUP, NeuralangeloLiteModelConfig, SPNeuSModelConfig
-from sp_plugins.nerfstudio.sdf_field import SPSDFFieldConfig
+from sp_plugins.nerfstudio.sdf_field import CoarseToFineSDFFieldConfig
 from sp_plugins.nerfstudio.components.schedulers import FloatCosineDecaySchedulerConfig
 from sp_plugins.nerfstudio.components.trainer import checked_trainer
 from sp_plugins.nerfstudio import table
@@ -67,7 +67,7 @@ def _sp(base: SPConfig, enabled: bool) -> SPConfig:
 
 
 def neus_method(name: str, *, hash_grid: bool, sp: bool, description: str) -> MethodSpecification:
-    field = SPSDFFieldConfig(use_grid_feature=hash_grid, **(PAPER_HASH_GRID if hash_grid else {}))
+    field = CoarseToFineSDFFieldConfig(use_grid_feature=hash_grid, **(PAPER_HASH_GRID if hash_grid else {}))
     if hash_grid:  # a small MLP on the grid, as in nerfstudio's neus-facto
         field = dataclasses.replace(field, num_layers=2, num_layers_color=2, hidden_dim=256)
     model = SPNeuSModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field)
@@ -76,7 +76,7 @@ def neus_method(name: str, *, hash_grid: bool, sp: bool, description: str) -> Me
 
 
 def neuralangelo_method(name: str, *, sp: bool, description: str, alpha_grid: Optional[bool] = None) -> MethodSpecification:
-    field = SPSDFFieldConfig(
+    field = CoarseToFineSDFFieldConfig(
         use_grid_feature=True, numerical_gradients=True, num_layers=2, num_layers_color=2, hidden_dim=256, **PAPER_HASH_GRID
     )
     model = NeuralangeloLiteModelConfig(eval_num_rays_per_chunk=1024, sdf_field=field, coarse_to_fine=not sp)

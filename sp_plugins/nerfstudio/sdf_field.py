@@ -29,6 +29,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.fields.sdf_field import SDFField, SDFFieldConfig
 from torch import Tensor, nn
 
+from sp_plugins.adapter import hosts
 from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import finite_differences
 from sp_plugins.adapter.errors import InputError
@@ -43,10 +44,10 @@ scene units (inside the unit box, where the contraction is the identity)."""
 
 
 @dataclass
-class SPSDFFieldConfig(SDFFieldConfig):
+class CoarseToFineSDFFieldConfig(SDFFieldConfig):
     """``SDFFieldConfig`` plus numerical gradients and the SP sampler switch."""
 
-    _target: Type = field(default_factory=lambda: SPSDFField)
+    _target: Type = field(default_factory=lambda: CoarseToFineSDFField)
     inside_outside: bool = False
     """Objects seen from outside (the SDF is negative inside); True for indoor rooms."""
     numerical_gradients: bool = False
@@ -68,12 +69,12 @@ class _NoGrid(nn.Module):
         return x.new_zeros(*x.shape[:-1], 0)
 
 
-class SPSDFField(SPFieldMixin, SDFField):
+class CoarseToFineSDFField(SPFieldMixin, SDFField):
     """``SDFField`` with masked levels and numerical gradients; the seam moves its samples."""
 
-    config: SPSDFFieldConfig
+    config: CoarseToFineSDFFieldConfig
 
-    def __init__(self, config: SPSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
+    def __init__(self, config: CoarseToFineSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
         from sp_plugins.patches import registry
 
         if config.encoding_type != "hash":
@@ -207,3 +208,8 @@ class SPSDFField(SPFieldMixin, SDFField):
         if return_alphas:
             outputs[FieldHeadNames.ALPHA] = self.get_alpha(ray_samples, sdf, grad)
         return outputs
+
+
+def __getattr__(name: str):
+    """Names renamed since a run folder was saved (the nerfstudio host's ``renamed`` table)."""
+    return hosts.renamed_attribute(__name__, name)

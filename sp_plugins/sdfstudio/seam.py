@@ -44,6 +44,7 @@ from torch import Tensor, nn
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
+from sp_plugins.adapter import hosts
 from sp_plugins.core import StochasticPreconditioner
 
 CONTRACTED_BOUNDS = (-2.0, 2.0)
@@ -147,3 +148,8 @@ class SeamSDFField(SPFieldMixin, SDFField):
         hidden = self.forward_geonetwork(self._sampler_positions(ray_samples)).view(*ray_samples.frustums.shape, -1)
         sdf, geo_feature = torch.split(hidden, [1, self.config.geo_feat_dim], dim=-1)
         return self.laplace_density(sdf), geo_feature
+
+
+def __getattr__(name: str):
+    """Names renamed since a run folder was saved (the sdfstudio host's ``renamed`` table)."""
+    return hosts.renamed_attribute(__name__, name)

@@ -49,9 +49,7 @@ def test_the_reached_check_waits_for_alpha_above_zero_and_its_refusal_is_one_lin
 
 def test_the_base_adds_the_alpha_grid_group_and_logs_alpha_only_while_training():
     """The host's groups plus ``sp_alpha_grid`` holding exactly the grid's parameters (none without a
-    grid); ``sp_alpha`` in the metrics while training, never in evaluation. Kills: the grid's group
-    dropped or added without a grid, ``sp_alpha`` logged in evaluation (``if self.training`` negated;
-    before, only a training run of ``tests/nerfstudio/test_seam.py`` caught it)."""
+    grid); ``sp_alpha`` in the metrics while training, never in evaluation."""
     plain = ToySPModel(SimpleNamespace(sp=SPConfig(alpha0=0.1, schedule="constant", boundary="none")))
     assert list(plain.get_param_groups()) == ["fields"]
     model = ToySPModel(SimpleNamespace(sp=SPConfig(alpha0=0.1, schedule="constant", boundary="none", alpha_grid=True)))

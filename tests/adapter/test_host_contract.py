@@ -41,3 +41,18 @@ def test_a_host_with_a_broken_hook_fails_the_items_that_need_it():
     assert failed == {"callbacks_every_step", "reach_check_fires"}, results
     with pytest.raises(AssertionError, match=r"^\[\(0, 0\.1\), \(0, 0\.1\)"):
         contract.callbacks_every_step(contract.broken_toy_driver())
+
+
+def test_each_hosts_table_names_exactly_the_methods_its_entry_points_register():
+    """The method lists other front ends read (nerfbaselines, the docs) are the tables'; a method
+    registered but missing from its table, or listed but not registered, fails here."""
+    import tomllib
+    from pathlib import Path
+
+    from sp_plugins.nerfstudio import table as ns_table
+    from sp_plugins.sdfstudio import table as sdf_table
+
+    eps = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())["project"]["entry-points"]
+    assert sorted(ns_table.OUR_METHODS + ns_table.OUR_SDF_METHODS) == sorted(eps["nerfstudio.method_configs"])
+    assert sorted(sdf_table.OUR_METHODS) == sorted(eps["sp_plugins.sdfstudio_methods"])
+    assert sorted(eps["sp_plugins.hosts"]) == ["nerfstudio", "sdfstudio"]

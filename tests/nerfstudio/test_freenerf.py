@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import pytest
+from tests.helpers.sp_fields import perturbed_calls
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
@@ -187,7 +188,7 @@ def test_it_trains_and_the_callback_moves_the_mask_every_step(tiny_scene, tmp_pa
         assert metrics["sp_alpha"] == 0.0  # SP off: FreeNeRF alone
     weights, raw = band_weights(trainer.pipeline.model.encoding.freq_mask)
     assert weights.tolist() == pytest.approx([1.0] * 14 + [0.4, 0.0], abs=1e-6)  # the last step, 9: 14.4 bands
-    assert trainer.pipeline.model.perturbed_calls() == 0
+    assert perturbed_calls(trainer.pipeline.model) == 0
 
 
 def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, ns_server, tmp_path):

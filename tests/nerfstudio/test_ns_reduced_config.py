@@ -25,6 +25,7 @@ import math
 from pathlib import Path
 
 import pytest
+from tests.helpers.sp_fields import perturbed_calls
 import torch
 
 from sp_plugins.nerfstudio.runs import method_config, our_methods
@@ -143,7 +144,7 @@ def test_nerfstudio_reduced_config_trains(name, one_view_scene, tmp_path, watche
         assert watched["sp_calls"] == 0, f"{name}: the baseline (SP off) perturbed queries"
     if name.startswith(SP_TRAIN):
         generic = name[len(SP_TRAIN):] in BUILTIN  # nerfstudio's methods get generated SP classes, ours keep theirs
-        assert type(model).__name__.startswith("SPModel__") == generic and model.perturbed_calls() > 0, name
+        assert type(model).__name__.startswith("SPModel__") == generic and perturbed_calls(model) > 0, name
 
     checkpoints = sorted(config.get_checkpoint_dir().glob("step-*.ckpt"))
     assert checkpoints, f"{name}: the 2-iteration run wrote no checkpoint"

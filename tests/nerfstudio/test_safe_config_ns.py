@@ -65,6 +65,25 @@ def trained(tiny_scene, tmp_path_factory) -> Path:
 # -- what real runs write loads -----------------------------------------------------------------------
 
 
+def test_a_config_yml_saved_with_our_sdf_fields_old_names_loads_with_either_loader():
+    """Issue 55 renamed our nerfstudio SDF field ``SPSDFField`` (it perturbs nothing itself) to
+    ``CoarseToFineSDFField``; a run folder saved before names the old classes. The nerfstudio host's
+    registry entry maps them (``Host.renamed``): our restricted reader and the host's own loader (``ns-eval``,
+    ``ns-export``) both build the new classes; the module defines no alias."""
+    from nerfstudio.configs.method_configs import all_methods
+
+    import sp_plugins.nerfstudio.sdf_field as sdf_field
+    from sp_plugins.nerfstudio.sdf_field import CoarseToFineSDFField, CoarseToFineSDFFieldConfig
+
+    text = yaml.dump(all_methods["sp-neus-hashgrid"])
+    assert "sdf_field.CoarseToFineSDFFieldConfig" in text and "SPSDFField" not in text
+    old = text.replace("sdf_field.CoarseToFineSDFField", "sdf_field.SPSDFField")
+    for loader in (RunConfigLoader, yaml.Loader):
+        field = yaml.load(old, Loader=loader).pipeline.model.sdf_field
+        assert type(field) is CoarseToFineSDFFieldConfig and field._target is CoarseToFineSDFField, loader
+    assert "SPSDFField" not in vars(sdf_field)
+
+
 def test_every_registered_method_config_loads_as_with_the_full_loader():
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 
 import pytest
+from tests.helpers.sp_fields import sp_fields
 import torch
 from tests.helpers.ns_configs import in_process_data, shrink_model, sp_train_config
 from tests.helpers.ns_configs import tiny_sdf_config, run_recording
@@ -213,15 +214,15 @@ def test_every_option_trains_and_never_perturbs_eval(name, run, tiny_scene, tmp_
     assert record and all(math.isfinite(loss) for loss, _, _ in record), f"{name}/{run}: non-finite loss"
     sp_steps = len(record) - (len(record) == config.max_num_iterations and run != "constant")  # end 1.0: the last is plain
     assert counter["n"] >= sp_steps, f"{name}/{run}: no field was handed moved samples in every SP step"
-    fields = [f for f in model.sp_fields() if f.sp_handle.perturbed_calls]
+    fields = [f for f in sp_fields(model) if f.sp_handle.perturbed_calls]
     assert fields and all("origins" in f.sp_handle.reads for f in fields), f"{name}/{run}: a field did not read the moved samples"
     check_noise_kind(counter["offsets"], sp.config.noise, f"{name}/{run}")
     for key, value in settings.items():
         assert getattr(sp.config, key) == value, f"{name}: sp.{key} did not reach the model"
     if name in WRAPPED:  # the generic route: the host's fields carry the seam
-        assert type(model).__name__.startswith("SPModel__nerfstudio_dmodels_d") and model.sp_fields()
+        assert type(model).__name__.startswith("SPModel__nerfstudio_dmodels_d") and sp_fields(model)
     if name in OURS_UNDER_SP_TRAIN:  # our model class, SP switched on by sp-train
-        assert type(model).__module__.startswith("sp_plugins.nerfstudio.") and model.sp.config.enabled and model.sp_fields()
+        assert type(model).__module__.startswith("sp_plugins.nerfstudio.") and model.sp.config.enabled and sp_fields(model)
     if run == "grid":
         assert "sp_alpha_grid" in trainer.optimizers.optimizers
         values = sp.alpha_grid.values()

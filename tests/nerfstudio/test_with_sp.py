@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from tests.helpers.sp_fields import perturbed_calls, sp_fields
 import yaml
 
 from tests.helpers.forkserver import ForkServer
@@ -291,7 +292,7 @@ def test_a_field_built_through_a_module_object_is_reached(toy_importable, tiny_s
     configure_run(config, tiny_scene / "blender", steps=3, output_dir=tmp_path)
     model = train(config).pipeline.model
     assert isinstance(model.field, SeamField) and model.field.sp is model.sp
-    assert model.perturbed_calls() >= 2 and "origins" in model.field.sp_handle.reads
+    assert perturbed_calls(model) >= 2 and "origins" in model.field.sp_handle.reads
 
 
 BUILTIN_TRAIN = ("nerfacto", "nerfacto-big", "nerfacto-huge", "vanilla-nerf", "tensorf", "phototourism", "dnerf", "mipnerf",
@@ -319,8 +320,8 @@ def test_sp_train_configs_of_builtin_methods_train_two_steps_with_sp_active(meth
     configure_run(config, tiny_scene / layout, steps=3, output_dir=tmp_path, rays_per_batch=32)
     trainer = train(config)
     model = trainer.pipeline.model
-    fields = [f for f in model.sp_fields() if f.sp_handle.perturbed_calls]
-    assert fields and model.perturbed_calls() >= 2, method  # a field was handed moved samples in both SP steps
+    fields = [f for f in sp_fields(model) if f.sp_handle.perturbed_calls]
+    assert fields and perturbed_calls(model) >= 2, method  # a field was handed moved samples in both SP steps
     assert all("origins" in f.sp_handle.reads for f in fields), method  # ... and read them
     assert int(model.sp.step) >= 2 and model.sp.total_steps == 3
     assert list(config.get_checkpoint_dir().glob("*.ckpt"))
@@ -343,8 +344,8 @@ def test_depth_nerfacto_builds_with_sp_on_its_main_field():
     model = model_config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={}, device="cpu")
     from sp_plugins.nerfstudio.seam import host_name
 
-    reached = [host_name(f).rsplit(".", 1)[-1] for f in model.sp_fields()]
-    assert "NerfactoField" in reached and all(f.sp is model.sp for f in model.sp_fields())
+    reached = [host_name(f).rsplit(".", 1)[-1] for f in sp_fields(model)]
+    assert "NerfactoField" in reached and all(f.sp is model.sp for f in sp_fields(model))
 
 
 def test_neus_keeps_its_background_plain_and_its_sdf_field_carries_the_seam():

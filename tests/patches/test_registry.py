@@ -23,6 +23,7 @@ import sys
 import warnings
 
 import pytest
+from tests.helpers.sp_fields import installed_for_process  # noqa: E402
 import torch
 
 pytest.importorskip("nerfstudio")
@@ -126,7 +127,7 @@ ARGS = {"nerfstudio_marching_cubes": {"force": True}, "nerfstudio_sdf_field": {"
 @pytest.mark.parametrize("patch", ENTRIES, ids=lambda p: p.name)
 def test_after_each_scope_the_host_is_as_it_was(patch, monkeypatch):
     monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
-    assert patch.name not in registry.held() and patch.name not in registry.installed_for_process()
+    assert patch.name not in registry.held() and patch.name not in installed_for_process()
     before = host_state(patch)
     with registry.scope(patch.name, **ARGS.get(patch.name, {})):
         assert ACTIVE[patch.name](), f"{patch.name}: the scope changed nothing"
@@ -219,7 +220,7 @@ def test_only_our_commands_keep_a_patch_for_the_process():
         registry.install_for_process("host_warnings")  # pytest is not one of our commands
     with pytest.raises(RuntimeError, match="sp-train"):
         registry.install_for_process("nerfstudio_external_methods", command="sp-fit")
-    assert "host_warnings" not in registry.installed_for_process()
+    assert "host_warnings" not in installed_for_process()
 
 
 def test_what_a_command_keeps_for_its_process_ends_as_at_exit(monkeypatch):
@@ -230,9 +231,9 @@ def test_what_a_command_keeps_for_its_process_ends_as_at_exit(monkeypatch):
     monkeypatch.delenv("SP_HOST_WARNINGS", raising=False)
     was_in_force = "host_warnings" in registry.in_force()
     registry.install_for_process("host_warnings", command="sp-fit")
-    assert "host_warnings" in registry.installed_for_process() and ACTIVE["host_warnings"]()
+    assert "host_warnings" in installed_for_process() and ACTIVE["host_warnings"]()
     registry.end_for_process()
-    assert "host_warnings" not in registry.installed_for_process()
+    assert "host_warnings" not in installed_for_process()
     assert ("host_warnings" in registry.in_force()) is was_in_force
     if not was_in_force:
         assert changed(before, host_state(patch)) == []

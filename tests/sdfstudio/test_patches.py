@@ -203,7 +203,7 @@ def test_our_install_beside_the_waiting_hook_enters_each_patch_once_and_exits_cl
     again from inside the first install. Each patch must be in force once, and the process must end
     without an error (it printed a KeyError from the registry's atexit handler)."""
     code = ("from sp_plugins.patches import registry; from sp_plugins.patches.sdfstudio_import_hook import install_all; "
-            "install_all(); import nerfstudio; print(sorted(registry.installed_for_process()))")
+            "install_all(); import nerfstudio; print(sorted(registry._installed))")
     proc = subprocess.run([sys.executable, "-c", code], env=env(), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "sdfstudio_import_hook" in proc.stdout, proc.stdout

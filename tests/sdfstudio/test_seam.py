@@ -135,8 +135,9 @@ def test_fixed_fd_step_wins_over_the_host_schedule_and_checkpoint_keys_match_the
 
 def test_a_config_yml_saved_with_the_seams_old_class_names_loads(tmp_path):
     """Issue 45 renamed the sdfstudio seam's field to ``SeamSDFField``; a config.yml saved before names
-    ``SPSDFFieldConfig`` / ``SPSDFField``. The module keeps no alias (issue 55): the host's registry entry
-    maps the old paths (``Host.renamed``), so our commands' config reader still loads the file."""
+    ``SPSDFFieldConfig`` / ``SPSDFField``. The module defines no alias (issue 55): the host's registry entry
+    maps the old paths (``Host.renamed``), which our commands' config reader and, through the module's
+    ``__getattr__``, any YAML loader (sdfstudio's own commands) read."""
     import yaml
     from nerfstudio.configs.method_configs import method_configs
 
@@ -151,7 +152,11 @@ def test_a_config_yml_saved_with_the_seams_old_class_names_loads(tmp_path):
     assert type(field) is SeamSDFFieldConfig and field._target is SeamSDFField
     import sp_plugins.sdfstudio.seam as seam
 
-    assert not hasattr(seam, "SPSDFField") and not hasattr(seam, "SPSDFFieldConfig")
+    assert "SPSDFField" not in vars(seam) and "SPSDFFieldConfig" not in vars(seam)
+    plain = yaml.load((tmp_path / "config.yml").read_text(), Loader=yaml.Loader).pipeline.model.sdf_field  # the host's loader
+    assert type(plain) is SeamSDFFieldConfig and plain._target is SeamSDFField
+    with pytest.raises(AttributeError, match="has no attribute 'NoSuchField'"):
+        seam.NoSuchField
 
 
 def test_the_reach_check_refuses_a_field_without_sp_and_a_move_that_is_missing_or_not_a_number():
