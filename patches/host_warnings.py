@@ -11,12 +11,13 @@ Scope (:mod:`sp_plugins.patches.registry`):
 - our console commands (``sp-train``, ``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``,
   ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``, ``sp-compare``) own their process: there the filters stay
   until it ends (``registry.install_for_process``);
-- under nerfstudio's own ``ns-*`` commands they are held by our code's objects (our model, our
-  data manager, the checked run config of our method; ``registry.hold``): in force while one of
-  them exists, i.e. while ``ns-train`` trains our method or ``ns-eval`` evaluates it, and removed
-  with the last of them (``warnings.filters`` is the same list object with the entries it had). A
-  nerfacto user sees every warning nerfstudio and torch print, as without sp-plugins; warnings
-  raised before our method is built (nerfstudio's imports, ``torch.jit.script``) still print once.
+- under nerfstudio's ``ns-train`` they are held by the checked run config of our method
+  (``registry.hold``): in force while ``ns-train`` trains our method, and removed with it
+  (``warnings.filters`` is the same list object with the entries it had). Building one of our
+  models or data managers installs none (issue 55: a notebook or another method in the process
+  keeps every warning), so ``ns-eval`` / ``ns-render`` print the host's warnings as for any
+  method. A nerfacto user sees every warning nerfstudio and torch print, as without sp-plugins;
+  warnings raised before our run starts (nerfstudio's imports, ``torch.jit.script``) still print once.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.
 """
 
@@ -97,4 +98,4 @@ PATCH = python_patch(
     "host_warnings", _check, host_warnings_filtered, (("warnings", "filters"), ("warnings", "_filters_mutated")),
     changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
     shown=lambda: _keep_all() or host_warnings_shown(),
-    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in our sp-* commands")
+    scope_text="while ns-train trains one of our methods (its checked run config exists); process-wide in our sp-* commands")

@@ -2,15 +2,16 @@
 
 Host-neutral: a host's callback object is made by the function the model passes
 (:meth:`sp_plugins.adapter.model.SPModelBase.sp_training_callback`, ``make(where, func)``), and the
-host's optimizer config class is passed to :func:`alpha_grid_optimizer`. What the two hosts' trainers
-differ in is read from the callback attributes by name: where the run's length lives (nerfstudio
-1.x: ``attributes.trainer.config``; sdfstudio: ``attributes.config``) and the flag that sets it,
-which the model passes.
+host's optimizer config class is passed to :func:`alpha_grid_optimizer`. What the hosts' trainers
+differ in comes from the host: the run's length and start step
+(:meth:`~sp_plugins.adapter.model.SPModelBase.sp_run_length`, a :class:`RunLength`) and the flag
+that sets the length (the host's :attr:`~sp_plugins.adapter.hosts.Flags.steps`). Of the callback
+attributes only ``optimizers`` is read here (the alpha grid's learning rate), which both hosts name so.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, List, Literal, Optional
+from typing import Any, Callable, List, Literal, NamedTuple, Optional
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
@@ -32,19 +33,18 @@ def alpha_grid_optimizer(sp_config: SPConfig, adam: Callable[..., Any]) -> dict:
     return {"optimizer": adam(lr=sp_config.alpha_grid_lr, eps=1e-15), "scheduler": None}
 
 
-def trainer_total_steps(attributes: Any) -> Optional[int]:
-    """Length of one training run as the trainer sees it (``max_num_iterations``), or None."""
-    trainer = getattr(attributes, "trainer", None)
-    config = trainer.config if trainer is not None else getattr(attributes, "config", None)
-    total = getattr(config, "max_num_iterations", None)
-    return None if total is None else int(total)
+class RunLength(NamedTuple):
+    """What a host's trainer says of the run it drives (None: it does not say)."""
+
+    total: Optional[int]
+    """Training iterations of the run (``max_num_iterations``)."""
+    start: Optional[int]
+    """The step training starts at (a resumed run: the checkpoint's step + 1)."""
 
 
-def start_step(attributes: Any) -> Optional[int]:
-    """The step training starts at (a resumed run: the checkpoint's step + 1), or None when the
-    attributes do not say (sdfstudio's carry no trainer)."""
-    start = getattr(getattr(attributes, "trainer", None), "_start_step", None)
-    return None if start is None else int(start)
+def run_length(total: Any, start: Any = None) -> RunLength:
+    """A :class:`RunLength` from the values a host keeps (ints, floats or None)."""
+    return RunLength(None if total is None else int(total), None if start is None else int(start))
 
 
 def schedule_problem(config: SPSettings, total_steps: int, steps_flag: str) -> Optional[str]:
@@ -80,12 +80,12 @@ def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int], 
     return make("before", step_to)
 
 
-def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes: Any, make: MakeCallback) -> Any:
+def model_schedule_callback(at: Callable[[int, Optional[int]], Any], run: RunLength, make: MakeCallback) -> Any:
     """A schedule of a model's own (FreeNeRF's frequency mask, Neuralangelo's coarse-to-fine) as one
     callback: ``at(step, total)`` is applied now, at the step training starts (0, or a resumed
-    run's), and then before every iteration, with the run's length from ``attributes``."""
-    total = trainer_total_steps(attributes)
-    at(start_step(attributes) or 0, total)
+    run's), and then before every iteration, with the run's length."""
+    total = run.total
+    at(run.start or 0, total)
 
     def update(step: int) -> None:
         at(step, total)
@@ -93,15 +93,16 @@ def model_schedule_callback(at: Callable[[int, Optional[int]], Any], attributes:
     return make("before", update)
 
 
-def sp_callbacks(sp: StochasticPreconditioner, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
+def sp_callbacks(sp: StochasticPreconditioner, run: RunLength, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
     """Everything a model with SP registers: the schedule (checked against the run's length, one
-    line naming the flags when it does not fit), plus the alpha grid's learning rate."""
-    total = trainer_total_steps(attributes)
+    line naming the flags when it does not fit), plus the alpha grid's learning rate (from the
+    ``optimizers`` of the host's callback ``attributes``)."""
+    total = run.total
     if total is not None:
         problem = schedule_problem(sp.config, total, steps_flag)
         if problem:
             raise InputError(problem)
-        start = start_step(attributes)
+        start = run.start
         # without a start step (sdfstudio), stay at the step the checkpoint loaded (0 on a fresh run);
         # the schedule callback moves to the trainer's step before every iteration either way
         sp.set_step(int(sp.step) if start is None else start, total)

@@ -3,7 +3,8 @@
 Each host's ``SPModel`` (``sp_plugins.nerfstudio.model``, ``sp_plugins.sdfstudio.model``) is this
 class plus what that host must provide, declared here as abstract methods (in the manner of
 nerfstudio's ``Model.get_outputs``): :meth:`SPModelBase.attach_sp`, :meth:`SPModelBase.check_sp_reached`,
-:meth:`SPModelBase.sp_preset`, :meth:`SPModelBase.sp_scene_aabb` and :meth:`SPModelBase.sp_training_callback`.
+:meth:`SPModelBase.sp_preset`, :meth:`SPModelBase.sp_scene_aabb`, :meth:`SPModelBase.sp_training_callback`
+and :meth:`SPModelBase.sp_run_length`, plus ``steps_flag`` (the host's registry entry names it).
 It and :class:`SPModelConfig` go first among the bases of an SP model and its config (the hosts'
 ``variants`` modules make those subclasses on demand)::
 
@@ -34,7 +35,7 @@ from typing import Any, Callable, Dict, List, Tuple
 
 import torch
 
-from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, Where, sp_callbacks
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, RunLength, Where, sp_callbacks
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 
 
@@ -112,6 +113,11 @@ class SPModelBase:
         """A host training callback that calls ``func(step)`` ``"before"`` or ``"after"`` every
         training iteration."""
 
+    @abc.abstractmethod
+    def sp_run_length(self, attributes: Any) -> RunLength:
+        """The run's length and start step, read from the host's training callback ``attributes``
+        where that host's trainer keeps them (each host keeps them elsewhere)."""
+
     # -- shared by every host ----------------------------------------------------------------------
     @classmethod
     def sp_host_class(cls) -> type:
@@ -151,7 +157,8 @@ class SPModelBase:
 
     def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
         callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]  # the host model's (next in the MRO)
-        ours = sp_callbacks(self.sp, training_callback_attributes, self.sp_training_callback, self.steps_flag)
+        run = self.sp_run_length(training_callback_attributes)
+        ours = sp_callbacks(self.sp, run, training_callback_attributes, self.sp_training_callback, self.steps_flag)
         return list(callbacks) + ours + [self.sp_training_callback("after", self.check_first_step)]
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:

@@ -198,7 +198,8 @@ class FreeNeRFModel(SPMipNerfModel, FreeNeRFLosses):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        return callbacks + [model_schedule_callback(self.frequency_mask_at, training_callback_attributes, self.sp_training_callback)]
+        return callbacks + [model_schedule_callback(self.frequency_mask_at, self.sp_run_length(training_callback_attributes),
+                                                   self.sp_training_callback)]
 
     def get_outputs(self, ray_bundle) -> Dict[str, Tensor]:
         c = self.config

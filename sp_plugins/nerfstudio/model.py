@@ -27,7 +27,7 @@ from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.adapter.variants import class_path, target_class
 from sp_plugins.core import SPConfig, StochasticPreconditioner
-from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, Where
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, RunLength, Where, run_length
 from sp_plugins.adapter.checks import check_known_settings
 from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.adapter.tables import lookup, merged
@@ -55,19 +55,27 @@ def refuse_inert_options(config: SPConfig) -> None:
         )
 
 
-def install_process_settings(owner: object = None) -> None:
-    """What a process that trains or loads one of our methods gets: ``InputError`` as one line
-    (exit status 2) and the host's known, non-actionable warnings filtered (registry entries
-    ``input_error_hook`` and ``host_warnings``). With ``owner`` (our model, data manager or checked
-    run config under an ``ns-*`` command) they are in force while it exists; without, for the
-    process of our own console command (``sp-train``)."""
+def install_process_settings(owner: object = None, *, run: bool = False) -> None:
+    """What a process that trains or loads one of our methods gets.
+
+    - Without ``owner``: our own console command (``sp-train``) owns the process: failures our
+      checks describe print as one line (exit status 2) and the host's known, non-actionable
+      warnings are filtered, until it ends (registry entries ``input_error_hook``, ``host_warnings``).
+    - With ``owner`` (our model or data manager under an ``ns-*`` command): only the one-line hook,
+      held while ``owner`` exists. It acts on nothing but the failures our own checks describe, so a
+      method that is not ours sees the process as without sp-plugins; building a model filters no
+      warning (issue 55).
+    - With ``owner`` and ``run`` (the checked run config ``ns-train`` trains one of our methods by,
+      :func:`sp_plugins.nerfstudio.components.trainer.preflight`): that run is ours, so it also
+      gets the warning filters, while the run config exists."""
     from sp_plugins.patches import registry
 
-    for name in ("input_error_hook", "host_warnings"):
-        if owner is None:
+    if owner is None:
+        for name in ("input_error_hook", "host_warnings"):
             registry.install_for_process(name, command="sp-train")
-        else:
-            registry.hold(name, owner)
+        return
+    for name in ("input_error_hook", "host_warnings") if run else ("input_error_hook",):
+        registry.hold(name, owner)
 
 
 def refuse_unreachable_settings(model_config: object) -> None:
@@ -129,6 +137,12 @@ class SPModel(adapter_model.SPModelBase):
     @classmethod
     def sp_preset(cls, model_config: Any) -> SPConfig:
         return table.preset_for(model_config)
+
+    def sp_run_length(self, attributes: Any) -> RunLength:
+        """nerfstudio 1.x keeps the length on ``attributes.trainer.config`` and the start step on the
+        trainer (``_start_step``: a resumed run's checkpoint step + 1)."""
+        trainer = getattr(attributes, "trainer", None)
+        return run_length(getattr(getattr(trainer, "config", None), "max_num_iterations", None), getattr(trainer, "_start_step", None))
 
     def sp_scene_aabb(self) -> torch.Tensor:
         return self.scene_box.aabb  # type: ignore[attr-defined]

@@ -42,7 +42,7 @@ from nerfstudio.models.neus import NeuSModel, NeuSModelConfig
 
 from sp_plugins.nerfstudio.components import hash_encoding
 from sp_plugins.nerfstudio.components.colliders import bound_surface_rays
-from sp_plugins.adapter.callbacks import model_schedule_callback, trainer_total_steps
+from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, CoarseToFineSDFField, CoarseToFineSDFFieldConfig
@@ -126,7 +126,7 @@ class SPNeuSModel(SPModel, NeuSModel):
         return groups
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        total = trainer_total_steps(training_callback_attributes)
+        total = self.sp_run_length(training_callback_attributes).total
         if total is not None:
             self.anneal_end = _steps(self.config.cos_anneal_end, total)
         return super().get_training_callbacks(training_callback_attributes)
@@ -225,7 +225,8 @@ class NeuralangeloLiteModel(SPNeuSModel):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        return callbacks + [model_schedule_callback(self.coarse_to_fine_at, training_callback_attributes, self.sp_training_callback)]
+        return callbacks + [model_schedule_callback(self.coarse_to_fine_at, self.sp_run_length(training_callback_attributes),
+                                                   self.sp_training_callback)]
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         losses = super().get_loss_dict(outputs, batch, metrics_dict)

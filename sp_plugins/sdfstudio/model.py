@@ -22,7 +22,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from sp_plugins.adapter import model as adapter_model
-from sp_plugins.adapter.callbacks import Where
+from sp_plugins.adapter.callbacks import RunLength, Where, run_length
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.model import SPModelConfig
 from sp_plugins.core import SPConfig
@@ -59,6 +59,11 @@ class SPModel(adapter_model.SPModelBase):
 
     def sp_scene_aabb(self) -> torch.Tensor:
         return self.scene_box.aabb  # type: ignore[attr-defined]
+
+    def sp_run_length(self, attributes: Any) -> RunLength:
+        """sdfstudio keeps the length on ``attributes.config`` and passes no trainer, so no start
+        step: SP stays at the step its checkpoint loaded."""
+        return run_length(getattr(getattr(attributes, "config", None), "max_num_iterations", None))
 
     def sp_training_callback(self, where: Where, func: Callable[[int], None]) -> TrainingCallback:
         at = TrainingCallbackLocation.BEFORE_TRAIN_ITERATION if where == "before" else TrainingCallbackLocation.AFTER_TRAIN_ITERATION

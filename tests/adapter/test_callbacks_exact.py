@@ -1,7 +1,7 @@
 """The host-neutral training callbacks that drive SP (sp_plugins.adapter.callbacks), exactly: the step and
-run length SP is moved to (fresh, resumed, sdfstudio's attributes without a trainer), when, the schedule
-refusal's bounds and line, the alpha grid's learning rate. Stand-in trainer attributes in both hosts'
-shapes; no host import. The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
+run length SP is moved to (fresh, resumed, a run that says no start step as sdfstudio's), when, the schedule
+refusal's bounds and line, the alpha grid's learning rate. Where each host keeps the run length is the host's
+(``sp_run_length``, tested with each host's model); no host import here. The mutants each test kills are listed in ``bench/results/mutation_study/kills.json``."""
 
 from __future__ import annotations
 
@@ -15,17 +15,9 @@ from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import SPConfig
 
 
-def ns_attributes(total=None, start=None, optimizers=None):
-    """nerfstudio 1.x's shape: the run's length on ``trainer.config``, the start step on the trainer."""
-    trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=total))
-    if start is not None:
-        trainer._start_step = start
-    return SimpleNamespace(trainer=trainer, optimizers=optimizers)
-
-
-def sdf_attributes(total=None, optimizers=None):
-    """sdfstudio's shape: no trainer, the run's length on ``config``."""
-    return SimpleNamespace(config=SimpleNamespace(max_num_iterations=total), optimizers=optimizers)
+def attributes(optimizers=None):
+    """A host's callback attributes, as far as the callbacks read them: the optimizers."""
+    return SimpleNamespace(optimizers=optimizers)
 
 
 class Made:
@@ -43,14 +35,10 @@ def preconditioner(**config):
     return SPConfig(alpha0=0.5, boundary="none", schedule="linear", end=0.5, **config).setup(dim=3)
 
 
-def test_the_run_length_and_start_are_read_where_each_host_keeps_them():
-    """nerfstudio: ``trainer.config.max_num_iterations`` and ``trainer._start_step``; sdfstudio:
-    ``config.max_num_iterations`` and no start; nothing said: None (not 0). Values come back as ints."""
-    assert cb.trainer_total_steps(ns_attributes(total=300.0)) == 300 and type(cb.trainer_total_steps(ns_attributes(total=300.0))) is int
-    assert cb.trainer_total_steps(sdf_attributes(total=40)) == 40
-    assert cb.trainer_total_steps(ns_attributes()) is None and cb.trainer_total_steps(SimpleNamespace()) is None
-    assert cb.start_step(ns_attributes(start=7)) == 7 and cb.start_step(ns_attributes(start=0)) == 0
-    assert cb.start_step(ns_attributes()) is None and cb.start_step(sdf_attributes(total=40)) is None
+def test_a_run_length_is_ints_or_none():
+    """What a host reads comes back as ints (a float from a config too), None where it says nothing (not 0)."""
+    assert cb.run_length(300.0, 7) == (300, 7) and type(cb.run_length(300.0).total) is int
+    assert cb.run_length(None) == (None, None) and cb.run_length(40, 0) == (40, 0)
 
 
 @pytest.mark.parametrize("end, fits", [(100, True), (101, False), (1.0, True), (0.5, True), (2, True)])
@@ -77,7 +65,7 @@ def test_a_fresh_nerfstudio_run_starts_sp_at_step_0_of_its_length_and_steps_befo
     loaded after registration)."""
     sp, make = preconditioner(), Made()
     sp.set_step(33, 1000)  # whatever it held
-    (callback,) = cb.sp_callbacks(sp, ns_attributes(total=200, start=0), make, "--max-num-iterations")
+    (callback,) = cb.sp_callbacks(sp, cb.run_length(200, 0), attributes(), make, "--max-num-iterations")
     assert make.asked == ["before"] and (int(sp.step), int(sp.total_steps)) == (0, 200)
     assert sp.alpha == pytest.approx(0.5)
     where, step_to = callback
@@ -94,7 +82,7 @@ def test_a_resumed_run_continues_at_its_start_step():
     """``trainer._start_step`` (the checkpoint's step + 1) is where SP is moved at registration, so the
     first resumed step has the alpha it would have had."""
     sp = preconditioner()
-    cb.sp_callbacks(sp, ns_attributes(total=200, start=60), Made(), "--max-num-iterations")
+    cb.sp_callbacks(sp, cb.run_length(200, 60), attributes(), Made(), "--max-num-iterations")
     assert int(sp.step) == 60 and sp.alpha == pytest.approx(0.5 * (1 - 60 / 100))
 
 
@@ -103,7 +91,7 @@ def test_sdfstudio_s_attributes_keep_the_step_the_checkpoint_loaded():
     run, the checkpoint's after a load), with the run's length set."""
     sp = preconditioner()
     sp.set_step(42, 1000)  # as a loaded checkpoint left it
-    cb.sp_callbacks(sp, sdf_attributes(total=200), Made(), "--trainer.max-num-iterations")
+    cb.sp_callbacks(sp, cb.run_length(200, None), attributes(), Made(), "--trainer.max-num-iterations")
     assert (int(sp.step), int(sp.total_steps)) == (42, 200)
 
 
@@ -112,7 +100,7 @@ def test_without_a_run_length_sp_keeps_its_saved_total():
     total in SP's state."""
     sp = preconditioner()
     sp.set_step(5, 400)
-    (callback,) = cb.sp_callbacks(sp, SimpleNamespace(), Made(), "--max-num-iterations")
+    (callback,) = cb.sp_callbacks(sp, cb.run_length(None), attributes(), Made(), "--max-num-iterations")
     assert (int(sp.step), int(sp.total_steps)) == (5, 400)
     callback[1](10)
     assert (int(sp.step), int(sp.total_steps)) == (10, 400)
@@ -121,7 +109,7 @@ def test_without_a_run_length_sp_keeps_its_saved_total():
 def test_a_schedule_that_does_not_fit_is_refused_before_sp_moves():
     sp = SPConfig(schedule="step", end=300, boundary="none").setup(dim=3)
     with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.end 300 does not fit --trainer\.max-num-iterations 200 "):
-        cb.sp_callbacks(sp, ns_attributes(total=200, start=0), Made(), "--trainer.max-num-iterations")
+        cb.sp_callbacks(sp, cb.run_length(200, 0), attributes(), Made(), "--trainer.max-num-iterations")
     assert int(sp.total_steps) == -1  # not moved
 
 
@@ -135,7 +123,7 @@ def test_the_alpha_grid_group_gets_the_configured_lr_and_no_other_group_does():
         g["initial_lr"] = 1.0
     field_opt = torch.optim.Adam([torch.zeros(2, requires_grad=True)], lr=0.1)
     optimizers = SimpleNamespace(optimizers={cb.ALPHA_GRID_GROUP: grid_opt, "fields": field_opt})
-    cb.sp_callbacks(sp, ns_attributes(total=10, start=0, optimizers=optimizers), Made(), "--max-num-iterations")
+    cb.sp_callbacks(sp, cb.run_length(10, 0), attributes(optimizers), Made(), "--max-num-iterations")
     assert [(g["lr"], g["initial_lr"]) for g in grid_opt.param_groups] == [(3e-3, 3e-3)] * 2
     assert field_opt.param_groups[0]["lr"] == 0.1 and "initial_lr" not in field_opt.param_groups[0]
 
@@ -161,7 +149,7 @@ def test_a_models_own_schedule_is_applied_at_once_at_the_start_step_then_before_
     step (0 when the attributes do not say), then before each iteration."""
     calls, make = [], Made()
     where, update = cb.model_schedule_callback(lambda step, total: calls.append((step, total)),
-                                               ns_attributes(total=80, start=start), make)
+                                               cb.run_length(80, start), make)
     assert where == "before" and make.asked == ["before"] and calls == [(first, 80)]
     update(31)
     assert calls == [(first, 80), (31, 80)]

@@ -13,7 +13,7 @@ from sp_plugins.adapter.model import SPModelBase
 from sp_plugins.core import SPConfig
 from tests.adapter.toy_host import ToyHostModel, ToySP, ToySPModel, train_steps
 
-DECLARED = ("attach_sp", "check_sp_reached", "sp_preset", "sp_scene_aabb", "sp_training_callback")
+DECLARED = ("attach_sp", "check_sp_reached", "sp_preset", "sp_run_length", "sp_scene_aabb", "sp_training_callback")
 
 
 @pytest.mark.parametrize("missing", DECLARED)

@@ -10,6 +10,7 @@ from typing import Any, Callable, Dict, List
 import torch
 from torch import nn
 
+from sp_plugins.adapter.callbacks import RunLength, run_length
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.hosts import Flags, Host
 from sp_plugins.adapter.field import SPFieldMixin
@@ -85,6 +86,9 @@ class ToySP(SPModelBase):
 
     def sp_scene_aabb(self) -> torch.Tensor:
         return BOX
+
+    def sp_run_length(self, attributes: Any) -> RunLength:
+        return run_length(attributes.config.max_num_iterations)  # the toy trainer's attributes: its config
 
     def sp_training_callback(self, where: str, func: Callable[[int], None]) -> Any:
         return SimpleNamespace(where=where, func=func)

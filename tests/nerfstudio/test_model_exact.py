@@ -189,3 +189,15 @@ def test_a_box_boundary_on_a_contracting_model_is_refused_from_its_config_unless
     refuse_unreachable_settings(none)
     with pytest.raises(InputError, match=r"but SemanticNerfWModel contracts space .*boundary none$"):  # always on: no flag to name
         refuse_unreachable_settings(_plugin_config(SemanticNerfWModel, disable_scene_contraction=True))
+
+
+def test_the_run_length_and_start_are_read_where_nerfstudio_keeps_them():
+    """nerfstudio 1.x: ``trainer.config.max_num_iterations`` and ``trainer._start_step`` (a resumed run's
+    checkpoint step + 1), as ints; a trainer that says nothing gives None, not 0."""
+    from types import SimpleNamespace
+
+    trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=300.0), _start_step=7)
+    assert SPModel.sp_run_length(None, SimpleNamespace(trainer=trainer)) == (300, 7)
+    assert SPModel.sp_run_length(None, SimpleNamespace(trainer=SimpleNamespace(config=SimpleNamespace(max_num_iterations=5), _start_step=0))) == (5, 0)
+    assert SPModel.sp_run_length(None, SimpleNamespace(trainer=SimpleNamespace(config=SimpleNamespace()))) == (None, None)
+    assert SPModel.sp_run_length(None, SimpleNamespace()) == (None, None)

@@ -127,3 +127,12 @@ def test_sp_training_callbacks_run_at_every_iteration_where_named(where):
     from tests.helpers.exact import check_runs_every_iteration_where_named
 
     check_runs_every_iteration_where_named(lambda record: SPModel.sp_training_callback(None, where, record), where)
+
+
+def test_the_run_length_is_read_where_sdfstudio_keeps_it_and_it_says_no_start_step():
+    """sdfstudio: ``config.max_num_iterations`` on the attributes (no trainer), so SP keeps the step its
+    checkpoint loaded (no start step)."""
+    from sp_plugins.sdfstudio.model import SPModel
+
+    assert SPModel.sp_run_length(None, SimpleNamespace(config=SimpleNamespace(max_num_iterations=40.0))) == (40, None)
+    assert SPModel.sp_run_length(None, SimpleNamespace(trainer=SimpleNamespace(_start_step=3))) == (None, None)

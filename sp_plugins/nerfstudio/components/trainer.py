@@ -65,7 +65,7 @@ def preflight(config: TrainerConfig) -> None:
     from sp_plugins.nerfstudio.components.datamanagers import LAYOUT_CHECKED, CheckedDataManagerConfig, check_data_layout
     from sp_plugins.nerfstudio.model import install_process_settings, refuse_unreachable_settings
 
-    install_process_settings(config)  # while our run config exists: its input errors print as one line
+    install_process_settings(config, run=True)  # while our run exists: one-line input errors, host warnings filtered
     pipeline = config.pipeline
     model = getattr(pipeline, "model", None)
     if model is not None and hasattr(model, "sp"):

@@ -53,7 +53,6 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from torch.nn import Parameter
 
-from sp_plugins.adapter.callbacks import trainer_total_steps
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.relu_field.field import DIFFUSE_RGB, ColorMode, ReLUField, color_channels, upsample_grid
@@ -226,7 +225,7 @@ class ReLUFieldBaseModel(Model):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = list(super().get_training_callbacks(training_callback_attributes))
-        total = trainer_total_steps(training_callback_attributes)
+        total = self.sp_run_length(training_callback_attributes).total
         world_size = int(getattr(training_callback_attributes.trainer, "world_size", 1) or 1)
         if self.config.hierarchy_stages > 1 and world_size > 1:
             # each stage swaps the grid for a new Parameter, which DDP's gradient all-reduce never sees
