@@ -6,12 +6,12 @@ from __future__ import annotations
 import math
 
 import pytest
-from tests.helpers.sp_fields import perturbed_calls
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.fields.vanilla_nerf_field import NeRFField
 from tests.helpers.ns_configs import run_recording, tiny_radiance_config
+from tests.helpers.sp_fields import perturbed_calls
 
 from sp_plugins.nerfstudio.freenerf import (
     OCCLUSION_LOSS,

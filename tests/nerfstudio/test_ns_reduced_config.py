@@ -25,8 +25,9 @@ import math
 from pathlib import Path
 
 import pytest
-from tests.helpers.sp_fields import perturbed_calls
 import torch
+
+from tests.helpers.sp_fields import perturbed_calls
 
 from sp_plugins.nerfstudio.runs import method_config, our_methods
 

@@ -39,9 +39,9 @@ from __future__ import annotations
 import math
 
 import pytest
-from tests.helpers.sp_fields import sp_fields
 import torch
 from tests.helpers.ns_configs import in_process_data, shrink_model, sp_train_config
+from tests.helpers.sp_fields import sp_fields
 from tests.helpers.ns_configs import tiny_sdf_config, run_recording
 from tests.helpers.ns_configs import tiny_radiance_config
 

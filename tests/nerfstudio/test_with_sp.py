@@ -23,11 +23,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from tests.helpers.sp_fields import perturbed_calls, sp_fields
 import yaml
 
 from tests.helpers.forkserver import ForkServer
 from tests.helpers.ns_commands import ENV, RUN_FLAGS, _report, command
+from tests.helpers.sp_fields import perturbed_calls, sp_fields
 
 pytest.importorskip("nerfstudio")
 

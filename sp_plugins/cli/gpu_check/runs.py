@@ -23,12 +23,19 @@ from sp_plugins.cli.gpu_check.report import failure, log
 from sp_plugins.data import make_tiny_scene
 from sp_plugins.encodings import HashGrid
 from sp_plugins.encodings.hashgrid import torch_backend_only
+from sp_plugins.nerfstudio import table
+
+SDF_BASELINE = "neus-hashgrid"
+SDF_SP = table.OUR_BASELINES[SDF_BASELINE]
+"""The SDF pair the check times: our hash-grid NeuS and the SP method the nerfstudio table pairs it with."""
+CHECKPOINT_RUN = SDF_SP
+"""The run whose checkpoint the ``checkpoint`` part reads."""
 
 RUNS = (
     # name, method, how, note
-    ("neus-hashgrid", "neus-hashgrid", "ours", "baseline of sp-neus-hashgrid"),
-    ("sp-neus-hashgrid", "sp-neus-hashgrid", "ours", ""),
-    ("sp-neus-hashgrid (torch grid)", "sp-neus-hashgrid", "ours-torch", "our torch hash grid on the GPU"),
+    (SDF_BASELINE, SDF_BASELINE, "ours", f"baseline of {SDF_SP}"),
+    (SDF_SP, SDF_SP, "ours", ""),
+    (f"{SDF_SP} (torch grid)", SDF_SP, "ours-torch", "our torch hash grid on the GPU"),
     ("nerfacto", "nerfacto", "host", "nerfstudio's own, the baseline of sp-train nerfacto"),
     ("sp-train nerfacto", "nerfacto", "sp-train", ""),
     ("sp-nerfacto", "sp-nerfacto", "ours", ""),
@@ -128,7 +135,7 @@ def grid_backends(module) -> List[str]:
 
 def time_run(name: str, method: str, how: str, scene: Path, out: Path, device, sizes: Sizes, artifacts: dict) -> dict:
     """One of :data:`RUNS` trained in this process: seconds per step, memory, syncs; the
-    ``sp-neus-hashgrid`` checkpoint goes to ``artifacts`` for the checkpoint part."""
+    :data:`CHECKPOINT_RUN`'s checkpoint goes to ``artifacts`` for the checkpoint part."""
     torch_grid = how == "ours-torch"
     config = run_config(method, "ours" if torch_grid else how, scene, out, device, sizes)
     with Memory(device) as memory:
@@ -151,7 +158,7 @@ def time_run(name: str, method: str, how: str, scene: Path, out: Path, device, s
         "mixed_precision": bool(trainer.mixed_precision), "sp_alpha": float(getattr(sp, "alpha", 0.0)) if sp is not None else None,
         "rays_per_batch": config.pipeline.datamanager.train_num_rays_per_batch,
     }
-    if name == "sp-neus-hashgrid":
+    if name == CHECKPOINT_RUN:
         trainer.save_checkpoint(last - 1)
         artifacts["checkpoint"] = {"config": config, "dir": trainer.checkpoint_dir, "step": last - 1,
                                    "backend": result["hash_grid"][0]}
@@ -177,7 +184,7 @@ def check_runs(device, sizes: Sizes, out: Path, deadline: Deadline, artifacts: d
     per_run = 25.0 if sizes.quick else 40.0
     for name, method, how, note in RUNS:
         if how == "ours-torch" and tcnn_reason(device) is not None:
-            result["skipped"].append(f"{name}: sp-neus-hashgrid already runs the torch grid here ({tcnn_reason(device)})")
+            result["skipped"].append(f"{name}: {SDF_SP} already runs the torch grid here ({tcnn_reason(device)})")
             continue
         late = deadline.too_late(per_run + 60)  # leave time for the later parts
         if late:
@@ -197,10 +204,10 @@ def check_runs(device, sizes: Sizes, out: Path, deadline: Deadline, artifacts: d
                     "comparable": same}
         return None
 
-    result["sp_overhead"] = {k: v for k, v in (("neus-hashgrid", ratio("sp-neus-hashgrid", "neus-hashgrid")),
+    result["sp_overhead"] = {k: v for k, v in ((SDF_BASELINE, ratio(SDF_SP, SDF_BASELINE)),
                                                ("nerfacto", ratio("sp-train nerfacto", "nerfacto"))) if v}
-    if ratio("sp-neus-hashgrid (torch grid)", "sp-neus-hashgrid"):
-        result["torch_over_tcnn"] = ratio("sp-neus-hashgrid (torch grid)", "sp-neus-hashgrid")
+    if ratio(f"{SDF_SP} (torch grid)", SDF_SP):
+        result["torch_over_tcnn"] = ratio(f"{SDF_SP} (torch grid)", SDF_SP)
     if device.type != "cuda":
         result["skipped"].append("memory and CUDA sync debug mode: CUDA only")
     problems = [f"{n}: {r.get('error') or 'not finite' if not r.get('finite', False) else ''}" for n, r in runs.items()
