@@ -12,8 +12,10 @@ from __future__ import annotations
 from typing import Any, Callable, Optional, Protocol, Set, TypeVar, runtime_checkable
 
 from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.core.preconditioner import previewing
 
 T = TypeVar("T")
+
 
 
 class PreconditionerHandle:
@@ -64,13 +66,16 @@ class SPFieldMixin:
         return None if handle is None else handle.sp
 
     def sp_active(self) -> bool:
-        """True while training with alpha > 0: the only time queries are perturbed."""
+        """True while training with alpha > 0, the only time queries are perturbed (or inside the
+        preconditioner's :meth:`~sp_plugins.core.StochasticPreconditioner.preview`, a viewer render of
+        the field SP trains)."""
         sp = self.sp
-        return sp is not None and bool(getattr(self, "training", False)) and sp.active
+        return sp is not None and (bool(getattr(self, "training", False)) or previewing()) and sp.active
 
     def mean_over_draws(self, run_once: Callable[[], T]) -> T:
         """``run_once()`` (which perturbs through ``self.sp``), averaged over ``num_samples`` draws
         (:meth:`StochasticPreconditioner.mean_over_draws`), and counted as one moved call."""
         assert self.sp_handle is not None and self.sp_handle.sp is not None
-        self.sp_handle.perturbed_calls += 1
+        if not previewing():  # a viewer render is not training: the reach check counts training calls
+            self.sp_handle.perturbed_calls += 1
         return self.sp_handle.sp.mean_over_draws(run_once)

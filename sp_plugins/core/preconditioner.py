@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import hashlib
 import logging
-from typing import Any, Callable, Optional, TypeVar, cast
+from typing import Any, Callable, Iterator, Optional, TypeVar, cast
 
 import torch
 from jaxtyping import Float
@@ -21,6 +23,14 @@ from sp_plugins.core.settings import SPSettings
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+_PREVIEW: contextvars.ContextVar[Optional[tuple]] = contextvars.ContextVar("sp_preview", default=None)
+"""``(seed, {device: generator})`` inside :meth:`StochasticPreconditioner.preview` (per thread)."""
+
+
+def previewing() -> bool:
+    """True inside :meth:`StochasticPreconditioner.preview` (in this thread)."""
+    return _PREVIEW.get() is not None
 
 
 
@@ -179,9 +189,14 @@ class StochasticPreconditioner(nn.Module):
         return self._grid_scale
 
     @property
+    def scheduled(self) -> bool:
+        """The schedule has SP on at the current step (alpha, or the grid's scale, above 0), training or not."""
+        return self._alpha > 0.0 if self.alpha_grid is None else self._grid_scale > 0.0
+
+    @property
     def active(self) -> bool:
-        on = self._alpha > 0.0 if self.alpha_grid is None else self._grid_scale > 0.0
-        return self.training and on
+        """Queries are perturbed now: :attr:`scheduled` while training (or inside :meth:`preview`)."""
+        return (self.training or _PREVIEW.get() is not None) and self.scheduled
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs):
         if not any(key.startswith(prefix) for key in state_dict):
@@ -231,8 +246,26 @@ class StochasticPreconditioner(nn.Module):
         self._saved_generator_states = saved
 
     # -- perturbation -----------------------------------------------------------------------
+    @contextlib.contextmanager
+    def preview(self, seed: int = 0) -> Iterator[None]:
+        """Inside the block, in this thread only, perturb as in training although the module is not
+        training (the viewer's render of the field SP trains), drawing from generators of their own
+        seeded ``seed``: the training noise stream, and so a resumed run, stays exactly as it was, and
+        the same view shows the same blur. Every other thread (training, evaluation) is unaffected."""
+        token = _PREVIEW.set((seed, {}))
+        try:
+            yield
+        finally:
+            _PREVIEW.reset(token)
+
     def _generator(self, device: torch.device) -> torch.Generator:
         key = str(device)
+        private = _PREVIEW.get()
+        if private is not None:
+            seed, generators = private
+            if key not in generators:
+                generators[key] = torch.Generator(device=device).manual_seed(seed)
+            return generators[key]
         g = self._generators.get(key)
         if g is None:
             g = torch.Generator(device=device)

@@ -33,6 +33,7 @@ from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.nerfstudio import table
 from sp_plugins.nerfstudio.host import HOST
+from sp_plugins.nerfstudio.components.viewer_panel import SPPanel, update_callback
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
@@ -133,6 +134,20 @@ class SPModel(adapter_model.SPModelBase):
         refuse_unreachable_settings(self.config)  # type: ignore[attr-defined]  (runs not started by ns-train)
         return super().build_preconditioner()
 
+    def attach_sp(self) -> None:
+        self._attach_seam()
+        if self.sp.config.enabled:  # the viewer's SP panel (a baseline shows none)
+            self.stochastic_preconditioning = SPPanel(self.sp)
+
+    def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, torch.Tensor]:
+        """The host's render, or, in the viewer's render thread with the panel set to the field SP
+        trains, the mean of perturbed renders (:meth:`SPPanel.render`); evaluation is the host's."""
+        host_render = super().get_outputs_for_camera  # type: ignore[misc]
+        panel = getattr(self, "stochastic_preconditioning", None)
+        if panel is None:
+            return host_render(camera, obb_box=obb_box)
+        return panel.render(lambda: host_render(camera, obb_box=obb_box))
+
     # -- what SPModelBase asks of a host -------------------------------------------------------------
     @classmethod
     def sp_preset(cls, model_config: Any) -> SPConfig:
@@ -155,7 +170,7 @@ class SPModel(adapter_model.SPModelBase):
     def sp_plain_fields(self) -> Dict[str, str]:
         return merged(table.PLAIN_FIELDS, type(self))
 
-    def attach_sp(self) -> None:
+    def _attach_seam(self) -> None:
         host = class_path(self.sp_host_class())
         if not attach_seam(self, self.sp, self.sp_plain_fields()):  # type: ignore[arg-type]
             raise InputError(
@@ -178,7 +193,11 @@ class SPModel(adapter_model.SPModelBase):
     # -- training -------------------------------------------------------------------------------
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        return callbacks + [divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes)]
+        callbacks.append(divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes))
+        panel = getattr(self, "stochastic_preconditioning", None)
+        if panel is not None:
+            callbacks.append(self.sp_training_callback("after", update_callback(panel)))
+        return callbacks
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
         losses = super().get_loss_dict(outputs, batch, metrics_dict)  # type: ignore[misc]

@@ -56,6 +56,7 @@ from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.adapter.tables import lookup
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.core.preconditioner import previewing
 from sp_plugins.nerfstudio import table, variants
 
 __all__ = ["ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
@@ -167,12 +168,14 @@ class SeamField(SPFieldMixin):
         assert handle is not None and handle.sp is not None
         sp = handle.sp
 
+        viewing = previewing()  # a viewer render: perturbed, but nothing recorded for the reach check
+
         def one_draw() -> Any:
             moved = perturbed_samples(samples, sp, self.sp_read_positions)
-            if handle.first_move is None:  # once per run, device-side: the reach check reads it
+            if handle.first_move is None and not viewing:  # once per run, device-side: the reach check reads it
                 handle.first_move = (moved.frustums.origins - samples.frustums.origins).detach().abs().max()
             moved_args, moved_kwargs = _with_samples(args, kwargs, where, moved)
-            token = _READS.set(handle.reads)
+            token = _READS.set(set() if viewing else handle.reads)
             try:
                 return host_forward(*moved_args, **moved_kwargs)
             finally:

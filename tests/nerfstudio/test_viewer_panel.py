@@ -1,0 +1,117 @@
+"""The viewer's SP panel (issue 56, :mod:`sp_plugins.nerfstudio.components.viewer_panel`): on every model that
+trains with SP and on no other; its "render" control changes the viewer's renders only (nerfstudio's
+render thread), never evaluation, the training noise or the reach check's record."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import torch
+
+from sp_plugins.nerfstudio.components import viewer_panel as vp
+from tests.adapter.contract import NerfstudioDriver
+
+pytest.importorskip("nerfstudio")
+
+
+def camera():
+    from nerfstudio.cameras.cameras import Cameras
+
+    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4.0]])[None]  # at z = 4, looking down -z
+    return Cameras(camera_to_worlds=c2w, fx=12.0, fy=12.0, cx=4.0, cy=4.0, width=8, height=8)
+
+
+def in_render_thread(fn):
+    """``fn()`` run in a thread that is nerfstudio's viewer render thread (a ``RenderStateMachine``)."""
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    class RenderThread(RenderStateMachine):
+        def __init__(self) -> None:  # only the thread: no viewer behind it
+            threading.Thread.__init__(self, daemon=True)
+            self.result = None
+
+        def run(self) -> None:
+            self.result = fn()
+
+    thread = RenderThread()
+    thread.start()
+    thread.join(120)
+    return thread.result
+
+
+@pytest.fixture(scope="module")
+def driver():
+    return NerfstudioDriver()
+
+
+def model_at(driver, step, alpha0=0.2):
+    model = driver.build(alpha0=alpha0, schedule="exponential", end=0.5, seed=3)
+    driver.train(model, 1, 10)  # the callbacks set the run's length
+    model.sp.set_step(step, 10)
+    model.eval()
+    return model
+
+
+def test_a_model_with_sp_has_the_panel_and_a_baseline_has_none(driver):
+    model = driver.build()
+    panel = model.stochastic_preconditioning
+    assert isinstance(panel, vp.SPPanel) and panel.e4_render.value == vp.PLAIN and panel.e4_render.options == vp.RENDER_MODES
+    assert "gaussian noise, boundary none, 1 draw per query, global alpha" == panel.e3_settings.value
+    assert not any(k.startswith("stochastic_preconditioning") for k in model.state_dict())  # checkpoints unchanged
+    baseline = driver.build(enabled=False)
+    assert getattr(baseline, "stochastic_preconditioning", None) is None
+
+
+def test_the_viewer_finds_the_panel_where_it_looks_for_controls(driver):
+    from nerfstudio.viewer.utils import parse_object
+    from nerfstudio.viewer.viewer_elements import ViewerElement
+
+    model = driver.build()
+    found = {path: e.name for path, e in parse_object(model, ViewerElement, "Custom Elements")}
+    assert found == {f"Custom Elements/stochastic_preconditioning/{a}": n for a, n in (
+        ("e1_alpha", "alpha now"), ("e2_schedule", "schedule"), ("e3_settings", "settings"), ("e4_render", "render"),
+        ("e5_draws", "draws"))}, found
+
+
+def test_the_readouts_follow_training(driver):
+    model = driver.build(alpha0=0.2, schedule="linear", end=0.5)
+    panel = model.stochastic_preconditioning
+    driver.train(model, 1, 10)
+    assert panel.e1_alpha.value == pytest.approx(0.2) and panel.e2_schedule.value == "step 0 of 10; alpha reaches 0 at step 5 (0% of the way)"
+    driver.train(model, 6, 10)  # steps 0..5 again: alpha 0 at step 5, refreshed at once
+    assert panel.e1_alpha.value == 0.0 and panel.e2_schedule.value == "step 5 of 10; alpha reaches 0 at step 5 (done: SP is off)"
+
+
+def test_evaluation_is_the_same_with_the_control_in_either_position(driver):
+    model = model_at(driver, 0)
+    plain = model.get_outputs_for_camera(camera())
+    model.stochastic_preconditioning.e4_render.value = vp.SP_VIEW
+    assert model.sp.alpha > 0 and not vp.in_viewer_render()
+    shown = model.get_outputs_for_camera(camera())
+    assert torch.equal(plain["rgb_fine"], shown["rgb_fine"]) and torch.equal(plain["depth_fine"], shown["depth_fine"])
+
+
+def test_the_viewer_renders_the_field_sp_trains_while_alpha_is_above_zero_and_the_plain_field_after(driver):
+    model = model_at(driver, 0, alpha0=1.0)  # an untrained field is smooth: a large alpha for a clear difference
+    handle = model.field_fine.sp_handle
+    calls, generators = handle.perturbed_calls, {k: g.get_state() for k, g in model.sp._generators.items()}
+    plain = in_render_thread(lambda: model.get_outputs_for_camera(camera()))
+    model.stochastic_preconditioning.e4_render.value = vp.SP_VIEW
+    blurred = in_render_thread(lambda: model.get_outputs_for_camera(camera()))
+    again = in_render_thread(lambda: model.get_outputs_for_camera(camera()))
+    assert (blurred["rgb_fine"] - plain["rgb_fine"]).abs().max() > 1e-4  # the perturbed field
+    assert torch.equal(blurred["rgb_fine"], again["rgb_fine"])  # private noise, fixed seed: a still camera, a still image
+    assert handle.perturbed_calls == calls  # not training: nothing for the reach check
+    assert {k: g.get_state() for k, g in model.sp._generators.items()}.keys() == generators.keys()
+    assert all(torch.equal(model.sp._generators[k].get_state(), s) for k, s in generators.items())  # training noise untouched
+    model.sp.set_step(9, 10)  # alpha 0: SP is off, the render is the plain field
+    assert model.sp.alpha == 0.0
+    assert torch.equal(in_render_thread(lambda: model.get_outputs_for_camera(camera()))["rgb_fine"], plain["rgb_fine"])
+
+
+def test_the_mean_of_renders_averages_floating_tensors_only():
+    a = {"rgb": torch.zeros(2, 3), "mask": torch.tensor([True, False]), "name": "x"}
+    b = {"rgb": torch.ones(2, 3), "mask": torch.tensor([False, False]), "name": "y"}
+    mean = vp.mean_outputs([a, b])
+    assert torch.equal(mean["rgb"], torch.full((2, 3), 0.5)) and mean["mask"] is a["mask"] and mean["name"] == "x"
