@@ -166,6 +166,54 @@ def sp_schedule(folder: Path):
                                  final_ratio=float(sp["final_ratio"]))
 
 
+def viewport_pixels(page) -> np.ndarray:
+    """The viewport's pixels (RGB, float), the axes gizmo's corner left out."""
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(io.BytesIO(page.screenshot(clip=viewport_box(page)))).convert("RGB")).astype(np.float32)
+    rgb[-90:, :90] = 0.0
+    return rgb
+
+
+def frame_change(page, reference: np.ndarray) -> float:
+    """Mean absolute difference (grey levels) of the viewport now from ``reference``."""
+    now = viewport_pixels(page)
+    return float(np.abs(now - reference).mean()) if now.shape == reference.shape else float("inf")
+
+
+def settled(page, timeout: float = 90, every: float = 1.0) -> np.ndarray:
+    """The viewport once two screenshots ``every`` s apart agree (the viewer sends a low-resolution frame
+    first, then the full one)."""
+    deadline, last = time.monotonic() + timeout, viewport_pixels(page)
+    while time.monotonic() < deadline:
+        time.sleep(every)
+        now = viewport_pixels(page)
+        if now.shape == last.shape and float(np.abs(now - last).mean()) < 0.05:
+            return now
+        last = now
+    raise AssertionError(f"the viewport did not settle within {timeout} s")
+
+
+def control(page, label: str):
+    """The input in the row of the viewer control labelled ``label`` (viser's text inputs do not carry
+    the id their label names, so the row, not the label's ``for``, finds them)."""
+    row = page.locator("label", has_text=re.compile(rf"^{re.escape(label)}$")).locator(
+        "xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]")
+    return row.locator("input:not([type='hidden'])").first
+
+
+def sp_panel(page) -> dict:
+    """The SP panel's readouts (issue 56), read from the page."""
+    return {"alpha": float(control(page, "alpha now").input_value()), "schedule": control(page, "schedule").input_value(),
+            "settings": control(page, "settings").input_value(), "render": control(page, "render").input_value()}
+
+
+def choose_render(page, mode: str) -> None:
+    control(page, "render").click()
+    page.get_by_role("option", name=mode).click()
+    wait_for(lambda: control(page, "render").input_value() == mode, 20, f"render set to {mode!r}")
+
+
 def click(page, name: str):
     page.get_by_role("button", name=name).click()
     page.get_by_role("button", name={"Pause Training": "Resume Training", "Resume Training": "Pause Training"}[name]).wait_for()
@@ -230,6 +278,22 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
     prepare_view(page)
     first = at("first frame", wait_for(lambda: (r := readout(page)) and r[1] > 0 and r, 90, "a rendered frame", why))
     at("first frame's pixels", frame_stats(page))
+    # the SP panel (issue 56): alpha above 0 while SP is on, and its render control changes the frame
+    panel = at("SP panel", sp_panel(page))
+    assert panel["alpha"] > 0 and panel["render"] == "plain field" and "boundary reflect" in panel["settings"], (panel, why())
+    plain = settled(page)
+    shots = Path(os.environ.get("SP_VIEWER_PANEL_SHOTS", tmp_path))  # the docs' pictures of both states, panel shown
+    control(page, "draws").scroll_into_view_if_needed()
+    page.screenshot(path=str(shots / "viewer_panel_plain.png"))
+    choose_render(page, "field SP trains")
+    blurred_change = at("frame change, field SP trains vs plain (grey levels)",
+                        wait_for(lambda: (d := frame_change(page, plain)) > 1.0 and d, 90, "the frame to change", why))
+    settled(page)
+    page.screenshot(path=str(shots / "viewer_panel_sp.png"))
+    choose_render(page, "plain field")
+    back = at("frame change, plain again vs plain (grey levels)",
+              wait_for(lambda: (d := frame_change(page, plain)) < 0.5 and d + 1e-9, 90, "the plain frame back", why))
+    assert blurred_change > 2 * back, (blurred_change, back)
     time.sleep(max(0.0, paused_at + 5 - time.monotonic()))  # at least 5 s paused (10 steps take about 1 s)
     assert (first[0], logged_steps(training)[-1]) == paused, f"training went on while paused\n{why()}"
     # resume: the step shown advances, while SP is on (alpha > 0 at every step shown)
@@ -271,6 +335,14 @@ def test_ns_viewer_serves_the_finished_run(finished, browser, spot, tmp_path):
         first = wait_for(lambda: (r := readout(page)) and r[1] > 0 and r, 90, "a rendered frame", why)
         stats = wait_for(lambda: (s := frame_stats(page)) and shows_the_object(s) and s, 60,
                          "a frame that shows the object (grey spread > 15, coloured pixels > 1%)", why)
+        # the SP panel of the finished run (issue 56): alpha 0 after the schedule's end, and the render
+        # control changes nothing (the field SP trains is the plain field then)
+        panel = sp_panel(page)
+        assert panel["alpha"] == 0.0 and "SP is off" in panel["schedule"], (panel, why())
+        plain = settled(page)
+        choose_render(page, "field SP trains")
+        time.sleep(3)
+        assert frame_change(page, settled(page)) < 0.5 and frame_change(page, plain) < 0.5, why()
         page.close()
         print("ns-viewer readings:", {"url": url, "first frame": first, "frame": stats})
         assert viewer.proc.poll() is None, tail(viewer.log)

@@ -42,6 +42,11 @@ def in_viewer_render() -> bool:
     return module is not None and isinstance(threading.current_thread(), module.RenderStateMachine)
 
 
+def alpha_text(sp: StochasticPreconditioner) -> str:
+    """Alpha now, in scene units (4 significant digits)."""
+    return f"{sp.alpha:.4g}"
+
+
 def settings_text(sp: StochasticPreconditioner) -> str:
     """The settings in force, one line."""
     c = sp.config
@@ -76,6 +81,18 @@ def mean_outputs(outputs: List[Dict[str, Any]]) -> Dict[str, Any]:
     return mean
 
 
+def _live(element: type, read: Callable[[], Any]) -> type:
+    """``element`` (a viewer readout class) that reads its value again when the viewer installs it."""
+
+    class Live(element):  # type: ignore[misc, valid-type]
+        def install(self, viser_server: Any) -> None:
+            self.value = read()  # stored only: there is no GUI handle yet
+            super().install(viser_server)
+
+    Live.__name__ = Live.__qualname__ = f"Live{element.__name__}"
+    return Live
+
+
 class SPPanel(nn.Module):
     """The viewer's SP panel of one model (no parameters or buffers: checkpoints are unchanged).
 
@@ -83,11 +100,16 @@ class SPPanel(nn.Module):
 
     def __init__(self, sp: StochasticPreconditioner) -> None:
         super().__init__()
-        from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerNumber, ViewerSlider, ViewerText
+        from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerSlider, ViewerText
 
         self._sp_ref = [sp]  # not a submodule: the model owns (and checkpoints) the preconditioner
-        self.e1_alpha = ViewerNumber("alpha now", float(sp.alpha), disabled=True, hint="the noise's standard deviation per axis, in scene units")
-        self.e2_schedule = ViewerText("schedule", schedule_text(sp), disabled=True)
+        # the readouts take their values again when the viewer installs them: ns-viewer loads the
+        # checkpoint (its step, its alpha) after the model, and so this panel, was built
+        # alpha as text: viser's number input infers its precision from the first value (0 before the
+        # run's length is known) and would show 0.003 as 0
+        self.e1_alpha = _live(ViewerText, lambda: alpha_text(sp))("alpha now", alpha_text(sp), disabled=True,
+                                                                  hint="the noise's standard deviation per axis, in scene units")
+        self.e2_schedule = _live(ViewerText, lambda: schedule_text(sp))("schedule", schedule_text(sp), disabled=True)
         self.e3_settings = ViewerText("settings", settings_text(sp), disabled=True)
         self.e4_render = ViewerDropdown("render", PLAIN, RENDER_MODES,
                                         hint="the plain field (what evaluation sees) or the field SP trains: the mean of "
@@ -100,7 +122,7 @@ class SPPanel(nn.Module):
 
     def refresh(self) -> None:
         """Push alpha, the schedule's progress to the page (a no-op before a viewer shows them)."""
-        self.e1_alpha.value = float(self.sp.alpha)
+        self.e1_alpha.value = alpha_text(self.sp)
         self.e2_schedule.value = schedule_text(self.sp)
 
     def shows_sp(self) -> bool:
