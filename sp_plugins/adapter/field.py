@@ -21,7 +21,7 @@ T = TypeVar("T")
 class PreconditionerHandle:
     """A reference to a model's preconditioner that ``nn.Module`` does not register."""
 
-    __slots__ = ("sp", "perturbed_calls", "reads", "first_move")
+    __slots__ = ("sp", "perturbed_calls", "reads", "first_move", "alpha_render")
 
     def __init__(self, sp: Optional[StochasticPreconditioner]) -> None:
         self.sp = sp
@@ -31,6 +31,9 @@ class PreconditionerHandle:
         """What the field read of the moved samples it was handed (a host seam fills it)."""
         self.first_move: Optional[Any] = None
         """The largest move of the first moved samples, a device scalar: read once, by the reach check."""
+        self.alpha_render: Optional[Any] = None
+        """The learned alpha grid's expected value along each ray of the field's last plain call
+        (a render, not training; a host seam fills it, the model hands it on as an output)."""
 
     def __repr__(self) -> str:
         return (f"PreconditionerHandle({'set' if self.sp is not None else 'empty'}, perturbed_calls={self.perturbed_calls}, "

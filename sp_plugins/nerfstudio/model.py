@@ -37,7 +37,7 @@ from sp_plugins.nerfstudio.components.viewer_panel import SPPanel, update_callba
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
-from sp_plugins.nerfstudio.seam import attach_seam, check_reached
+from sp_plugins.nerfstudio.seam import ALPHA_GRID_OUTPUT, attach_seam, check_reached, seam_fields
 
 __all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
@@ -138,6 +138,18 @@ class SPModel(adapter_model.SPModelBase):
         self._attach_seam()
         if self.sp.config.enabled:  # the viewer's SP panel (a baseline shows none)
             self.stochastic_preconditioning = SPPanel(self.sp)
+
+    def get_outputs(self, ray_bundle) -> Dict[str, torch.Tensor]:
+        """The host's outputs, plus, in a render of a model with a learnable alpha grid, the grid's
+        expected value along each ray (``sp_alpha_grid``: the viewer's "Output type", ``ns-render
+        --rendered-output-names sp_alpha_grid``)."""
+        outputs = super().get_outputs(ray_bundle)  # type: ignore[misc]
+        if self.sp.alpha_grid is not None and not self.training:  # type: ignore[attr-defined]
+            for _, field in seam_fields(self):  # type: ignore[arg-type]
+                handle = field.sp_handle
+                if handle is not None and handle.alpha_render is not None:  # the last field called: the one rendered
+                    outputs[ALPHA_GRID_OUTPUT], handle.alpha_render = handle.alpha_render, None
+        return outputs
 
     def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, torch.Tensor]:
         """The host's render, or, in the viewer's render thread with the panel set to the field SP

@@ -59,7 +59,7 @@ from sp_plugins.core import StochasticPreconditioner
 from sp_plugins.core.preconditioner import previewing
 from sp_plugins.nerfstudio import table, variants
 
-__all__ = ["ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
+__all__ = ["ALPHA_GRID_OUTPUT", "ReadPoint", "SeamField", "SeamFrustums", "attach_seam", "check_reached", "perturbed_samples",
            "seam_fields", "table_read_point", "takes_ray_samples"]
 
 _READS: contextvars.ContextVar[Optional[Set[str]]] = contextvars.ContextVar("sp_seam_reads", default=None)
@@ -142,6 +142,29 @@ def _finish_mean(field: nn.Module, outputs: Any, samples: RaySamples) -> Any:
     return outputs
 
 
+ALPHA_GRID_OUTPUT = "sp_alpha_grid"
+"""The output a model with a learnable alpha grid adds to its renders (viewer, ``ns-render``)."""
+
+
+def _record_alpha_render(field: "SeamField", samples: RaySamples, outputs: Any) -> None:
+    """In a render (not training) of a model with a learnable alpha grid: the grid's expected value
+    along each ray, ``sum_i w_i alpha(x_i)`` ``[*rays, 1]`` over the samples this field was handed,
+    the weights from its density or NeuS alpha, kept on the handle for the model's outputs."""
+    handle = field.sp_handle
+    grid = None if handle is None or handle.sp is None else handle.sp.alpha_grid
+    if grid is None or not isinstance(outputs, dict):
+        return
+    if FieldHeadNames.ALPHA in outputs:
+        weights, _ = samples.get_weights_and_transmittance_from_alphas(outputs[FieldHeadNames.ALPHA])
+    elif FieldHeadNames.DENSITY in outputs:
+        weights = samples.get_weights(outputs[FieldHeadNames.DENSITY])
+    else:
+        return
+    x = field.sp_read_positions(samples.frustums)
+    alpha = grid(x.reshape(-1, x.shape[-1]).detach()).view(*x.shape[:-1], 1)
+    handle.alpha_render = (weights.detach() * alpha).sum(dim=-2)
+
+
 class SeamField(SPFieldMixin):
     """The seam on one field: first among the bases of the class a field instance is swapped to.
 
@@ -163,7 +186,10 @@ class SeamField(SPFieldMixin):
         host_forward = super().forward  # type: ignore[misc]
         samples, where = _find_samples(args, kwargs)
         if samples is None or isinstance(samples.frustums, SeamFrustums) or not self.sp_active():
-            return host_forward(*args, **kwargs)
+            outputs = host_forward(*args, **kwargs)
+            if samples is not None and not self.training:  # type: ignore[attr-defined]
+                _record_alpha_render(self, samples, outputs)
+            return outputs
         handle = self.sp_handle
         assert handle is not None and handle.sp is not None
         sp = handle.sp

@@ -115,3 +115,20 @@ def test_the_mean_of_renders_averages_floating_tensors_only():
     b = {"rgb": torch.ones(2, 3), "mask": torch.tensor([False, False]), "name": "y"}
     mean = vp.mean_outputs([a, b])
     assert torch.equal(mean["rgb"], torch.full((2, 3), 0.5)) and mean["mask"] is a["mask"] and mean["name"] == "x"
+
+
+def test_a_learnable_alpha_grid_is_an_output_of_renders_only(driver):
+    """``sp_alpha_grid``: the grid's expected value along each ray, ``sum_i w_i alpha(x_i)``; at the grid's
+    initial value a everywhere that is ``a`` times the ray's accumulation. Renders only (the viewer's
+    Output type, ``ns-render``): not in training outputs, and not without a grid."""
+    model = driver.build(alpha0=0.05, alpha_grid=True, alpha_grid_init=0.05, schedule="constant", boundary="reflect")
+    driver.train(model, 1, 10)
+    model.train()
+    assert "sp_alpha_grid" not in model(driver._rays(3))
+    model.eval()
+    outputs = model.get_outputs_for_camera(camera())
+    grid = outputs["sp_alpha_grid"]
+    assert grid.shape == outputs["accumulation_fine"].shape == (8, 8, 1)
+    torch.testing.assert_close(grid, 0.05 * outputs["accumulation_fine"], rtol=1e-4, atol=1e-7)
+    assert grid.max() > 0.01
+    assert "sp_alpha_grid" not in model_at(driver, 0).get_outputs_for_camera(camera())
