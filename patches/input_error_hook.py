@@ -7,12 +7,12 @@ wraps whatever hook is installed (Python's, rich's ...): a described failure pri
 exits 2, anything else goes to the previous hook.
 
 Scope: our console commands own their process and keep it until the process ends. Under
-nerfstudio's ``ns-*`` commands it is held by our code's objects (our model, our data manager, the
-checked run config of our method; :func:`sp_plugins.patches.registry.hold`): in force while one
-of them exists, so a failure while ns-train trains our method, or while ns-eval loads its
-checkpoint, still reaches the top as one line (the traceback keeps them alive), and once they are
-gone ``sys.excepthook`` is again the hook it was. A hook someone installed over ours meanwhile is
-left in place; ours then only passes through.
+nerfstudio's ``ns-*`` commands it is held (:func:`sp_plugins.patches.registry.hold`) by the checked
+run config while ``ns-train`` trains one of our methods, and by each ``InputError`` of ours while it
+exists, so a bad input under ``ns-eval`` / ``ns-render`` / ``ns-export`` still reaches the top as one
+line (the exception is alive when Python hands it to the hook). Building a model or a data manager
+installs nothing (issue 55); once the holders are gone ``sys.excepthook`` is again the hook it was. A
+hook someone installed over ours meanwhile is left in place; ours then only passes through.
 """
 
 from __future__ import annotations
@@ -70,4 +70,4 @@ PATCH = python_patch(
     "input_error_hook", _check, input_errors_as_one_line, (("sys", "excepthook"), ("sys", "__excepthook__")),
     changes="sys.excepthook: wraps the hook in force; a failure our checks describe prints one line and exits 2",
     shown=lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
-    scope_text="while one of our models, data managers or checked run configs exists under ns-*; process-wide in sp-train and sp-export-mesh")
+    scope_text="while an InputError of ours exists, or ns-train trains one of our methods; process-wide in our sp-* commands")

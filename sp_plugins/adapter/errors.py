@@ -22,7 +22,18 @@ from typing import Optional
 
 
 class InputError(ValueError):
-    """Input a user can fix (a missing folder, a wrong layout, a flag that does not fit)."""
+    """Input a user can fix (a missing folder, a wrong layout, a flag that does not fit).
+
+    Raised under any command (a host's ``ns-eval`` included), it reaches the top of the process as
+    one line: the error itself holds the one-line hook while it exists
+    (:func:`sp_plugins.patches.registry.hold`, entry ``input_error_hook``), so nothing else in the
+    process (building a model, loading a run) installs a hook (issue 55)."""
+
+    def __init__(self, *args: object) -> None:
+        super().__init__(*args)
+        from sp_plugins.patches import registry
+
+        registry.hold("input_error_hook", self)
 
 
 WRITE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EFBIG}

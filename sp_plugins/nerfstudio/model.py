@@ -62,13 +62,13 @@ def install_process_settings(owner: object = None, *, run: bool = False) -> None
     - Without ``owner``: our own console command (``sp-train``) owns the process: failures our
       checks describe print as one line (exit status 2) and the host's known, non-actionable
       warnings are filtered, until it ends (registry entries ``input_error_hook``, ``host_warnings``).
-    - With ``owner`` (our model or data manager under an ``ns-*`` command): only the one-line hook,
-      held while ``owner`` exists. It acts on nothing but the failures our own checks describe, so a
-      method that is not ours sees the process as without sp-plugins; building a model filters no
-      warning (issue 55).
     - With ``owner`` and ``run`` (the checked run config ``ns-train`` trains one of our methods by,
-      :func:`sp_plugins.nerfstudio.components.trainer.preflight`): that run is ours, so it also
-      gets the warning filters, while the run config exists."""
+      :func:`sp_plugins.nerfstudio.components.trainer.preflight`): that run is ours, so both are held
+      while the run config exists (a damaged checkpoint or a full disk while it trains is one line too).
+    - With ``owner`` alone: only the one-line hook, held while ``owner`` exists.
+
+    Building one of our models or data managers installs nothing (issue 55): an ``InputError`` holds
+    the hook itself while it exists (:class:`~sp_plugins.adapter.errors.InputError`)."""
     from sp_plugins.patches import registry
 
     if owner is None:
@@ -112,7 +112,6 @@ class SPModel(adapter_model.SPModelBase):
     steps_flag = HOST.flags.steps
 
     def populate_modules(self) -> None:
-        install_process_settings(self)
         check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
         self._sp_watch = NonFiniteWatch()
         super().populate_modules()

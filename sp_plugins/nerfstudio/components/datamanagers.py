@@ -330,9 +330,6 @@ class CheckedDataManager(VanillaDataManager):
     dataset_type = InputDataset  # type: ignore[assignment]  (shadows the generic lookup)
 
     def __init__(self, config: CheckedDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
-        from sp_plugins.nerfstudio.model import install_process_settings
-
-        install_process_settings(self)  # while our data manager exists: its input errors print as one line
         check_device(torch.device(device).type, flags=HOST.flags)
         self._checks = config.check_data and test_mode != "inference"
         if self._checks:
