@@ -5,8 +5,9 @@ and without the viewer connected (issue 56).
     python -m bench.viewer_panel --part panel    # or --part timing
 
 ``panel``: ``ns-train sp-neus-hashgrid`` (sdfstudio-data) and ``sp-train nerfacto`` (blender-data) on a tiny
-``sp-scene``-like scene, each under nerfstudio's default viewer, SP ending half-way. Headless Chromium
-(the suite's browser helpers) pauses the run early and reads the panel (alpha > 0), switches the render
+``sp-scene``-like scene, each under nerfstudio's default viewer, SP ending half-way on a linear schedule
+(the presets' alpha0). Headless Chromium (the suite's browser helpers) pauses the run at step 20 and
+reads the panel (alpha > 0), switches the render
 control and measures how much the frame changes (plain -> field SP trains -> plain), resumes, waits past
 the schedule's end and does it again (alpha 0: no change). Screenshots of both states go to
 ``bench/results/viewer_panel/``.
@@ -39,8 +40,11 @@ from tests.nerfstudio import test_viewer_browser as vb  # noqa: E402
 
 OUT = ROOT / "bench" / "results" / "viewer_panel"
 WORK = ROOT / "bench" / "out" / "viewer_panel"
-STEPS = 80
+STEPS = 120
+EARLY = 20
+"""The step the run is paused at first: past the untrained start (a flat field looks the same blurred)."""
 CPU = ["--machine.device-type", "cpu", "--max-num-iterations", str(STEPS), "--pipeline.model.sp.end", "0.5",
+       "--pipeline.model.sp.schedule", "linear",
        "--pipeline.datamanager.train-num-rays-per-batch", "256", "--steps-per-save", str(STEPS)]
 
 
@@ -68,6 +72,7 @@ def panel_part(browser, results: dict) -> None:
             url = vb.ready(run, "Viewer running locally at", timeout=600)
             page = vb.open_viewer(browser, url)
             why = vb.evidence(page, run, WORK / f"{slug}_failed.png")
+            vb.wait_for(lambda: (s := vb.logged_steps(run)) and s[-1] >= EARLY and s, 600, f"step {EARLY}", why)
             vb.click(page, "Pause Training")
             vb.wait_for(lambda: vb.steady(run, 2.0), 120, "the trainer to hold still", why)
             vb.prepare_view(page)
@@ -92,17 +97,18 @@ def panel_part(browser, results: dict) -> None:
 def toggle(page, why, shots: Path) -> dict:
     """Panel readings, then the frame change plain -> field SP trains -> plain (mean abs grey levels)."""
     panel = vb.sp_panel(page)
-    plain = vb.settled(page)
+    time.sleep(3)
+    plain = vb.settled(page, every=2.0)
     vb.control(page, "draws").scroll_into_view_if_needed()
     page.screenshot(path=f"{shots}_plain.png")
     vb.choose_render(page, "field SP trains")
     time.sleep(3)
-    shown = vb.settled(page)
+    shown = vb.settled(page, every=2.0)
     page.screenshot(path=f"{shots}_sp.png")
     change = float(abs(shown - plain).mean()) if shown.shape == plain.shape else float("inf")
     vb.choose_render(page, "plain field")
     time.sleep(3)
-    again = vb.settled(page)
+    again = vb.settled(page, every=2.0)
     back = float(abs(again - plain).mean()) if again.shape == plain.shape else float("inf")
     return {"panel": panel, "change_sp_vs_plain": round(change, 3), "change_plain_again": round(back, 3)}
 
