@@ -11,13 +11,13 @@ Scope (:mod:`sp_plugins.patches.registry`):
 - our console commands (``sp-train``, ``sp-fit``, ``sp-demo``, ``sp-scene``, ``sp-bench``,
   ``sp-export-mesh``, ``sp-sweep``, ``sp-gpu-check``, ``sp-compare``) own their process: there the filters stay
   until it ends (``registry.install_for_process``);
-- under nerfstudio's ``ns-train`` they are held by the checked run config of our method
-  (``registry.hold``): in force while ``ns-train`` trains our method, and removed with it
-  (``warnings.filters`` is the same list object with the entries it had). Building one of our
-  models or data managers installs none (issue 55: a notebook or another method in the process
-  keeps every warning), so ``ns-eval`` / ``ns-render`` print the host's warnings as for any
-  method. A nerfacto user sees every warning nerfstudio and torch print, as without sp-plugins;
-  warnings raised before our run starts (nerfstudio's imports, ``torch.jit.script``) still print once.
+- under nerfstudio's ``ns-*`` commands working on a run of ours they are held by that run's
+  objects (``registry.hold``: ``ns-train``'s checked run config; our model and data manager under
+  ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer``), and removed with the last of them
+  (``warnings.filters`` is the same list object with the entries it had). Building one of our models
+  in a Python session, a notebook or a test installs none (issue 55). A nerfacto user sees every
+  warning nerfstudio and torch print, as without sp-plugins; warnings raised before our run starts
+  (nerfstudio's imports, ``torch.jit.script``) still print once.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.
 """
 
@@ -98,4 +98,4 @@ PATCH = python_patch(
     "host_warnings", _check, host_warnings_filtered, (("warnings", "filters"), ("warnings", "_filters_mutated")),
     changes="warnings.filters: ignore the host's known, non-actionable messages (each by message and host module)",
     shown=lambda: _keep_all() or host_warnings_shown(),
-    scope_text="while ns-train trains one of our methods (its checked run config exists); process-wide in our sp-* commands")
+    scope_text="under ns-* on a run of ours (its run config, model, data manager); process-wide in our sp-* commands")

@@ -7,12 +7,14 @@ wraps whatever hook is installed (Python's, rich's ...): a described failure pri
 exits 2, anything else goes to the previous hook.
 
 Scope: our console commands own their process and keep it until the process ends. Under
-nerfstudio's ``ns-*`` commands it is held (:func:`sp_plugins.patches.registry.hold`) by the checked
-run config while ``ns-train`` trains one of our methods, and by each ``InputError`` of ours while it
-exists, so a bad input under ``ns-eval`` / ``ns-render`` / ``ns-export`` still reaches the top as one
-line (the exception is alive when Python hands it to the hook). Building a model or a data manager
-installs nothing (issue 55); once the holders are gone ``sys.excepthook`` is again the hook it was. A
-hook someone installed over ours meanwhile is left in place; ours then only passes through.
+nerfstudio's ``ns-*`` commands working on a run of ours it is held
+(:func:`sp_plugins.patches.registry.hold`) by that run's objects (``ns-train``'s checked run config;
+our model and data manager under ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer``), so a
+failure while they exist (a bad input, a damaged checkpoint) reaches the top as one line (the
+traceback keeps them alive). In a Python session, a notebook or a test, building our model installs
+nothing (issue 55); there each ``InputError`` of ours holds the hook while it exists. Once the
+holders are gone ``sys.excepthook`` is again the hook it was. A hook someone installed over ours
+meanwhile is left in place; ours then only passes through.
 """
 
 from __future__ import annotations
@@ -70,4 +72,4 @@ PATCH = python_patch(
     "input_error_hook", _check, input_errors_as_one_line, (("sys", "excepthook"), ("sys", "__excepthook__")),
     changes="sys.excepthook: wraps the hook in force; a failure our checks describe prints one line and exits 2",
     shown=lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
-    scope_text="while an InputError of ours exists, or ns-train trains one of our methods; process-wide in our sp-* commands")
+    scope_text="under ns-* on a run of ours (its run config, model, data manager), or while an InputError of ours exists; process-wide in our sp-* commands")

@@ -18,6 +18,8 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
 from typing import Any, Callable, Dict, List
 
 import torch
@@ -56,19 +58,27 @@ def refuse_inert_options(config: SPConfig) -> None:
         )
 
 
+def host_command() -> bool:
+    """True when this process is one of the host's console commands (``ns-*``): a command working on
+    a run of ours. A Python session, a notebook or a test building our model is not one, and gets
+    nothing installed (issue 55)."""
+    return Path(sys.argv[0] if sys.argv else "").name.startswith("ns-")
+
+
 def install_process_settings(owner: object = None, *, run: bool = False) -> None:
     """What a process that trains or loads one of our methods gets.
 
     - Without ``owner``: our own console command (``sp-train``) owns the process: failures our
       checks describe print as one line (exit status 2) and the host's known, non-actionable
       warnings are filtered, until it ends (registry entries ``input_error_hook``, ``host_warnings``).
-    - With ``owner`` and ``run`` (the checked run config ``ns-train`` trains one of our methods by,
-      :func:`sp_plugins.nerfstudio.components.trainer.preflight`): that run is ours, so both are held
-      while the run config exists (a damaged checkpoint or a full disk while it trains is one line too).
+    - With ``owner`` and ``run``: the host's command works on a run of ours (``ns-train``'s checked
+      run config, :func:`sp_plugins.nerfstudio.components.trainer.preflight`; our model or data manager
+      under ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer``, :func:`host_command`): both are
+      held while ``owner`` exists (a damaged checkpoint or a full disk is one line too).
     - With ``owner`` alone: only the one-line hook, held while ``owner`` exists.
 
-    Building one of our models or data managers installs nothing (issue 55): an ``InputError`` holds
-    the hook itself while it exists (:class:`~sp_plugins.adapter.errors.InputError`)."""
+    Building one of our models in a Python session, a notebook or a test installs nothing (issue 55);
+    there an ``InputError`` holds the hook itself while it exists (:class:`~sp_plugins.adapter.errors.InputError`)."""
     from sp_plugins.patches import registry
 
     if owner is None:
@@ -112,6 +122,8 @@ class SPModel(adapter_model.SPModelBase):
     steps_flag = HOST.flags.steps
 
     def populate_modules(self) -> None:
+        if host_command():  # ns-eval, ns-render, ns-export, ns-viewer on our run: its failures as one line
+            install_process_settings(self, run=True)
         check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
         self._sp_watch = NonFiniteWatch()
         super().populate_modules()
