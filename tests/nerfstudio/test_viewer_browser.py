@@ -13,13 +13,14 @@ from __future__ import annotations
 import io
 import os
 import re
+import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.helpers.ns_commands import command
+from tests.helpers.ns_commands import ENV, command
 from tests.helpers.viewer import QUIT_ON_COMPLETION, Viewer, serving, tail
 
 try:
@@ -346,3 +347,20 @@ def test_ns_viewer_serves_the_finished_run(finished, browser, spot, tmp_path):
         page.close()
         print("ns-viewer readings:", {"url": url, "first frame": first, "frame": stats})
         assert viewer.proc.poll() is None, tail(viewer.log)
+
+
+def test_a_baseline_run_shows_no_sp_panel(browser, spot, tmp_path):
+    """The same page on a run with SP off (``relu-field-flat``, our baseline of ``sp-relu-field``): the
+    control panel is there, the SP panel is not (issue 56)."""
+    out = tmp_path / "outputs"
+    train = [command("ns-train"), "relu-field-flat", *TINY[:2], "--max-num-iterations", "5", *TINY[4:8], "--vis", "tensorboard",
+             "--output-dir", out, "blender-data", "--data", spot / "blender"]
+    proc = subprocess.run([str(a) for a in train], env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (config,) = out.glob("**/config.yml")
+    with serving([command("ns-viewer"), "--load-config", config], tmp_path / "ns-viewer.log") as viewer:
+        page = open_viewer(browser, ready(viewer, "disabled local writer"))
+        page.get_by_role("button", name="Reset Up Direction").wait_for(timeout=60_000)  # the control panel is drawn
+        text = page.inner_text("body")
+        page.close()
+    assert "Reset Up Direction" in text and "stochastic_preconditioning" not in text and "alpha now" not in text, text[-800:]
