@@ -1,0 +1,69 @@
+"""``sp-compare`` on one pair of the sparse-view study, where SP's effect is visible (issue 56).
+
+    OMP_NUM_THREADS=1 python -m bench.sparse_compare      # about 25 minutes on one CPU core
+
+The pair of ``bench/sparse_views.py`` with the clearest effect: MipNeRF (``sp-mipnerf`` with SP off) and
+``sp-mipnerf`` with the sparse-view setting (alpha0 1.0, about the object's radius, to 0 at a third of
+training) on the DTU-like Spot (``../shared/data/meshes/spot.ply``) from 9 of its 49 views, seed 0, the
+study's quick budget (2000 steps, lr 2e-3, a 4 x 128 MLP, 32 + 32 samples, 256 rays). Both are trained
+with nerfstudio's trainer into run folders (``bench/out/sparse_compare/``; finished runs are kept), then
+``sp-compare BASELINE SP`` writes its page, JSON and figures to ``bench/results/sparse_compare/``, and
+headless Chromium opens the page offline and screenshots it there (``page.png``).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.harness import radiance as rd  # noqa: E402
+
+OUT = ROOT / "bench" / "out" / "sparse_compare"
+RESULTS = ROOT / "bench" / "results" / "sparse_compare"
+BUDGET = rd.MipBudget(steps=2000, lr=2e-3, views=9, dtu_like=True, alpha0=1.0, end=667)
+SEED = 0
+
+
+def trained(sp: bool, data: Path) -> Path:
+    """The run folder's ``config.yml`` of the baseline (``sp`` False) or the SP run, trained if missing."""
+    from sp_plugins.nerfstudio.runs import train
+
+    name = "sp-mipnerf-1.0" if sp else "mipnerf"
+    config = rd.mip_config(sp, data, BUDGET, SEED, OUT, name=name)
+    path = config.get_base_dir() / "config.yml"
+    done = config.get_checkpoint_dir() / f"step-{BUDGET.steps - 1:09d}.ckpt"
+    if not done.is_file():
+        train(config)
+    assert done.is_file(), f"{done} missing after training"
+    return path
+
+
+def screenshot(page: Path, out: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from tests.helpers.browser import CHROMIUM, CHROMIUM_ARGS
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        tab = browser.new_page(viewport={"width": 1280, "height": 900})
+        tab.goto(page.as_uri())
+        tab.screenshot(path=str(out), full_page=True)
+        browser.close()
+
+
+def main() -> None:
+    data = rd.dtu_scene_dir("spot")
+    baseline, sp = trained(False, data), trained(True, data)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    compare = Path(sys.executable).with_name("sp-compare")
+    subprocess.run([str(compare), str(baseline), str(sp), "--output-dir", str(RESULTS)], check=True, cwd=ROOT)
+    screenshot(RESULTS / "compare.html", RESULTS / "page.png")
+    print((RESULTS / "compare.json").read_text()[:2000])
+
+
+if __name__ == "__main__":
+    main()
