@@ -189,6 +189,12 @@ class StochasticPreconditioner(nn.Module):
         return self._grid_scale
 
     @property
+    def progress(self) -> tuple:
+        """``(step, total steps)`` as Python ints (-1: not known yet), from the mirrors of the buffers:
+        no device read, so a readout may ask every step."""
+        return self._step, self._total
+
+    @property
     def scheduled(self) -> bool:
         """The schedule has SP on at the current step (alpha, or the grid's scale, above 0), training or not."""
         return self._alpha > 0.0 if self.alpha_grid is None else self._grid_scale > 0.0

@@ -57,11 +57,10 @@ def settings_text(sp: StochasticPreconditioner) -> str:
 
 def schedule_text(sp: StochasticPreconditioner) -> str:
     """Where the schedule stands: the step, the step alpha reaches 0 at, and the way gone."""
-    total, schedule = int(sp.total_steps), sp.schedule
+    (step, total), schedule = sp.progress, sp.schedule  # Python mirrors: no device read
     if total < 0 or schedule is None:
         return f"{sp.config.schedule} from alpha0 {sp.config.alpha0:g}; the run's length is not known yet"
     end = schedule.end_step
-    step = int(sp.step)
     if end is None:
         return f"{sp.config.schedule}: alpha {sp.alpha:.3g} at step {step} (constant: on for the whole run)"
     gone = min(1.0, step / end) if end > 0 else 1.0
