@@ -132,3 +132,25 @@ def test_a_learnable_alpha_grid_is_an_output_of_renders_only(driver):
     torch.testing.assert_close(grid, 0.05 * outputs["accumulation_fine"], rtol=1e-4, atol=1e-7)
     assert grid.max() > 0.01
     assert "sp_alpha_grid" not in model_at(driver, 0).get_outputs_for_camera(camera())
+
+
+def test_the_alpha_grid_output_of_an_sdf_method_uses_its_neus_weights():
+    """``sp-neus-hashgrid`` (a field that outputs NeuS alphas, not densities): at the grid's initial value a
+    everywhere, ``sp_alpha_grid`` is ``a`` times the SDF's accumulation."""
+    import copy
+    import dataclasses
+
+    from nerfstudio.configs.method_configs import all_methods
+    from nerfstudio.data.scene_box import SceneBox
+
+    config = copy.deepcopy(all_methods["sp-neus-hashgrid"].pipeline.model)
+    f = config.sdf_field
+    f.num_levels, f.max_res, f.log2_hashmap_size, f.hidden_dim, f.hidden_dim_color, f.geo_feat_dim, f.num_layers = 4, 32, 10, 32, 32, 15, 2
+    config.num_samples, config.num_samples_importance, config.num_up_sample_steps, config.num_samples_outside = 8, 8, 1, 4
+    config.sp = dataclasses.replace(config.sp, alpha_grid=True, alpha_grid_init=0.05, schedule="constant")
+    model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, metadata={},
+                         device="cpu", grad_scaler=None)
+    model.eval()
+    outputs = model.get_outputs_for_camera(camera())
+    torch.testing.assert_close(outputs["sp_alpha_grid"], 0.05 * outputs["accumulation"], rtol=1e-4, atol=1e-7)
+    assert outputs["sp_alpha_grid"].max() > 0.01
