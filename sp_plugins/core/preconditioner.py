@@ -337,14 +337,7 @@ class StochasticPreconditioner(nn.Module):
         noise through this module), else a single call. ``run_once`` returns a tensor, or a dict
         / tuple of tensors (a field's outputs); non-tensor entries are taken from the first call.
         This is how a host hook honours ``num_samples`` without knowing what the field returns."""
-        k = self.config.num_samples if self.active else 1
-        first = run_once()
-        if k == 1:
-            return first
-        total = first
-        for _ in range(k - 1):
-            total = _add_outputs(total, run_once())
-        return _scale_outputs(total, 1.0 / k)
+        return mean_of_calls(run_once, self.config.num_samples if self.active else 1)
 
     def extra_repr(self) -> str:
         c = self.config
@@ -357,6 +350,19 @@ def distributed_rank() -> int:
     """This process's rank in a torch.distributed job (0 outside one)."""
     dist = torch.distributed
     return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+
+
+def mean_of_calls(run_once: Callable[[], T], k: int) -> T:
+    """``run_once()`` called ``k`` times and averaged entry-wise: floating tensors (also inside a dict,
+    tuple or list) are averaged, anything else is the first call's. Summed as it goes: one output
+    held besides the running total."""
+    first = run_once()
+    if k == 1:
+        return first
+    total = first
+    for _ in range(k - 1):
+        total = _add_outputs(total, run_once())
+    return _scale_outputs(total, 1.0 / k)
 
 
 def _add_outputs(a, b):

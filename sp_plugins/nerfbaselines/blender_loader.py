@@ -75,10 +75,21 @@ def _image_sizes(paths: List[str]) -> List[Tuple[int, int]]:
     return sizes
 
 
+def pinhole_cameras(poses, intrinsics, image_sizes, nears_fars=None):
+    """nerfbaselines cameras of ``len(poses)`` pinhole frames without distortion (our loaders' frames)."""
+    import numpy as np
+    from nerfbaselines import camera_model_to_int, new_cameras
+
+    n = len(poses)
+    extra = {} if nears_fars is None else {"nears_fars": nears_fars}
+    return new_cameras(poses=poses, intrinsics=intrinsics, camera_models=np.full(n, camera_model_to_int("pinhole"), dtype=np.int32),
+                       distortion_parameters=np.zeros((n, 0), dtype=np.float32), image_sizes=image_sizes, **extra)
+
+
 def load_blender_folder(path: str, split: str, **kwargs):
     """The ``split`` of the Blender-format folder at ``path`` (pinhole, true image sizes, white background)."""
     import numpy as np
-    from nerfbaselines import camera_model_to_int, new_cameras, new_dataset
+    from nerfbaselines import new_dataset
 
     del kwargs
     meta = _transforms(path, split)
@@ -90,15 +101,8 @@ def load_blender_folder(path: str, split: str, **kwargs):
     width, height = sizes[:, 0].astype(np.float32), sizes[:, 1].astype(np.float32)
     focal = 0.5 * width / np.tan(0.5 * float(meta["camera_angle_x"]))
     intrinsics = np.stack([focal, focal, 0.5 * width, 0.5 * height], -1).astype(np.float32)
-    n = len(frames)
     return new_dataset(
-        cameras=new_cameras(
-            poses=c2w,
-            intrinsics=intrinsics,
-            camera_models=np.full(n, camera_model_to_int("pinhole"), dtype=np.int32),
-            distortion_parameters=np.zeros((n, 0), dtype=np.float32),
-            image_sizes=sizes,
-        ),
+        cameras=pinhole_cameras(c2w, intrinsics, sizes),
         image_paths_root=path,
         image_paths=image_paths,
         mask_paths=None,

@@ -34,7 +34,9 @@ def _scene_of(path: str) -> dict:
 def load_sdfstudio_dataset(path: str, split: str, **kwargs):
     """The ``split`` of the SDFStudio layout at ``path`` (OpenCV camera-to-world, pinhole)."""
     import numpy as np
-    from nerfbaselines import camera_model_to_int, new_cameras, new_dataset
+    from nerfbaselines import new_dataset
+
+    from sp_plugins.nerfbaselines.blender_loader import pinhole_cameras
 
     del kwargs
     train_meta = os.path.join(path, "meta_data.json")
@@ -57,14 +59,8 @@ def load_sdfstudio_dataset(path: str, split: str, **kwargs):
     if "aabb" in box:
         metadata["scene_box"] = [[float(v) for v in corner] for corner in box["aabb"]]
     return new_dataset(
-        cameras=new_cameras(
-            poses=c2w,
-            intrinsics=intrinsics,
-            camera_models=np.full(n, camera_model_to_int("pinhole"), dtype=np.int32),
-            distortion_parameters=np.zeros((n, 0), dtype=np.float32),
-            image_sizes=np.array([[meta["width"], meta["height"]]] * n, dtype=np.int32),
-            nears_fars=np.array([[near, far]] * n, dtype=np.float32),
-        ),
+        cameras=pinhole_cameras(c2w, intrinsics, np.array([[meta["width"], meta["height"]]] * n, dtype=np.int32),
+                                np.array([[near, far]] * n, dtype=np.float32)),
         image_paths_root=path,
         image_paths=[os.path.join(path, frame["rgb_path"]) for frame in frames],
         mask_paths=None,

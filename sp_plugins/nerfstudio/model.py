@@ -41,7 +41,7 @@ from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
 from sp_plugins.nerfstudio.seam import ALPHA_GRID_OUTPUT, attach_seam, check_reached, seam_fields
 
-__all__ = ["SPModel", "SPModelConfig", "install_process_settings", "refuse_inert_options",
+__all__ = ["SPModel", "SPModelConfig", "hold_under_host_command", "host_command", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
 
 
@@ -63,6 +63,13 @@ def host_command() -> bool:
     a run of ours. A Python session, a notebook or a test building our model is not one, and gets
     nothing installed (issue 55)."""
     return Path(sys.argv[0] if sys.argv else "").name.startswith("ns-")
+
+
+def hold_under_host_command(owner: object) -> None:
+    """Under a host command on a run of ours (:func:`host_command`): the one-line hook and the warning
+    filters while ``owner`` (our model or data manager) exists; elsewhere nothing."""
+    if host_command():
+        install_process_settings(owner, run=True)
 
 
 def install_process_settings(owner: object = None, *, run: bool = False) -> None:
@@ -122,8 +129,7 @@ class SPModel(adapter_model.SPModelBase):
     steps_flag = HOST.flags.steps
 
     def populate_modules(self) -> None:
-        if host_command():  # ns-eval, ns-render, ns-export, ns-viewer on our run: its failures as one line
-            install_process_settings(self, run=True)
+        hold_under_host_command(self)  # ns-eval, ns-render, ns-export, ns-viewer on our run: its failures as one line
         check_known_settings(self.config, "pipeline.model")  # type: ignore[attr-defined]  (a config.yml of another version)
         self._sp_watch = NonFiniteWatch()
         super().populate_modules()

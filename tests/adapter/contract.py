@@ -10,8 +10,10 @@ included.
 
 from __future__ import annotations
 
+import abc
 import copy
 import dataclasses
+import functools
 from types import SimpleNamespace
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
@@ -27,40 +29,40 @@ from sp_plugins.core import SPConfig, StochasticPreconditioner
 Observe = Callable[[int], None]
 
 
-class Driver:
+class Driver(abc.ABC):
     """What a host's driver provides (a toy host, nerfstudio, sdfstudio)."""
 
     host: str
     """The host's registry name."""
 
+    @abc.abstractmethod
     def model_class(self) -> type:
         """The SP model class the host builds (its hooks are checked)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def build(self, **sp: Any) -> nn.Module:
         """A small SP model as the host builds it, its ``sp`` settings changed by ``sp``."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def method_sp(self) -> Tuple[SPConfig, Any]:
         """``(sp settings an SP method of the host gets, that method's host model config)``."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def train(self, model: nn.Module, steps: int, total: int, observe: Optional[Observe] = None) -> None:
         """``steps`` training iterations as the host's trainer runs them (its callbacks before and
         after each), ``observe(step)`` after each."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def evaluate(self, model: nn.Module) -> torch.Tensor:
         """The model's output on fixed inputs, as evaluation computes it."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def silence(self, model: nn.Module) -> None:
         """Make the model's fields silent no-ops for SP: handed SP, they never read what it moves."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def expected_box(self, model: nn.Module) -> torch.Tensor:
         """The box ``[2, 3]`` SP must fold into on this host."""
-        raise NotImplementedError
 
 
 # -- the contract ---------------------------------------------------------------------------------
@@ -222,37 +224,60 @@ def broken_toy_driver() -> ToyDriver:
     return ToyDriver(broken)
 
 
-# -- nerfstudio 1.x -------------------------------------------------------------------------------
-class NerfstudioDriver(Driver):
-    """vanilla-nerf through ``with_sp`` (what ``sp-train vanilla-nerf`` trains), with few samples."""
+class WithSpDriver(Driver):
+    """A real host's driver: one of its registered methods (``HOST_METHOD``) through the host's ``with_sp``."""
 
-    host = "nerfstudio"
-    BOX = torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
+    HOST_METHOD: str
 
+    @abc.abstractmethod
+    def host_method_config(self) -> Any:
+        """The host's own trainer config of ``HOST_METHOD``."""
+
+    @abc.abstractmethod
+    def with_sp(self, config: Any) -> Any:
+        """The host's ``with_sp`` of a trainer config (its ``MethodSpecification``)."""
+
+    @functools.cached_property
     def _configs(self) -> Tuple[Any, Any]:
-        from nerfstudio.configs.method_configs import all_methods
-
-        from sp_plugins.nerfstudio.registration import with_sp
-
-        host = all_methods["vanilla-nerf"]
-        return host.pipeline.model, with_sp(host).config.pipeline.model
+        """``(the host's model config, its SP variant)``, built once per driver."""
+        host = self.host_method_config()
+        return host.pipeline.model, self.with_sp(host).config.pipeline.model
 
     def model_class(self) -> type:
         from sp_plugins.adapter.variants import target_class
 
-        return target_class(self._configs()[1])
+        return target_class(self._configs[1])
+
+    def method_sp(self) -> Tuple[SPConfig, Any]:
+        host, ours = self._configs
+        return ours.sp, host
+
+
+# -- nerfstudio 1.x -------------------------------------------------------------------------------
+class NerfstudioDriver(WithSpDriver):
+    """vanilla-nerf through ``with_sp`` (what ``sp-train vanilla-nerf`` trains), with few samples."""
+
+    host = "nerfstudio"
+    HOST_METHOD = "vanilla-nerf"
+    BOX = torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
+
+    def host_method_config(self) -> Any:
+        from nerfstudio.configs.method_configs import all_methods
+
+        return all_methods[self.HOST_METHOD]
+
+    def with_sp(self, config: Any) -> Any:
+        from sp_plugins.nerfstudio.registration import with_sp
+
+        return with_sp(config)
 
     def build(self, **sp: Any) -> nn.Module:
         from nerfstudio.data.scene_box import SceneBox
 
-        config = copy.deepcopy(self._configs()[1])
+        config = copy.deepcopy(self._configs[1])
         config.num_coarse_samples, config.num_importance_samples = 8, 8
         config.sp = dataclasses.replace(config.sp, **sp)
         return config.setup(scene_box=SceneBox(aabb=self.BOX), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
-
-    def method_sp(self) -> Tuple[SPConfig, Any]:
-        host, ours = self._configs()
-        return ours.sp, host
 
     @staticmethod
     def _rays(seed: int = 0) -> Any:
@@ -307,29 +332,27 @@ class NerfstudioDriver(Driver):
 
 
 # -- sdfstudio (its own environment) --------------------------------------------------------------
-class SdfstudioDriver(Driver):
+class SdfstudioDriver(WithSpDriver):
     """sdfstudio's NeuS through ``with_sp`` (what ``sp-sdfstudio-train sp-neus`` trains), tiny field;
     needs our methods registered in the process (``tests/sdfstudio/conftest.py``'s ``patched``)."""
 
     host = "sdfstudio"
+    HOST_METHOD = "neus"
 
-    def _configs(self) -> Tuple[Any, Any]:
+    def host_method_config(self) -> Any:
         from nerfstudio.configs.method_configs import method_configs
 
+        return method_configs[self.HOST_METHOD]
+
+    def with_sp(self, config: Any) -> Any:
         from sp_plugins.sdfstudio.registration import with_sp
 
-        host = method_configs["neus"]
-        return host.pipeline.model, with_sp(host).config.pipeline.model
-
-    def model_class(self) -> type:
-        from sp_plugins.adapter.variants import target_class
-
-        return target_class(self._configs()[1])
+        return with_sp(config)
 
     def build(self, **sp: Any) -> nn.Module:
         from nerfstudio.data.scene_box import SceneBox
 
-        config = copy.deepcopy(self._configs()[1])
+        config = copy.deepcopy(self._configs[1])
         f = config.sdf_field
         f.num_layers, f.hidden_dim, f.geo_feat_dim, f.hidden_dim_color = 2, 32, 15, 32
         f.num_levels, f.log2_hashmap_size, f.base_res, f.max_res = 4, 11, 8, 64
@@ -337,10 +360,6 @@ class SdfstudioDriver(Driver):
         config.sp = dataclasses.replace(config.sp, **sp)
         return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])), num_train_data=2,
                             world_size=1, local_rank=0)
-
-    def method_sp(self) -> Tuple[SPConfig, Any]:
-        host, ours = self._configs()
-        return ours.sp, host
 
     @staticmethod
     def _samples(seed: int = 0) -> Any:

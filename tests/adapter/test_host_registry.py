@@ -41,6 +41,14 @@ class RunConfig:
 '''
 
 
+def distribution(root: Path, name: str, entry_points: str) -> None:
+    """A distribution ``name`` 0.1 in ``root`` (importable once ``root`` is on the path) with ``entry_points``."""
+    dist = root / f"{name}-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(entry_points)
+
+
 @pytest.fixture
 def third_host(tmp_path, monkeypatch):
     """A distribution ``thirdhost`` on the path: its package (host descriptor, table, a config class)
@@ -49,10 +57,7 @@ def third_host(tmp_path, monkeypatch):
     package.mkdir()
     for name, text in (("__init__.py", ""), ("host.py", HOST_PY), ("table.py", TABLE_PY), ("configs.py", CONFIGS_PY)):
         (package / name).write_text(textwrap.dedent(text))
-    dist = tmp_path / "thirdhost-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdhost\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[sp_plugins.hosts]\nthirdhost = thirdhost.host:HOST\n")
+    distribution(tmp_path, "thirdhost", "[sp_plugins.hosts]\nthirdhost = thirdhost.host:HOST\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     hosts._from_entry_points.cache_clear()
     yield tmp_path
@@ -84,10 +89,7 @@ def test_without_it_the_registry_names_what_it_has():
 
 
 def test_a_broken_host_entry_is_skipped_with_one_line(tmp_path, monkeypatch, capsys):
-    dist = tmp_path / "brokenhost-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: brokenhost\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[sp_plugins.hosts]\nbrokenhost = no_such_module:HOST\n")
+    distribution(tmp_path, "brokenhost", "[sp_plugins.hosts]\nbrokenhost = no_such_module:HOST\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     hosts._from_entry_points.cache_clear()
     try:

@@ -111,9 +111,13 @@ def test_the_viewer_renders_the_field_sp_trains_while_alpha_is_above_zero_and_th
 
 
 def test_the_mean_of_renders_averages_floating_tensors_only():
+    """The panel averages its renders with the preconditioner's own K-draw mean (``mean_of_calls``)."""
+    from sp_plugins.core.preconditioner import mean_of_calls
+
     a = {"rgb": torch.zeros(2, 3), "mask": torch.tensor([True, False]), "name": "x"}
     b = {"rgb": torch.ones(2, 3), "mask": torch.tensor([False, False]), "name": "y"}
-    mean = vp.mean_outputs([a, b])
+    renders = iter([a, b])
+    mean = mean_of_calls(lambda: next(renders), 2)
     assert torch.equal(mean["rgb"], torch.full((2, 3), 0.5)) and mean["mask"] is a["mask"] and mean["name"] == "x"
 
 

@@ -330,10 +330,9 @@ class CheckedDataManager(VanillaDataManager):
     dataset_type = InputDataset  # type: ignore[assignment]  (shadows the generic lookup)
 
     def __init__(self, config: CheckedDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
-        from sp_plugins.nerfstudio.model import host_command, install_process_settings
+        from sp_plugins.nerfstudio.model import hold_under_host_command
 
-        if host_command():  # a host command on a run of ours: its failures as one line
-            install_process_settings(self, run=True)
+        hold_under_host_command(self)  # a host command on a run of ours: its failures as one line
         check_device(torch.device(device).type, flags=HOST.flags)
         self._checks = config.check_data and test_mode != "inference"
         if self._checks:

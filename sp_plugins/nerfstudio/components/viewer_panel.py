@@ -19,14 +19,15 @@ render does.
 
 from __future__ import annotations
 
+import functools
 import sys
 import threading
-from typing import Any, Callable, Dict, List
+from typing import Any, Callable, Dict, Optional
 
-import torch
-from torch import Tensor, nn
+from torch import nn
 
 from sp_plugins.core import StochasticPreconditioner
+from sp_plugins.core.preconditioner import mean_of_calls
 
 PLAIN = "plain field"
 SP_VIEW = "field SP trains"
@@ -68,28 +69,22 @@ def schedule_text(sp: StochasticPreconditioner) -> str:
     return f"step {step} of {total}; alpha reaches 0 at step {end} ({state})"
 
 
-def mean_outputs(outputs: List[Dict[str, Any]]) -> Dict[str, Any]:
-    """The entry-wise mean of renders (floating tensors; anything else from the first)."""
-    first = outputs[0]
-    mean: Dict[str, Any] = {}
-    for key, value in first.items():
-        if isinstance(value, Tensor) and value.is_floating_point():
-            mean[key] = torch.stack([o[key] for o in outputs]).mean(dim=0)
-        else:
-            mean[key] = value
-    return mean
+@functools.lru_cache(maxsize=None)
+def _readout_class() -> type:
+    """A disabled text readout that reads its value again when the viewer installs it (made once, on
+    first use: nerfstudio's viewer elements import viser, which a run without a panel never needs)."""
+    from nerfstudio.viewer.viewer_elements import ViewerText
 
+    class Readout(ViewerText):
+        def __init__(self, name: str, read: Callable[[], str], hint: Optional[str] = None) -> None:
+            super().__init__(name, read(), disabled=True, hint=hint)
+            self._read = read
 
-def _live(element: type, read: Callable[[], Any]) -> type:
-    """``element`` (a viewer readout class) that reads its value again when the viewer installs it."""
-
-    class Live(element):  # type: ignore[misc, valid-type]
         def install(self, viser_server: Any) -> None:
-            self.value = read()  # stored only: there is no GUI handle yet
+            self.value = self._read()  # stored only: there is no GUI handle yet
             super().install(viser_server)
 
-    Live.__name__ = Live.__qualname__ = f"Live{element.__name__}"
-    return Live
+    return Readout
 
 
 class SPPanel(nn.Module):
@@ -106,9 +101,9 @@ class SPPanel(nn.Module):
         # checkpoint (its step, its alpha) after the model, and so this panel, was built
         # alpha as text: viser's number input infers its precision from the first value (0 before the
         # run's length is known) and would show 0.003 as 0
-        self.e1_alpha = _live(ViewerText, lambda: alpha_text(sp))("alpha now", alpha_text(sp), disabled=True,
-                                                                  hint="the noise's standard deviation per axis, in scene units")
-        self.e2_schedule = _live(ViewerText, lambda: schedule_text(sp))("schedule", schedule_text(sp), disabled=True)
+        Readout = _readout_class()
+        self.e1_alpha = Readout("alpha now", lambda: alpha_text(sp), hint="the noise's standard deviation per axis, in scene units")
+        self.e2_schedule = Readout("schedule", lambda: schedule_text(sp))
         self.e3_settings = ViewerText("settings", settings_text(sp), disabled=True)
         self.e4_render = ViewerDropdown("render", PLAIN, RENDER_MODES,
                                         hint="the plain field (what evaluation sees) or the field SP trains: the mean of "
@@ -134,7 +129,7 @@ class SPPanel(nn.Module):
         if not (self.shows_sp() and self.sp.scheduled and in_viewer_render()):
             return render_once()
         with self.sp.preview(seed=0):
-            return mean_outputs([render_once() for _ in range(max(1, int(self.e5_draws.value)))])
+            return mean_of_calls(render_once, max(1, int(self.e5_draws.value)))
 
 
 def update_callback(panel: SPPanel) -> Callable[[int], None]:
