@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: bench/ is not an installed package
-import bench.failure_regime as fr  # noqa: E402
+import bench.failure_regime as fr
 
 TINY = fr.Setting(mesh="box", steps=3, views=6, test_views=1, resolution=(24, 18), rays=32, num_samples=8,
                   num_samples_importance=4, hidden_dim=16, num_levels=4, max_res=32, log2_hashmap_size=10,

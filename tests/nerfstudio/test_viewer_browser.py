@@ -28,7 +28,7 @@ try:
 except ImportError:  # the tests skip (or fail under CI=true) in their fixture, naming it
     PlaywrightTimeout = TimeoutError
 
-from tests.helpers.browser import CHROMIUM, CHROMIUM_ARGS, browser_or_skip  # noqa: E402
+from tests.helpers.browser import CHROMIUM, CHROMIUM_ARGS, browser_or_skip
 
 STEPS = 200
 SP_END = 1.0  # SP on for every step but the last (sp_plugins.core.AlphaSchedule.resolve)

@@ -29,10 +29,10 @@ import torch
 
 pytest.importorskip("nerfstudio")
 
-from tests.helpers.ns_configs import (  # noqa: E402
+from tests.helpers.ns_configs import (
     SDF_METHODS, in_process_data, run_recording, shrink_model, sp_train_config, tiny_radiance_config, tiny_sdf_config,
 )
-from sp_plugins.nerfstudio.runs import configure_run, our_methods  # noqa: E402
+from sp_plugins.nerfstudio.runs import configure_run, our_methods
 
 OURS = tuple(sorted(our_methods()))
 """Every entry point of ours in the ``nerfstudio.method_configs`` group."""

@@ -10,9 +10,9 @@ import pytest
 
 pytest.importorskip("nerfstudio")
 
-from nerfstudio.configs import external_methods as ns_external  # noqa: E402
+from nerfstudio.configs import external_methods as ns_external
 
-from sp_plugins.patches import nerfstudio_external_methods as patch  # noqa: E402
+from sp_plugins.patches import nerfstudio_external_methods as patch
 
 
 def test_nerfstudio_still_makes_the_slow_check():

@@ -11,9 +11,9 @@ import torch
 
 pytest.importorskip("nerfstudio")
 
-from nerfstudio.exporter import marching_cubes as ns_mc  # noqa: E402
+from nerfstudio.exporter import marching_cubes as ns_mc
 
-from sp_plugins.patches import nerfstudio_marching_cubes as patch  # noqa: E402
+from sp_plugins.patches import nerfstudio_marching_cubes as patch
 
 
 @pytest.fixture(autouse=True)

@@ -8,15 +8,15 @@ import torch
 
 pytest.importorskip("nerfstudio")
 
-from nerfstudio.cameras.rays import Frustums, RaySamples  # noqa: E402
-from nerfstudio.field_components.field_heads import FieldHeadNames  # noqa: E402
-from nerfstudio.field_components.spatial_distortions import SceneContraction  # noqa: E402
-from nerfstudio.fields import sdf_field  # noqa: E402
-from nerfstudio.fields.sdf_field import SDFFieldConfig  # noqa: E402
-from nerfstudio.utils import external  # noqa: E402
+from nerfstudio.cameras.rays import Frustums, RaySamples
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.fields import sdf_field
+from nerfstudio.fields.sdf_field import SDFFieldConfig
+from nerfstudio.utils import external
 
-from sp_plugins.encodings import HashGrid  # noqa: E402
-from sp_plugins.patches import nerfstudio_sdf_field as patch  # noqa: E402
+from sp_plugins.encodings import HashGrid
+from sp_plugins.patches import nerfstudio_sdf_field as patch
 
 
 @pytest.fixture

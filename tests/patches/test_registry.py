@@ -27,9 +27,9 @@ import torch
 
 pytest.importorskip("nerfstudio")
 
-from sp_plugins.patches import registry  # noqa: E402
-from sp_plugins.patches.registry import PatchGuardError  # noqa: E402
-from tests.helpers.sp_fields import installed_for_process  # noqa: E402
+from sp_plugins.patches import registry
+from sp_plugins.patches.registry import PatchGuardError
+from tests.helpers.sp_fields import installed_for_process
 
 HOSTS = ("nerfstudio", "python", "torchmetrics") + (("nerfbaselines",) if importlib.util.find_spec("nerfbaselines") else ())
 ENTRIES = [p for p in registry.entries() if p.host in HOSTS]
