@@ -8,7 +8,9 @@ per view and overall, as the model's own evaluation computes them; the training 
 their event files, with SP's alpha beside them; for SDF methods both meshes at one resolution, with Chamfer and
 F-score against a true mesh when one is at hand (``--gt-mesh``, or the ``gt_mesh.ply`` an ``sp-scene`` folder
 carries). Writes ``compare.html`` (one page, images inline, opens offline), ``compare.json`` and the PNGs, and
-prints a one-screen table. Two runs on different data or with different held-out views are refused in one line.
+prints a one-screen table. Two runs on different data or with different held-out views are refused in one line. Where
+the evaluation split is the training images (sdfstudio-data holds none out), the table, page and JSON say "training
+views" instead of "held-out views".
 
 Each run is opened as :mod:`sp_plugins.cli.run_folder` opens one (restricted ``config.yml`` loader,
 weights-only checkpoint); nothing here changes a run folder.
@@ -81,6 +83,15 @@ def sp_summary(config) -> str:
     if sp is None:
         return "no SP"
     return f"SP alpha0 {sp.alpha0:g} to 0 by {sp.end:g}" if sp.enabled else "SP off"
+
+
+def scored_kind(train: Sequence[str], scored: Sequence[str]) -> str:
+    """What the scored views are to the runs: held out, or training views (a dataparser that holds out none, as
+    sdfstudio-data: every split is every image), or held out in part."""
+    seen = len(set(scored) & set(train))
+    if seen == 0:
+        return "held-out views"
+    return "training views" if seen == len(scored) else f"views ({seen} of them training views)"
 
 
 def default_labels(a, b) -> List[str]:
@@ -220,13 +231,13 @@ def curves_figure(runs: Sequence[Run], path: Path) -> bool:
     return True
 
 
-def table(runs: Sequence[Run]) -> List[List[str]]:
+def table(runs: Sequence[Run], kind: str = "held-out views") -> List[List[str]]:
     """Rows of the overall comparison: metric, run A, run B, B - A (or B / A for mesh distances)."""
     rows = [["", runs[0].label, runs[1].label, "B - A"]]
     for key, label in (("psnr", "PSNR (dB)"), ("ssim", "SSIM"), ("lpips", "LPIPS")):
         if key in runs[0].overall and key in runs[1].overall:
             a, b = runs[0].overall[key], runs[1].overall[key]
-            rows.append([f"{label}, {len(runs[0].views)} held-out views", f"{a:.4g}", f"{b:.4g}", f"{b - a:+.3g}"])
+            rows.append([f"{label}, {len(runs[0].views)} {kind}", f"{a:.4g}", f"{b:.4g}", f"{b - a:+.3g}"])
     if runs[0].mesh and runs[1].mesh:
         for key, label in (("chamfer", "Chamfer (of the true diagonal)"), ("fscore", "F-score @1%"),
                            ("normal_consistency", "normal consistency"), ("area_ratio", "area / true area")):
@@ -241,7 +252,8 @@ def _inline(path: Path) -> str:
     return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode()
 
 
-def write_html(runs: Sequence[Run], rows: List[List[str]], figures: Dict[str, Path], notes: List[str], path: Path) -> None:
+def write_html(runs: Sequence[Run], rows: List[List[str]], figures: Dict[str, Path], notes: List[str], path: Path,
+               kind: str = "held-out views") -> None:
     esc = html.escape
     head = "".join(f"<th>{esc(c)}</th>" for c in rows[0])
     body = "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in row) + "</tr>" for row in rows[1:])
@@ -259,7 +271,7 @@ img{{max-width:100%}}</style></head>
 <body><h1>sp-compare</h1><ul>{runs_list}</ul>
 <h2>Overall</h2><table><tr>{head}</tr>{body}</table>
 {images}
-<h2>Per held-out view</h2><table><tr><th>view</th><th>PSNR A</th><th>SSIM A</th><th>PSNR B</th><th>SSIM B</th></tr>{per_view}</table>
+<h2>Per view ({esc(kind)})</h2><table><tr><th>view</th><th>PSNR A</th><th>SSIM A</th><th>PSNR B</th><th>SSIM B</th></tr>{per_view}</table>
 <p>{"<br>".join(esc(n) for n in notes)}</p>
 </body></html>
 """
@@ -308,15 +320,21 @@ def compare(args) -> int:
         raise Refused(f"the runs hold out different views ({len(views[0])} and {len(views[1])} images, "
                       f"first {Path(views[0][0]).name if views[0] else '-'} and {Path(views[1][0]).name if views[1] else '-'}): "
                       "compare two runs with the same dataparser settings")
+    train_dataset = getattr(runs[0].pipeline.datamanager, "train_dataset", None)
+    trained_on = [str(Path(f).resolve()) for f in train_dataset._dataparser_outputs.image_filenames] if train_dataset else []
+    kind = scored_kind(trained_on, views[0])
     out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
-    print(f"{PROG}: rendering {len(views[0]) if args.max_views is None else min(args.max_views, len(views[0]))} held-out views "
+    print(f"{PROG}: rendering {len(views[0]) if args.max_views is None else min(args.max_views, len(views[0]))} {kind} "
           "of each run", flush=True)
     images = [render_views(run, args.max_views) for run in runs]
     figures: Dict[str, Path] = {}
     views_figure(images[0], images[1], runs, out / "views.png")
-    figures["Held-out views: truth, both renders, both errors (one colour scale)"] = out / "views.png"
+    figures[f"{kind[0].upper()}{kind[1:]}: truth, both renders, both errors (one colour scale)"] = out / "views.png"
     notes = []
+    if kind != "held-out views":
+        notes.append(f"The scored views are {kind}: this run's dataparser does not hold them out, so their PSNR and SSIM "
+                     "measure the fit to training images, not new views.")
     for run in runs:
         read_curves(run)
     if curves_figure(runs, out / "curves.png"):
@@ -340,17 +358,20 @@ def compare(args) -> int:
             save_mesh(run.mesh.pop("mesh"), out / f"mesh_{name}.ply")
         notes.append(f"Meshes at {args.mesh_resolution}^3: mesh_a.ply, mesh_b.ply"
                      + (f"; metrics against {gt_path}" if gt is not None else "; no true mesh at hand (--gt-mesh)"))
-    rows = table(runs)
+    rows = table(runs, kind)
     payload = {
         "runs": [{"label": r.label, "config": str(r.config_path), "step": r.step, "sp": sp_summary(r.config),
                   "overall": r.overall, "views": r.views, "mesh": {k: v for k, v in (r.mesh or {}).items() if k != "mesh"} or None}
                  for r in runs],
         "held_out_views": [Path(v).name for v in views[0]],
+        "scored_views": kind,
         "table": rows,
     }
     (out / "compare.json").write_text(json.dumps(payload, indent=1))
-    write_html(runs, rows, figures, notes, out / "compare.html")
+    write_html(runs, rows, figures, notes, out / "compare.html", kind)
     print_table(rows)
+    if kind != "held-out views":
+        print(notes[0])
     print(f"wrote {out / 'compare.html'}, {out / 'compare.json'}, " + ", ".join(str(p) for p in figures.values()))
     return 0
 

@@ -52,8 +52,20 @@ def test_compare_renders_both_runs_scores_them_and_writes_one_offline_page(pair,
     sources = re.findall(r'src="([^"]+)"', page)
     assert len(sources) == 2 and all(s.startswith("data:image/png;base64,") for s in sources)  # views and curves, inline
     assert (out / "views.png").is_file() and (out / "curves.png").is_file() and (out / "mesh_b.ply").is_file()
+    # sdfstudio-data holds no view out (its eval split is every training image): said in the table, page and JSON
     table = proc.stdout
-    assert re.search(r"^PSNR \(dB\), \d+ held-out views", table, flags=re.M) and "Chamfer" in table
+    assert re.search(r"^PSNR \(dB\), \d+ training views", table, flags=re.M) and "Chamfer" in table
+    assert "not new views" in table and "not new views" in page and report["scored_views"] == "training views"
+
+
+def test_scored_views_are_named_by_what_they_are_to_training():
+    from sp_plugins.cli.compare import scored_kind
+
+    train = ["r_0.png", "r_1.png", "r_2.png"]
+    assert scored_kind(train, ["t_0.png", "t_1.png"]) == "held-out views"
+    assert scored_kind(train, ["r_1.png", "r_0.png"]) == "training views"
+    assert scored_kind(train, ["r_1.png", "t_0.png"]) == "views (1 of them training views)"
+    assert scored_kind([], ["t_0.png"]) == "held-out views"
 
 
 def test_the_sp_run_s_alpha_is_read_from_its_event_file(pair, tmp_path):
