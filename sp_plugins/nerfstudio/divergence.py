@@ -41,8 +41,10 @@ class NonFiniteWatch:
         run = torch.zeros_like(first) if self.run is None else self.run
         self.run = torch.where(any_bad, run + 1, 0)
 
-    def raise_if_diverged(self, step: int, groups: Callable[[], List[str]]) -> None:
-        """One device read: raise :class:`InputError` when the run diverged."""
+    def raise_if_diverged(self, step: int, groups: Callable[[], List[str]],
+                          hint: Optional[Callable[[], Optional[str]]] = None) -> None:
+        """One device read: raise :class:`InputError` when the run diverged; ``hint`` names a cause the model
+        knows of (read only then), put before the generic advice."""
         if self.first is None or self.run is None:
             return
         first, run = (int(v) for v in torch.stack([self.first, self.run]).cpu())
@@ -50,17 +52,20 @@ class NonFiniteWatch:
             return
         bad = [name for name, flag in self.bad.items() if bool(flag)]
         flags = ", ".join(f"--optimizers.{g.replace('_', '-')}.optimizer.lr" for g in groups()[:3]) or "--optimizers.<group>.optimizer.lr"
+        known = hint() if hint is not None else None
+        advice = f"likely cause: {known}; otherwise lower" if known else "lower"
         raise InputError(
             f"training step {first}: the loss became NaN or infinite ({', '.join(bad) or 'total'}); the run diverged and stopped "
-            f"at step {step} before saving a checkpoint of it: lower the learning rate ({flags}, e.g. 10x smaller) or resume "
+            f"at step {step} before saving a checkpoint of it: {advice} the learning rate ({flags}, e.g. 10x smaller) or resume "
             "from an earlier checkpoint with --load-dir"
         )
 
 
 def divergence_callback(watch: NonFiniteWatch, groups: Callable[[], List[str]],
-                        attributes: TrainingCallbackAttributes) -> TrainingCallback:
+                        attributes: TrainingCallbackAttributes,
+                        hint: Optional[Callable[[], Optional[str]]] = None) -> TrainingCallback:
     """Read ``watch`` when the trainer logs, saves, or ends; ``groups``: the optimizer groups a
-    divergence message names."""
+    divergence message names; ``hint``: a cause the model knows of (:meth:`NonFiniteWatch.raise_if_diverged`)."""
     trainer = getattr(attributes, "trainer", None)
     config = getattr(trainer, "config", None)
     log_every = int(getattr(getattr(config, "logging", None), "steps_per_log", 10) or 10)
@@ -71,6 +76,6 @@ def divergence_callback(watch: NonFiniteWatch, groups: Callable[[], List[str]],
 
     def check(step: int) -> None:
         if step_check(step, log_every, run_at_zero=True) or (save_every and step_check(step, save_every)) or step == last:
-            watch.raise_if_diverged(step, groups)
+            watch.raise_if_diverged(step, groups, hint)
 
     return TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], check, update_every_num_iters=1)

@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any, Callable, Dict, List
+from typing import Any, Callable, Dict, List, Optional
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.model_components.scene_colliders import AABBBoxCollider
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
@@ -222,7 +223,8 @@ class SPModel(adapter_model.SPModelBase):
     # -- training -------------------------------------------------------------------------------
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
-        callbacks.append(divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes))
+        callbacks.append(divergence_callback(self._sp_watch, self._lr_groups, training_callback_attributes,
+                                             self._divergence_hint))
         panel = getattr(self, "stochastic_preconditioning", None)
         if panel is not None:
             callbacks.append(self.sp_training_callback("after", update_callback(panel)))
@@ -233,6 +235,15 @@ class SPModel(adapter_model.SPModelBase):
         if self.training:  # type: ignore[attr-defined]
             self._sp_watch.update(losses, int(getattr(self.sp, "_step", 0)))
         return losses
+
+    def _divergence_hint(self) -> Optional[str]:
+        """A surface model that kept nerfstudio's box collider (``sp-train neus``, a plugin's NeuS): its rays
+        that graze the box can make the background NaN whatever the learning rate (components/colliders.py)."""
+        if type(getattr(self, "collider", None)) is AABBBoxCollider and hasattr(self.config, "far_plane_bg"):  # type: ignore[attr-defined]
+            return ("this surface model keeps nerfstudio's box collider, which starts a ray that grazes the box beyond "
+                    "the background's far plane (a NaN background colour); sp-neus, sp-neus-hashgrid and neus-hashgrid "
+                    "bound such rays (docs/troubleshooting.md)")
+        return None
 
     def _lr_groups(self) -> List[str]:
         return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]

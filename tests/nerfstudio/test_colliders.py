@@ -85,3 +85,21 @@ def test_a_model_with_its_own_near_far_planes_keeps_its_collider():
     model = SimpleNamespace(collider=NearFarCollider(2.0, 6.0), config=SimpleNamespace(far_plane_bg=FAR_BG))
     bound_surface_rays(model)
     assert type(model.collider) is NearFarCollider
+
+
+def test_a_surface_model_on_nerfstudio_s_collider_names_it_when_its_loss_goes_nan(tiny_scene, tmp_path, tiny_config):
+    """``sp-train neus`` keeps the host's collider (SP changes nothing else): a NaN there names the collider
+    before the learning rate; our surface models, which bound those rays, give no such hint."""
+    from sp_plugins.adapter.errors import InputError
+
+    config = tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path)
+    model = config.pipeline.model.setup(scene_box=BOX, num_train_data=1, metadata={}, device="cpu")
+    assert model._divergence_hint() is None
+    model.collider = AABBBoxCollider(BOX, near_plane=0.05)
+    hint = model._divergence_hint()
+    assert "nerfstudio's box collider" in hint
+    watch = model._sp_watch
+    watch.update({"rgb_loss": torch.tensor(float("nan"))}, 7)
+    with pytest.raises(InputError, match=r"^training step 7: .*: likely cause: this surface model keeps nerfstudio's box "
+                                         r"collider.*; otherwise lower the learning rate \(--optimizers\.fields"):
+        watch.raise_if_diverged(7, model._lr_groups, model._divergence_hint)

@@ -115,3 +115,15 @@ def test_a_trainer_without_a_grad_scaler_is_not_mixed_precision():
     watch = NonFiniteWatch()
     divergence_callback(watch, groups, _attributes(True, None))
     assert watch.mixed_precision is False
+
+
+def test_a_cause_the_model_knows_comes_before_the_generic_advice_and_none_keeps_the_message():
+    watch = NonFiniteWatch()
+    watch.update({"rgb_loss": torch.tensor(float("nan"))}, 3)
+    with pytest.raises(InputError) as plain:
+        watch.raise_if_diverged(3, groups, lambda: None)
+    assert "likely cause" not in str(plain.value) and ": lower the learning rate (" in str(plain.value)
+    with pytest.raises(InputError) as hinted:
+        watch.raise_if_diverged(3, groups, lambda: "the collider")
+    assert ": likely cause: the collider; otherwise lower the learning rate (" in str(hinted.value)
+    assert len(str(hinted.value).splitlines()) == 1
