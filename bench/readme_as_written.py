@@ -129,7 +129,9 @@ def run(item: Item, work: Path, log_dir: Path) -> Dict:
 
 
 def restate(record: Dict, item: Item) -> Dict:
-    """``record`` with the costs the text states today (a figure in the text may change after the run)."""
+    """``record`` with the block's place and the costs the text states today (lines above a block and a figure in
+    the text may change after the run; the record is the block's while its text is unchanged)."""
+    record["where"] = item.block.where
     for c in record["commands"]:
         c["stated_s"] = next((s for key, s in item.stated.items() if key in c["command"]), None)
         c["slow"] = c["stated_s"] is not None and c["seconds"] > SLOW * c["stated_s"]

@@ -76,7 +76,7 @@ def nerfstudio_outcomes() -> Dict[str, Tuple[int, str]]:
         elif method in table.SP_OFF_METHODS:
             out[method] = (1, f"offered (ours, SP off by default): {table.SP_OFF_METHODS[method]}")
         elif getattr(model_config, "sp", None) is not None:
-            out[method] = (1, "offered (ours, SP on already: its settings are in the SP-defaults table above)")
+            out[method] = (1, "offered (ours, SP on already: its settings: Choosing SP's settings)")
         else:
             out[method] = (0, _nerfstudio_offered(configs[method].pipeline.model.sp, host))
     return out

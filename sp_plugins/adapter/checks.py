@@ -136,7 +136,7 @@ def check_device(device_type: str, count: int = 1, *, flags: Flags) -> None:
             raise InputError(f"{device} mps: Apple's MPS is not available on this machine; pass {device} cpu")
     if device_type != "cuda" and count > 1:  # the hosts' launchers assert CUDA for more than one device
         raise InputError(f"{devices} {count}: training on more than one device needs {device} cuda; "
-                         f"pass {devices} 1 (README: Multi-process training)")
+                         f"pass {devices} 1 (docs/guides/multi-process.md)")
 
 
 def existing_outputs(out: Path, names: Iterable[str], flag: str) -> List[str]:

@@ -54,6 +54,18 @@ def test_the_registry_holds_every_patch_module():
         assert patch.version and patch.changes and patch.scope_text and patch.guarded, patch.name
 
 
+def test_the_docs_patch_table_has_one_row_per_entry_naming_its_host_version():
+    """docs/extending.md's patch table is what a reader audits: a patch without its row is invisible."""
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "extending.md").read_text()
+    rows = dict(re.findall(r"^\| `(\w+)` \| ([^|]+) \|", page, flags=re.M))
+    assert set(rows) == set(registry.ENTRIES), (sorted(set(registry.ENTRIES) - set(rows)), sorted(set(rows) - set(registry.ENTRIES)))
+    for patch in registry.entries():
+        assert patch.version in rows[patch.name], (patch.name, patch.version, rows[patch.name])
+
+
 def resolve(dotted: str):
     try:
         return importlib.import_module(dotted)

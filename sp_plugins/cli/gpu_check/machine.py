@@ -70,5 +70,5 @@ def tcnn_reason(device) -> Optional[str]:
     if device.type != "cuda":
         return f"tiny-cuda-nn runs on CUDA only (--device {device})"
     if _import_tcnn() is None:
-        return "tinycudann does not import (see the README's tiny-cuda-nn install line)"
+        return "tinycudann does not import (install it: docs/guides/gpu-check.md)"
     return None
