@@ -102,6 +102,16 @@ def default_labels(a, b) -> List[str]:
 
 
 # -- rendering and metrics ---------------------------------------------------------------------------
+METRICS = ("psnr", "ssim", "lpips")
+
+
+def image_metrics(metrics: Dict[str, float]) -> Dict[str, float]:
+    """PSNR, SSIM and LPIPS from a model's own evaluation metrics: NeRF and MipNeRF name those of their fine
+    network ``fine_ssim`` / ``fine_lpips`` (their ``psnr`` is the fine one too)."""
+    found = {key: metrics.get(key, metrics.get(f"fine_{key}")) for key in METRICS}
+    return {key: float(value) for key, value in found.items() if value is not None}
+
+
 def render_views(run: Run, max_views: Optional[int]):
     """Per held-out view: the model's own evaluation metrics, the prediction and the ground truth (HxWx3 in [0, 1])."""
     import torch
@@ -119,9 +129,9 @@ def render_views(run: Run, max_views: Optional[int]):
             rgb = outputs["rgb_fine"] if "rgb_fine" in outputs else outputs["rgb"]
             width = rgb.shape[1]
             truth = shown["img"][:, :width, :3]
-            run.views.append({k: float(v) for k, v in metrics.items() if k in ("psnr", "ssim", "lpips")})
+            run.views.append(image_metrics(metrics))
             images.append((rgb.clamp(0, 1).cpu().numpy(), truth.clamp(0, 1).cpu().numpy()))
-    for key in ("psnr", "ssim", "lpips"):
+    for key in METRICS:
         values = [v[key] for v in run.views if key in v and math.isfinite(v[key])]
         if values:
             run.overall[key] = sum(values) / len(values)

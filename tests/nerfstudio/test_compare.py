@@ -58,6 +58,16 @@ def test_compare_renders_both_runs_scores_them_and_writes_one_offline_page(pair,
     assert "not new views" in table and "not new views" in page and report["scored_views"] == "training views"
 
 
+def test_the_fine_network_s_metrics_count_for_nerf_and_mipnerf():
+    """MipNeRF's evaluation names its SSIM ``fine_ssim``: a MipNeRF pair's table had PSNR only."""
+    from sp_plugins.cli.compare import image_metrics
+
+    mip = {"psnr": 25.0, "coarse_psnr": 20.0, "fine_psnr": 25.0, "fine_ssim": 0.8, "fine_lpips": 0.1}
+    assert image_metrics(mip) == {"psnr": 25.0, "ssim": 0.8, "lpips": 0.1}
+    assert image_metrics({"psnr": 30.0, "ssim": 0.9, "fine_ssim": 0.1}) == {"psnr": 30.0, "ssim": 0.9}
+    assert image_metrics({"psnr": 30.0, "num_rays": 5}) == {"psnr": 30.0}
+
+
 def test_scored_views_are_named_by_what_they_are_to_training():
     from sp_plugins.cli.compare import scored_kind
 
