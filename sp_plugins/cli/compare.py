@@ -209,7 +209,8 @@ def _wrap(text: str, width: int) -> List[str]:
 
 
 def curves_figure(runs: Sequence[Run], path: Path) -> bool:
-    if not any(run.curves for run in runs):
+    """Both runs' loss and PSNR, SP's alpha dotted; False (no figure) when no run logged two steps of them."""
+    if not any(len(run.curves.get(key, [])) > 1 for run in runs for key in ("loss", "psnr")):
         return False
     import matplotlib
 
@@ -350,7 +351,8 @@ def compare(args) -> int:
     if curves_figure(runs, out / "curves.png"):
         figures["Training curves (SP's alpha dotted)"] = out / "curves.png"
     else:
-        notes.append("No training curves: neither run wrote event files (train with --vis tensorboard or viewer+tensorboard).")
+        notes.append("No training curves: neither run logged its loss at two steps or more (train with --vis tensorboard or "
+                     "viewer+tensorboard, and --logging.steps-per-log below the run's length).")
     gt = None
     gt_path = args.gt_mesh or (data[0].parent / "gt_mesh.ply" if data[0] is not None else None)
     if gt_path is not None and gt_path.is_file():
