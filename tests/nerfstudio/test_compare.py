@@ -19,12 +19,13 @@ PAIR = ("neus-hashgrid", "sp-neus-hashgrid")
 
 @pytest.fixture(scope="module")
 def pair(tiny_scene, ns_server, tmp_path_factory):
-    """``method -> run folder`` of 4 steps of each (event files written: ``--vis viewer+tensorboard``)."""
+    """``method -> run folder`` of 11 steps of each (event files written: ``--vis viewer+tensorboard``; nerfstudio's
+    default ``--logging.steps-per-log 10`` logs steps 0 and 10, two points per curve)."""
     out = {}
     for method in PAIR:
         config = ns_train(method, tmp_path_factory.mktemp(method), ["sdfstudio-data", "--data", str(tiny_scene / "sdfstudio")],
                           *SDF_FLAGS, "--vis", "viewer+tensorboard", "--machine.seed", "3",
-                          *(["--pipeline.model.sp.end", "1.0"] if method.startswith("sp-") else []), steps=4, server=ns_server)
+                          *(["--pipeline.model.sp.end", "1.0"] if method.startswith("sp-") else []), steps=11, server=ns_server)
         out[method] = config.parent
     return out
 
@@ -46,7 +47,7 @@ def test_compare_renders_both_runs_scores_them_and_writes_one_offline_page(pair,
     for run in (a, b):
         assert 0 < run["overall"]["psnr"] < 60 and 0 < run["overall"]["ssim"] <= 1
         assert run["overall"]["psnr"] == pytest.approx(sum(v["psnr"] for v in run["views"]) / n)
-        assert run["step"] == 3 and 0 <= run["mesh"]["fscore"] <= 1 and run["mesh"]["chamfer"] > 0  # against gt_mesh.ply
+        assert run["step"] == 10 and 0 <= run["mesh"]["fscore"] <= 1 and run["mesh"]["chamfer"] > 0  # against gt_mesh.ply
     assert a["views"] != b["views"]  # two different models were rendered, not one twice
     page = (out / "compare.html").read_text()
     sources = re.findall(r'src="([^"]+)"', page)
@@ -66,6 +67,16 @@ def test_the_fine_network_s_metrics_count_for_nerf_and_mipnerf():
     assert image_metrics(mip) == {"psnr": 25.0, "ssim": 0.8, "lpips": 0.1}
     assert image_metrics({"psnr": 30.0, "ssim": 0.9, "fine_ssim": 0.1}) == {"psnr": 30.0, "ssim": 0.9}
     assert image_metrics({"psnr": 30.0, "num_rays": 5}) == {"psnr": 30.0}
+
+
+def test_no_curves_figure_from_runs_that_logged_one_step(tmp_path):
+    from sp_plugins.cli.compare import Run, curves_figure
+
+    runs = [Run(name, tmp_path / "config.yml", None) for name in ("a", "b")]
+    runs[0].curves = {"loss": [[0, 0.03]], "alpha": [[0, 1.0]]}
+    assert not curves_figure(runs, tmp_path / "curves.png") and not (tmp_path / "curves.png").exists()
+    runs[1].curves = {"loss": [[0, 0.03], [10, 0.02]]}
+    assert curves_figure(runs, tmp_path / "curves.png") and (tmp_path / "curves.png").is_file()
 
 
 def test_scored_views_are_named_by_what_they_are_to_training():
@@ -89,7 +100,8 @@ def test_the_sp_run_s_alpha_is_read_from_its_event_file(pair, tmp_path):
         curves[method] = run.curves
     assert [step for step, _ in curves["sp-neus-hashgrid"]["loss"]] == [step for step, _ in curves["neus-hashgrid"]["loss"]]
     alphas = curves["sp-neus-hashgrid"]["alpha"]
-    assert alphas[0][1] == pytest.approx(0.013, rel=1e-3) and all(value > 0 for _, value in alphas)
+    assert [step for step, _ in alphas] == [0, 10]  # nerfstudio's default: every 10 steps
+    assert alphas[0][1] == pytest.approx(0.013, rel=1e-3) and 0 <= alphas[-1][1] < alphas[0][1]  # annealed by its end
     assert all(value == 0 for _, value in curves["neus-hashgrid"].get("alpha", [[0, 0]]))
 
 
