@@ -217,8 +217,10 @@ def curves_figure(runs: Sequence[Run], path: Path) -> bool:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
-    for ax, key, title in ((axes[0], "loss", "training loss"), (axes[1], "psnr", "training PSNR (dB)")):
+    panels = [(key, title) for key, title in (("loss", "training loss"), ("psnr", "training PSNR (dB)"))
+              if any(len(run.curves.get(key, [])) > 1 for run in runs)]  # MipNeRF logs no training PSNR
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 3.6), squeeze=False)
+    for ax, (key, title) in zip(axes[0], panels):
         for run, colour in zip(runs, ("tab:blue", "tab:orange")):
             points = sorted(run.curves.get(key, []))
             if points:
@@ -235,7 +237,7 @@ def curves_figure(runs: Sequence[Run], path: Path) -> bool:
                 if points:
                     twin.plot([p[0] for p in points], [p[1] for p in points], color=colour, ls=":", lw=1)
             twin.set_ylabel("SP alpha (dotted)", fontsize=8)
-    axes[0].legend(fontsize=7)
+    axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

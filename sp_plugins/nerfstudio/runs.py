@@ -82,10 +82,24 @@ def configure_run(
 
 
 def train(config: TrainerConfig) -> Trainer:
-    """Set up and run the trainer in this process; returns it (pipeline, step, checkpoint dir)."""
+    """Set up and run the trainer in this process; returns it (pipeline, step, checkpoint dir).
+
+    nerfstudio's event writers are module globals that its trainer adds and never removes: the writers this run
+    added are closed and dropped at its end, or the next run trained in the same process would also write its
+    scalars into this run's event file (two runs' curves interleaved in one file)."""
+    from nerfstudio.utils import writer
+
     config.set_timestamp() if not config.timestamp else None
     config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.train()
+    before = len(writer.EVENT_WRITERS)
+    try:
+        trainer = config.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        trainer.train()
+    finally:
+        for added in writer.EVENT_WRITERS[before:]:
+            tb = getattr(added, "tb_writer", None)
+            if tb is not None:
+                tb.close()
+        del writer.EVENT_WRITERS[before:]
     return trainer
