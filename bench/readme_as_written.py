@@ -21,7 +21,8 @@ A stated cost is declared where the text states it, by a comment right after the
 ``<!-- stated: ns-train sp-neus-hashgrid=7 min; sp-export-mesh=1 min -->`` (a key is a piece of the command's
 text, as the shell traced it). A command that takes more than 1.5x its stated cost is flagged.
 
-Resumable: each block's record is kept in ``bench/out/readme_as_written/state.json`` under a hash of its text,
+Resumable: each block's record is kept in ``bench/out/readme_as_written/state.json`` under its document's name and
+a hash of its text (not its line: an edit above a block keeps its record),
 and a block that passed is not run again while its text is unchanged (``--fresh`` starts over). Writes
 ``bench/results/readme_as_written.md`` and ``.json``.
 """
@@ -68,7 +69,17 @@ class Item:
 
     @property
     def key(self) -> str:
-        return f"{self.block.path.name}:{self.block.line}:" + hashlib.sha256(self.block.source.encode()).hexdigest()[:12]
+        """The document and the block's text: a block keeps its record when lines above it change."""
+        return f"{self.block.path.name}:" + hashlib.sha256(self.block.source.encode()).hexdigest()[:12]
+
+
+def by_text(state: Dict[str, Dict]) -> Dict[str, Dict]:
+    """``state`` keyed as :attr:`Item.key` (records written before keyed ``name:line:hash``; the newest wins)."""
+    out: Dict[str, Dict] = {}
+    for key, record in sorted(state.items(), key=lambda kv: kv[1].get("date", "")):
+        parts = key.split(":")
+        out[f"{parts[0]}:{parts[-1]}"] = record
+    return out
 
 
 def items(path: Path) -> List[Item]:
@@ -185,7 +196,7 @@ def main(argv=None) -> int:
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "logs").mkdir(exist_ok=True)
     state_path = OUT / "state.json"
-    state: Dict[str, Dict] = json.loads(state_path.read_text()) if state_path.is_file() else {}
+    state: Dict[str, Dict] = by_text(json.loads(state_path.read_text())) if state_path.is_file() else {}
     work = OUT / "work"
     work.mkdir(exist_ok=True)
     prepare(work)
