@@ -8,7 +8,8 @@ training) on the DTU-like Spot (``../shared/data/meshes/spot.ply``) from 9 of it
 study's quick budget (2000 steps, lr 2e-3, a 4 x 128 MLP, 32 + 32 samples, 256 rays), the loss logged every
 25 steps for the curves. Both are trained with nerfstudio's trainer into run folders (``bench/out/sparse_compare/``;
 finished runs are kept), then ``sp-compare BASELINE SP`` writes its page, JSON and figures to ``bench/results/sparse_compare/``, and
-headless Chromium opens the page offline and screenshots it there (``page.png``).
+headless Chromium opens the page offline and screenshots it there (``page.png``); ``views.png``, made smaller, is
+the compare guide's figure (``docs/sp_compare_sparse.jpg``).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from bench.harness import radiance as rd  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "sparse_compare"
 RESULTS = ROOT / "bench" / "results" / "sparse_compare"
+DOCS_FIGURE = ROOT / "docs" / "sp_compare_sparse.jpg"
 BUDGET = rd.MipBudget(steps=2000, lr=2e-3, views=9, dtu_like=True, alpha0=1.0, end=667)
 SEED = 0
 LOG_EVERY = 25
@@ -42,6 +44,15 @@ def trained(sp: bool, data: Path) -> Path:
         train(config)
     assert done.is_file(), f"{done} missing after training"
     return path
+
+
+def docs_figure(views: Path, out: Path) -> None:
+    """The compare guide's figure: ``views.png`` at 860 px wide (JPEG: a tenth of the PNG's size)."""
+    from PIL import Image
+
+    with Image.open(views) as image:
+        width, height = image.size
+        image.convert("RGB").resize((860, round(height * 860 / width)), Image.LANCZOS).save(out, quality=88, optimize=True)
 
 
 def screenshot(page: Path, out: Path) -> None:
@@ -64,6 +75,7 @@ def main() -> None:
     compare = Path(sys.executable).with_name("sp-compare")
     subprocess.run([str(compare), str(baseline), str(sp), "--output-dir", str(RESULTS)], check=True, cwd=ROOT)
     screenshot(RESULTS / "compare.html", RESULTS / "page.png")
+    docs_figure(RESULTS / "views.png", DOCS_FIGURE)
     print((RESULTS / "compare.json").read_text()[:2000])
 
 
