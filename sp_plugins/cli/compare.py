@@ -85,12 +85,15 @@ def sp_summary(config) -> str:
     return f"SP alpha0 {sp.alpha0:g} to 0 by {sp.end:g}" if sp.enabled else "SP off"
 
 
+HELD_OUT = "held-out views"
+
+
 def scored_kind(train: Sequence[str], scored: Sequence[str]) -> str:
     """What the scored views are to the runs: held out, or training views (a dataparser that holds out none, as
     sdfstudio-data: every split is every image), or held out in part."""
     seen = len(set(scored) & set(train))
     if seen == 0:
-        return "held-out views"
+        return HELD_OUT
     return "training views" if seen == len(scored) else f"views ({seen} of them training views)"
 
 
@@ -209,16 +212,17 @@ def _wrap(text: str, width: int) -> List[str]:
 
 
 def curves_figure(runs: Sequence[Run], path: Path) -> bool:
-    """Both runs' loss and PSNR, SP's alpha dotted; False (no figure) when no run logged two steps of them."""
-    if not any(len(run.curves.get(key, [])) > 1 for run in runs for key in ("loss", "psnr")):
+    """Both runs' loss and PSNR, SP's alpha dotted; a panel only where a run logged two steps or more of it
+    (MipNeRF logs no training PSNR); False (no figure) when there is none."""
+    panels = [(key, title) for key, title in (("loss", "training loss"), ("psnr", "training PSNR (dB)"))
+              if any(len(run.curves.get(key, [])) > 1 for run in runs)]
+    if not panels:
         return False
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [(key, title) for key, title in (("loss", "training loss"), ("psnr", "training PSNR (dB)"))
-              if any(len(run.curves.get(key, [])) > 1 for run in runs)]  # MipNeRF logs no training PSNR
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 3.6), squeeze=False)
     for ax, (key, title) in zip(axes[0], panels):
         for run, colour in zip(runs, ("tab:blue", "tab:orange")):
@@ -244,7 +248,7 @@ def curves_figure(runs: Sequence[Run], path: Path) -> bool:
     return True
 
 
-def table(runs: Sequence[Run], kind: str = "held-out views") -> List[List[str]]:
+def table(runs: Sequence[Run], kind: str = HELD_OUT) -> List[List[str]]:
     """Rows of the overall comparison: metric, run A, run B, B - A (or B / A for mesh distances)."""
     rows = [["", runs[0].label, runs[1].label, "B - A"]]
     for key, label in (("psnr", "PSNR (dB)"), ("ssim", "SSIM"), ("lpips", "LPIPS")):
@@ -266,7 +270,7 @@ def _inline(path: Path) -> str:
 
 
 def write_html(runs: Sequence[Run], rows: List[List[str]], figures: Dict[str, Path], notes: List[str], path: Path,
-               kind: str = "held-out views") -> None:
+               kind: str = HELD_OUT) -> None:
     esc = html.escape
     head = "".join(f"<th>{esc(c)}</th>" for c in rows[0])
     body = "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in row) + "</tr>" for row in rows[1:])
@@ -344,10 +348,9 @@ def compare(args) -> int:
     figures: Dict[str, Path] = {}
     views_figure(images[0], images[1], runs, out / "views.png")
     figures[f"{kind[0].upper()}{kind[1:]}: truth, both renders, both errors (one colour scale)"] = out / "views.png"
-    notes = []
-    if kind != "held-out views":
-        notes.append(f"The scored views are {kind}: this run's dataparser does not hold them out, so their PSNR and SSIM "
-                     "measure the fit to training images, not new views.")
+    fit_only = None if kind == HELD_OUT else (f"The scored views are {kind}: this run's dataparser does not hold them "
+                                              "out, so their PSNR and SSIM measure the fit to training images, not new views.")
+    notes = [fit_only] if fit_only else []
     for run in runs:
         read_curves(run)
     if curves_figure(runs, out / "curves.png"):
@@ -384,8 +387,8 @@ def compare(args) -> int:
     (out / "compare.json").write_text(json.dumps(payload, indent=1))
     write_html(runs, rows, figures, notes, out / "compare.html", kind)
     print_table(rows)
-    if kind != "held-out views":
-        print(notes[0])
+    if fit_only:
+        print(fit_only)
     print(f"wrote {out / 'compare.html'}, {out / 'compare.json'}, " + ", ".join(str(p) for p in figures.values()))
     return 0
 

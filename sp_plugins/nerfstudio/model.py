@@ -24,7 +24,6 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.model_components.scene_colliders import AABBBoxCollider
 
 from sp_plugins.adapter import model as adapter_model
 from sp_plugins.adapter.model import SPModelConfig
@@ -36,6 +35,7 @@ from sp_plugins.adapter.errors import InputError, build_failure
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.nerfstudio import table
 from sp_plugins.nerfstudio.host import HOST
+from sp_plugins.nerfstudio.components.colliders import GRAZING_RAYS_HINT, unbounded_surface_rays
 from sp_plugins.nerfstudio.components.viewer_panel import SPPanel, update_callback
 from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lpips, offline_lpips
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
@@ -237,13 +237,9 @@ class SPModel(adapter_model.SPModelBase):
         return losses
 
     def _divergence_hint(self) -> Optional[str]:
-        """A surface model that kept nerfstudio's box collider (``sp-train neus``, a plugin's NeuS): its rays
-        that graze the box can make the background NaN whatever the learning rate (components/colliders.py)."""
-        if type(getattr(self, "collider", None)) is AABBBoxCollider and hasattr(self.config, "far_plane_bg"):  # type: ignore[attr-defined]
-            return ("this surface model keeps nerfstudio's box collider, which starts a ray that grazes the box beyond "
-                    "the background's far plane (a NaN background colour); sp-neus, sp-neus-hashgrid and neus-hashgrid "
-                    "bound such rays (docs/troubleshooting.md)")
-        return None
+        """A surface model that kept nerfstudio's box collider (``sp-train neus``, a plugin's NeuS): its grazing
+        rays can make the background NaN whatever the learning rate (components/colliders.py)."""
+        return GRAZING_RAYS_HINT if unbounded_surface_rays(self) else None
 
     def _lr_groups(self) -> List[str]:
         return [g for g in self.get_param_groups() if g != ALPHA_GRID_GROUP]  # type: ignore[attr-defined]

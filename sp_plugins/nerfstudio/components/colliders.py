@@ -54,9 +54,21 @@ class SurfaceBoxCollider(AABBBoxCollider):
         return ray_bundle
 
 
+GRAZING_RAYS_HINT = ("this surface model keeps nerfstudio's box collider, which starts a ray that grazes the box beyond "
+                     "the background's far plane (a NaN background colour); sp-neus, sp-neus-hashgrid and neus-hashgrid "
+                     "bound such rays (docs/troubleshooting.md)")
+"""What a divergence of a model with :func:`unbounded_surface_rays` names as its likely cause."""
+
+
+def unbounded_surface_rays(model) -> bool:
+    """``model`` is a surface model (it samples a background to ``far_plane_bg``) on nerfstudio's own box
+    collider, whose grazing rays can start beyond that far plane (a model with ``overwrite_near_far_plane``
+    has a near/far collider, which has no such rays)."""
+    return type(getattr(model, "collider", None)) is AABBBoxCollider and hasattr(getattr(model, "config", None), "far_plane_bg")
+
+
 def bound_surface_rays(model) -> None:
-    """Give a nerfstudio ``SurfaceModel`` that built nerfstudio's box collider :class:`SurfaceBoxCollider`
-    (a model with ``overwrite_near_far_plane`` keeps its near/far collider, which has no such rays)."""
-    collider = getattr(model, "collider", None)
-    if type(collider) is AABBBoxCollider:
+    """Give a nerfstudio ``SurfaceModel`` with :func:`unbounded_surface_rays` :class:`SurfaceBoxCollider`."""
+    if unbounded_surface_rays(model):
+        collider = model.collider
         model.collider = SurfaceBoxCollider(collider.scene_box, collider.near_plane, model.config.far_plane_bg)
