@@ -100,11 +100,13 @@ class Patch:
 ENTRIES: Dict[str, str] = {
     # name -> module holding its PATCH
     "nerfstudio_external_methods": "sp_plugins.patches.nerfstudio_external_methods",
+    "nerfstudio_parallel_seed": "sp_plugins.patches.nerfstudio_parallel_seed",
     "nerfstudio_sdf_field": "sp_plugins.patches.nerfstudio_sdf_field",
     "nerfstudio_marching_cubes": "sp_plugins.patches.nerfstudio_marching_cubes",
     "nerfstudio_lpips": "sp_plugins.patches.nerfstudio_lpips",
     "nerfbaselines_lpips": "sp_plugins.patches.nerfbaselines_lpips",
     "host_warnings": "sp_plugins.patches.host_warnings",
+    "torch_deterministic": "sp_plugins.patches.torch_deterministic",
     "input_error_hook": "sp_plugins.patches.input_error_hook",
     "sdfstudio_import_hook": "sp_plugins.patches.sdfstudio_import_hook",
     "sdfstudio_dataclasses": "sp_plugins.patches.sdfstudio_dataclasses",

@@ -44,6 +44,7 @@ def _train(argv: Optional[list]) -> None:
 
     install_process_settings()
     registry.install_for_process("nerfstudio_external_methods", command="sp-train")
+    registry.install_for_process("nerfstudio_parallel_seed", command="sp-train")  # a plugin's own parallel data manager too
     import tyro
     from nerfstudio.configs.config_utils import convert_markup_to_ansi
     from nerfstudio.configs.method_configs import all_descriptions, all_methods

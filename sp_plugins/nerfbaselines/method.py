@@ -68,6 +68,7 @@ class SPNerfStudio(NerfStudio):
             raise RuntimeError(f"{type(self).__name__} is built by nerfbaselines from one of our specs, not {self._sp_id!r}")
         self._sp_entry = specs.ENTRIES[self._sp_id]
         registry.hold("nerfbaselines_lpips", self)
+        registry.hold("torch_deterministic", self)  # runs repeat at any thread count (patches/torch_deterministic.py)
         overrides = dict(config_overrides or {})
         passed = {key: overrides.pop(key) for key in PASSED if key in overrides}
         # (read by nerfbaselines' __init__; a "method" key it would also try to set as a config field)

@@ -90,10 +90,10 @@ def install_process_settings(owner: object = None, *, run: bool = False) -> None
     from sp_plugins.patches import registry
 
     if owner is None:
-        for name in ("input_error_hook", "host_warnings"):
+        for name in ("input_error_hook", "host_warnings", "torch_deterministic"):
             registry.install_for_process(name, command="sp-train")
         return
-    for name in ("input_error_hook", "host_warnings") if run else ("input_error_hook",):
+    for name in ("input_error_hook", "host_warnings", "torch_deterministic") if run else ("input_error_hook",):
         registry.hold(name, owner)
 
 

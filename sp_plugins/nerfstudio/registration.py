@@ -39,6 +39,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     from nerfstudio.plugins.types import MethodSpecification
 
     from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+    from sp_plugins.nerfstudio.components.parallel_data import repeatable_datamanager
     from sp_plugins.nerfstudio.components.schedulers import with_float_schedulers
     from sp_plugins.adapter.variants import refuse_or_switch_on
     from sp_plugins.nerfstudio.variants import variant
@@ -55,6 +56,7 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     config.method_name = name or (config.method_name if config.method_name.startswith("sp-") else f"sp-{config.method_name}")
     config.optimizers[ALPHA_GRID_GROUP] = alpha_grid_optimizer(config.pipeline.model.sp, AdamOptimizerConfig)
     with_float_schedulers(config.optimizers)  # the host's numpy learning rates break torch.load in ns-eval
+    repeatable_datamanager(config.pipeline.datamanager)  # nerfstudio's ray workers never see the trainer's seed
     text = description or f"{base_description} + stochastic preconditioning of the sample positions (sp-plugins)."
     return MethodSpecification(config=config, description=text)
 

@@ -31,7 +31,7 @@ from sp_plugins.patches import registry
 from sp_plugins.patches.registry import PatchGuardError
 from tests.helpers.sp_fields import installed_for_process
 
-HOSTS = ("nerfstudio", "python", "torchmetrics") + (("nerfbaselines",) if importlib.util.find_spec("nerfbaselines") else ())
+HOSTS = ("nerfstudio", "python", "torchmetrics", "torch") + (("nerfbaselines",) if importlib.util.find_spec("nerfbaselines") else ())
 ENTRIES = [p for p in registry.entries() if p.host in HOSTS]
 
 
@@ -125,12 +125,14 @@ def changed(before: dict, after: dict) -> list:
 ACTIVE = {  # inside the scope: what must be different
     "nerfstudio_external_methods": lambda: getattr(
         resolve("nerfstudio.configs.external_methods").ExternalMethodDummyTrainerConfig.__post_init__, "__sp_original__", None) is not None,
+    "nerfstudio_parallel_seed": lambda: resolve("nerfstudio.data.datamanagers.parallel_datamanager").DataProcessor.__name__ == "build",
     "nerfstudio_sdf_field": lambda: type(resolve("nerfstudio.fields.sdf_field").tcnn).__name__ == "_TorchTcnnShim",
     "nerfstudio_marching_cubes": lambda: resolve("nerfstudio.exporter.marching_cubes").generate_mesh_with_multires_marching_cubes.__name__
     == "scoped_marching_cubes",
     "nerfstudio_lpips": lambda: hasattr(resolve("torchmetrics.image.lpip").LearnedPerceptualImagePatchSimilarity, "real"),
     "nerfbaselines_lpips": lambda: hasattr(resolve("nerfbaselines.metrics")._lpips, "real"),
     "host_warnings": lambda: any(getattr(f[1], "pattern", "").startswith("Using a non-tuple sequence") for f in warnings.filters),
+    "torch_deterministic": lambda: torch.are_deterministic_algorithms_enabled(),
     "input_error_hook": lambda: getattr(sys.excepthook, "sp_plugins_input_errors", False),
 }
 ARGS = {"nerfstudio_marching_cubes": {"force": True}, "nerfstudio_sdf_field": {"force": True}}
