@@ -56,7 +56,9 @@ def _check(patch: Patch) -> None:
     real = getattr(parallel_datamanager, NAME, None)
     patch.expect(inspect.isclass(real), f"{MODULE}.{NAME} a class", f"{MODULE}.{NAME} = {type(real).__name__}")
     patch.expect(callable(getattr(real, "run", None)), f"{NAME}.run", "no run method")
-    source = inspect.getsource(parallel_datamanager.ParallelDataManager.setup_train)
+    manager = getattr(parallel_datamanager, "ParallelDataManager", None)
+    patch.expect(inspect.isclass(manager), f"{MODULE}.ParallelDataManager a class", f"{type(manager).__name__}")
+    source = inspect.getsource(manager.setup_train)
     patch.expect(f"{NAME}(" in source, f"ParallelDataManager.setup_train building {NAME}(...) by its module name",
                  "a setup_train that does not")
 
