@@ -1,6 +1,13 @@
-"""``sp-compare``: two nerfstudio runs side by side, e.g. a method and its SP version on the same data and seed.
+"""``sp-compare``: nerfstudio runs side by side, a method and its SP version on the same data, one pair or one per seed.
 
     sp-compare outputs/baseline/nerfacto/RUN outputs/sp/nerfacto/RUN --output-dir compare
+    sp-compare --baseline A1 A2 A3 --sp B1 B2 B3 --output-dir compare      # paired by seed
+
+With runs over seeds (``--baseline`` / ``--sp``, paired by ``--machine.seed``): each pair's report in
+``seed-N/`` as below, then each side's mean and spread, the paired difference with its 95% t interval over the
+seeds (:func:`sp_plugins.stats.paired_difference`) and a verdict in words (better, worse, within the noise), a
+figure of every seed's values, and one page. One pair says plainly that it cannot tell SP's effect from
+run-to-run noise.
 
 Renders the same held-out views from both runs (the evaluation split nerfstudio's ``ns-eval`` scores), beside the
 ground truth, with an error map per run on one colour scale; PSNR / SSIM (and LPIPS where its weights are cached)
@@ -37,8 +44,11 @@ CURVES = {"loss": "Train Loss", "psnr": "Train Metrics Dict/psnr", "alpha": "Tra
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0].split(": ", 1)[1])
-    parser.add_argument("run_a", type=Path, help="a run folder ns-train wrote (holding config.yml), or its config.yml")
-    parser.add_argument("run_b", type=Path, help="the other run, on the same data")
+    parser.add_argument("run_a", type=Path, nargs="?", help="a run folder ns-train wrote (holding config.yml), or its config.yml")
+    parser.add_argument("run_b", type=Path, nargs="?", help="the other run, on the same data")
+    parser.add_argument("--baseline", type=Path, nargs="+", metavar="RUN", help="baseline runs, one per seed (with --sp; "
+                        "instead of RUN_A RUN_B)")
+    parser.add_argument("--sp", type=Path, nargs="+", metavar="RUN", help="the SP runs of the same seeds")
     parser.add_argument("--output-dir", type=Path, default=Path("compare"), help="where the report goes (default: ./compare)")
     parser.add_argument("--names", nargs=2, metavar=("A", "B"), help="labels of the runs (default: from their method, "
                         "experiment and SP setting)")
@@ -308,26 +318,99 @@ def main(argv: Optional[List[str]] = None) -> int:
     return answer(PROG, compare, build_parser().parse_args(argv))
 
 
-def compare(args) -> int:
-    from sp_plugins.cli.run_folder import load_saved_config, setup_pipeline
+ONE_PAIR_NOTE = ("One pair cannot tell SP's effect from run-to-run noise: over seeds 0-2 the README's examples moved by "
+                 "1.6-2.3 dB in PSNR (nerfacto, sd) and 0.0006 in Chamfer (NeuS on a hash grid, sd). Train three seeds or "
+                 "more a side (--machine.seed) and pass --baseline A1 A2 A3 --sp B1 B2 B3.")
+"""What a one-pair comparison prints (the spreads: docs/results, "The README's first SP examples over seeds")."""
 
+
+def check_options(args) -> None:
     if args.max_views is not None and args.max_views < 1:
         raise Refused(f"--max-views {args.max_views}: must be at least 1")
     if args.mesh_resolution < 16:
         raise Refused(f"--mesh-resolution {args.mesh_resolution}: need at least 16 cells (128 and up for a useful mesh)")
-    paths = [config_of(args.run_a), config_of(args.run_b)]
-    configs = [load_saved_config(p, flag) for p, flag in zip(paths, ("RUN_A", "RUN_B"))]
-    data = [data_of(c) for c in configs]
-    if data[0] != data[1]:
-        raise Refused(f"the runs were trained on different data ({data[0]} and {data[1]}): compare two runs of one scene")
+    seeded = args.baseline is not None or args.sp is not None
+    if seeded and (args.run_a is not None or args.run_b is not None):
+        raise Refused("pass either RUN_A RUN_B or --baseline ... --sp ..., not both")
+    if seeded and (args.baseline is None or args.sp is None):
+        raise Refused(f"--{'sp' if args.sp is None else 'baseline'} is missing: pass --baseline A1 A2 ... --sp B1 B2 ... "
+                      "(runs of the same seeds)")
+    if seeded and len(args.baseline) != len(args.sp):
+        raise Refused(f"--baseline has {len(args.baseline)} runs and --sp {len(args.sp)}: pass one of each per seed")
+    if seeded and args.names:
+        raise Refused("--names labels two runs; with --baseline / --sp the sides are named baseline and SP")
+    if not seeded and (args.run_a is None or args.run_b is None):
+        raise Refused("pass two runs (RUN_A RUN_B) or --baseline A1 A2 ... --sp B1 B2 ...")
+
+
+def compare(args) -> int:
     from sp_plugins.adapter.checks import check_writable_dir
     from sp_plugins.adapter.errors import InputError
 
+    check_options(args)
+    if args.baseline is None:
+        paths = [config_of(args.run_a), config_of(args.run_b)]
+        configs = load_configs(paths, ("RUN_A", "RUN_B"))
+    else:
+        paths, configs, seeds = pair_by_seed(args.baseline, args.sp)
     try:
         check_writable_dir(args.output_dir, "--output-dir")
     except InputError as err:
         raise Refused(str(err)) from None
-    labels = args.names or default_labels(*configs)
+    if args.baseline is None:
+        payload = compare_pair(paths, configs, args.names or default_labels(*configs), args.output_dir, args)
+        print(ONE_PAIR_NOTE)
+        payload["noise"] = ONE_PAIR_NOTE
+        (args.output_dir / "compare.json").write_text(json.dumps(payload, indent=1))
+        return 0
+    pairs = []
+    for seed, pair_paths, pair_configs in zip(seeds, paths, configs):
+        print(f"{PROG}: seed {seed}", flush=True)
+        payload = compare_pair(pair_paths, pair_configs, [f"baseline (seed {seed})", f"SP (seed {seed})"],
+                               args.output_dir / f"seed-{seed}", args)
+        pairs.append((seed, payload))
+    write_seed_report(pairs, args.output_dir)
+    return 0
+
+
+def load_configs(paths: Sequence[Path], flags: Sequence[str]) -> list:
+    from sp_plugins.cli.run_folder import load_saved_config
+
+    configs = [load_saved_config(p, flag) for p, flag in zip(paths, flags)]
+    data = [data_of(c) for c in configs]
+    if len(set(data)) > 1:
+        raise Refused(f"the runs were trained on different data ({data[0]} and {next(d for d in data if d != data[0])}): "
+                      "compare runs of one scene")
+    return configs
+
+
+def pair_by_seed(baseline: Sequence[Path], sp: Sequence[Path]):
+    """``(paths, configs, seeds)``: per seed (ascending) the baseline and SP run of that seed (``--machine.seed``)."""
+    paths = [config_of(p) for p in (*baseline, *sp)]
+    configs = load_configs(paths, [f"--baseline {p}" for p in baseline] + [f"--sp {p}" for p in sp])
+    n = len(baseline)
+    sides = {}
+    for side, chunk in (("baseline", range(n)), ("sp", range(n, 2 * n))):
+        by_seed: Dict[int, int] = {}
+        for i in chunk:
+            seed = int(configs[i].machine.seed)
+            if seed in by_seed:
+                raise Refused(f"--{side} has two runs of seed {seed} ({paths[by_seed[seed]]} and {paths[i]}): one run per seed a side")
+            by_seed[seed] = i
+        sides[side] = by_seed
+    if set(sides["baseline"]) != set(sides["sp"]):
+        raise Refused(f"the sides were trained at different seeds (baseline {sorted(sides['baseline'])}, SP {sorted(sides['sp'])}): "
+                      "pair each baseline with the SP run of its seed")
+    seeds = sorted(sides["baseline"])
+    pairs = [(sides["baseline"][s], sides["sp"][s]) for s in seeds]
+    return [[paths[a], paths[b]] for a, b in pairs], [[configs[a], configs[b]] for a, b in pairs], seeds
+
+
+def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str], out: Path, args) -> dict:
+    """One pair's report in ``out`` (views, curves, meshes, table, page, JSON); returns the JSON's content."""
+    from sp_plugins.cli.run_folder import setup_pipeline
+
+    data = [data_of(c) for c in configs]
     runs = [Run(label, path, config) for label, path, config in zip(labels, paths, configs)]
     for run, flag in zip(runs, ("RUN_A", "RUN_B")):
         run.pipeline, run.step = setup_pipeline(run.config_path, run.config, flag, test_mode="test")
@@ -340,7 +423,6 @@ def compare(args) -> int:
     train_dataset = getattr(runs[0].pipeline.datamanager, "train_dataset", None)
     trained_on = [str(Path(f).resolve()) for f in train_dataset._dataparser_outputs.image_filenames] if train_dataset else []
     kind = scored_kind(trained_on, views[0])
-    out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
     print(f"{PROG}: rendering {len(views[0]) if args.max_views is None else min(args.max_views, len(views[0]))} {kind} "
           "of each run", flush=True)
@@ -377,8 +459,9 @@ def compare(args) -> int:
                      + (f"; metrics against {gt_path}" if gt is not None else "; no true mesh at hand (--gt-mesh)"))
     rows = table(runs, kind)
     payload = {
-        "runs": [{"label": r.label, "config": str(r.config_path), "step": r.step, "sp": sp_summary(r.config),
-                  "overall": r.overall, "views": r.views, "mesh": {k: v for k, v in (r.mesh or {}).items() if k != "mesh"} or None}
+        "runs": [{"label": r.label, "config": str(r.config_path), "step": r.step, "seed": int(r.config.machine.seed),
+                  "sp": sp_summary(r.config), "overall": r.overall, "views": r.views,
+                  "mesh": {k: v for k, v in (r.mesh or {}).items() if k != "mesh"} or None}
                  for r in runs],
         "held_out_views": [Path(v).name for v in views[0]],
         "scored_views": kind,
@@ -390,7 +473,128 @@ def compare(args) -> int:
     if fit_only:
         print(fit_only)
     print(f"wrote {out / 'compare.html'}, {out / 'compare.json'}, " + ", ".join(str(p) for p in figures.values()))
-    return 0
+    return payload
+
+
+# -- over seeds ------------------------------------------------------------------------------------
+SUMMARY_METRICS = (
+    ("psnr", "PSNR (dB)", "overall", True), ("ssim", "SSIM", "overall", True), ("lpips", "LPIPS", "overall", False),
+    ("chamfer", "Chamfer (of the true diagonal)", "mesh", False), ("fscore", "F-score @1%", "mesh", True),
+    ("normal_consistency", "normal consistency", "mesh", True),
+)
+"""(key, label, where in a run's JSON, higher is better) of the metrics summarised over seeds."""
+
+
+def seed_summary(pairs: Sequence[tuple]) -> List[dict]:
+    """Per metric both runs of every pair have: each side's values by seed, mean and sd, and the paired
+    difference SP - baseline with its interval and verdict. ``pairs``: ``(seed, payload)`` as
+    :func:`compare_pair` returns them (run 0 the baseline, run 1 SP)."""
+    from sp_plugins.stats import paired_difference, spread
+
+    out = []
+    for key, label, where, higher in SUMMARY_METRICS:
+        values = [[(run.get(where) or {}).get(key) for run in payload["runs"]] for _, payload in pairs]
+        if not values or any(v is None or not math.isfinite(v) for pair in values for v in pair):
+            continue
+        a, b = [v[0] for v in values], [v[1] for v in values]
+        (ma, sa), (mb, sb) = spread(a), spread(b)
+        out.append({"metric": key, "label": label, "higher_is_better": higher, "seeds": [seed for seed, _ in pairs],
+                    "baseline": a, "sp": b, "baseline_mean": ma, "baseline_sd": sa, "sp_mean": mb, "sp_sd": sb,
+                    "difference": paired_difference(a, b, higher_is_better=higher).as_dict()})
+    return out
+
+
+def _mean_sd(mean: float, sd: Optional[float]) -> str:
+    return f"{mean:.4g}" + (f" ± {sd:.2g}" if sd is not None else "")
+
+
+def summary_table(summary: Sequence[dict], kind: str) -> List[List[str]]:
+    """Rows of the over-seeds table: metric, baseline mean ± sd, SP mean ± sd, SP - baseline [95% interval], verdict."""
+    n = len(summary[0]["seeds"]) if summary else 0
+    rows = [["", f"baseline ({n} seeds)", f"SP ({n} seeds)", "SP - baseline [95% t interval]", "verdict for SP"]]
+    for item in summary:
+        d = item["difference"]
+        label = f"{item['label']}, {kind}" if item["metric"] in ("psnr", "ssim", "lpips") else item["label"]
+        interval = f"{d['mean']:+.3g}" + (f" [{d['low']:+.3g}, {d['high']:+.3g}]" if d["low"] is not None else "")
+        rows.append([label, _mean_sd(item["baseline_mean"], item["baseline_sd"]), _mean_sd(item["sp_mean"], item["sp_sd"]),
+                     interval, d["verdict"]])
+    return rows
+
+
+def per_seed_table(summary: Sequence[dict]) -> List[List[str]]:
+    """One row per seed: each metric's baseline -> SP."""
+    rows = [["seed"] + [item["label"] + " (baseline -> SP)" for item in summary]]
+    for i, seed in enumerate(summary[0]["seeds"] if summary else []):
+        rows.append([str(seed)] + [f"{item['baseline'][i]:.4g} -> {item['sp'][i]:.4g}" for item in summary])
+    return rows
+
+
+def seeds_figure(summary: Sequence[dict], path: Path) -> None:
+    """Per metric, every seed's baseline and SP value joined by a line (the pairing), and each side's mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(summary), figsize=(2.6 * len(summary), 3.2), squeeze=False)
+    for ax, item in zip(axes[0], summary):
+        for seed, a, b in zip(item["seeds"], item["baseline"], item["sp"]):
+            ax.plot([0, 1], [a, b], color="0.6", lw=1, marker="o", ms=4)
+            ax.annotate(str(seed), (1.03, b), fontsize=7, va="center")
+        ax.plot([0, 1], [item["baseline_mean"], item["sp_mean"]], color="tab:red", lw=2, marker="_", ms=16, label="mean")
+        d = item["difference"]
+        ax.set_title(f"{item['label']}\n{d['verdict']}", fontsize=8)
+        ax.set_xticks([0, 1], ["baseline", "SP"])
+        ax.set_xlim(-0.3, 1.3)
+        ax.tick_params(labelsize=7)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_seed_report(pairs: Sequence[tuple], out: Path) -> None:
+    esc = html.escape
+    kinds = {payload["scored_views"] for _, payload in pairs}
+    kind = kinds.pop() if len(kinds) == 1 else "views"
+    summary = seed_summary(pairs)
+    rows, seed_rows = summary_table(summary, kind), per_seed_table(summary)
+    figure = out / "seeds.png"
+    if summary:
+        seeds_figure(summary, figure)
+    payload = {"seeds": [seed for seed, _ in pairs], "scored_views": kind, "summary": summary, "table": rows,
+               "per_seed": seed_rows, "pairs": {str(seed): f"seed-{seed}/compare.json" for seed, _ in pairs},
+               "interval": "95% Student t over the seed pairs (n - 1 degrees of freedom)"}
+    (out / "compare.json").write_text(json.dumps(payload, indent=1))
+
+    def html_table(table_rows):
+        head = "".join(f"<th>{esc(c)}</th>" for c in table_rows[0])
+        body = "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in row) + "</tr>" for row in table_rows[1:])
+        return f"<table><tr>{head}</tr>{body}</table>"
+
+    links = "".join(f'<li><a href="seed-{seed}/compare.html">seed {seed}</a>: '
+                    + ", ".join(f"<code>{esc(r['config'])}</code>" for r in p["runs"]) + "</li>" for seed, p in pairs)
+    image = f'<h2>Every seed</h2><img alt="every seed" src="{_inline(figure)}">' if summary else ""
+    text = f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>sp-compare: baseline vs SP over {len(pairs)} seeds</title>
+<style>body{{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}}table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:.3em .6em;text-align:right}}td:first-child,th:first-child{{text-align:left}}
+img{{max-width:100%}}</style></head>
+<body><h1>sp-compare: baseline vs SP over {len(pairs)} seeds</h1>
+<h2>Paired by seed</h2>{html_table(rows)}
+<p>Differences are SP minus baseline, seed by seed; the interval is a 95% Student t interval over the seed pairs. A verdict
+says better or worse only when the interval excludes 0.</p>
+{image}
+<h2>Per seed</h2>{html_table(seed_rows)}
+<ul>{links}</ul>
+</body></html>
+"""
+    (out / "compare.html").write_text(text)
+    print()
+    print_table(rows)
+    print()
+    print_table(seed_rows)
+    print(f"wrote {out / 'compare.html'}, {out / 'compare.json'}" + (f", {figure}" if summary else ""))
 
 
 def entrypoint() -> None:

@@ -12,6 +12,7 @@ import subprocess
 
 import pytest
 
+from tests.helpers.errors import refused
 from tests.helpers.ns_commands import ENV, SDF_FLAGS, command, ns_train
 
 PAIR = ("neus-hashgrid", "sp-neus-hashgrid")
@@ -152,3 +153,141 @@ def test_the_page_opens_offline_in_a_browser_with_its_images(pair, tmp_path):
         if os.environ.get("SP_DOCS_SCREENSHOTS"):
             page.screenshot(path=str(Path(os.environ["SP_DOCS_SCREENSHOTS"]) / "sp_compare.png"), full_page=True)
         browser.close()
+
+
+# -- over seeds ------------------------------------------------------------------------------------
+def _payload(seed, a, b, kind="held-out views"):
+    """A pair's compare.json content with overall and mesh metrics ``a`` / ``b`` (dicts)."""
+    def run(label, m):
+        return {"label": label, "overall": {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")},
+                "mesh": {k: v for k, v in m.items() if k in ("chamfer", "fscore", "normal_consistency")} or None}
+    return seed, {"runs": [run("baseline", a), run("SP", b)], "scored_views": kind}
+
+
+def test_the_seed_summary_is_each_side_s_spread_and_the_paired_difference_with_its_t_interval():
+    from scipy.stats import t
+
+    from sp_plugins.cli.compare import per_seed_table, seed_summary, summary_table
+
+    pairs = [_payload(0, {"psnr": 20.0, "chamfer": 0.010}, {"psnr": 21.0, "chamfer": 0.012}),
+             _payload(1, {"psnr": 22.0, "chamfer": 0.011}, {"psnr": 23.2, "chamfer": 0.013}),
+             _payload(2, {"psnr": 21.0, "chamfer": 0.012}, {"psnr": 21.8, "chamfer": 0.011})]
+    psnr, chamfer = seed_summary(pairs)
+    assert psnr["metric"] == "psnr" and psnr["seeds"] == [0, 1, 2]
+    assert psnr["baseline"] == [20.0, 22.0, 21.0] and psnr["sp"] == [21.0, 23.2, 21.8]
+    assert psnr["baseline_mean"] == pytest.approx(21.0) and psnr["baseline_sd"] == pytest.approx(1.0)
+    assert psnr["sp_mean"] == pytest.approx(22.0) and psnr["sp_sd"] == pytest.approx(1.24**0.5)
+    d = psnr["difference"]  # differences 1.0, 1.2, 0.8: mean 1.0, sd 0.2
+    half = t.ppf(0.975, 2) * 0.2 / 3**0.5
+    assert d["n"] == 3 and d["mean"] == pytest.approx(1.0) and d["sd"] == pytest.approx(0.2)
+    assert (d["low"], d["high"]) == (pytest.approx(1.0 - half), pytest.approx(1.0 + half)) and d["verdict"] == "better"
+    # Chamfer: lower is better; differences +0.002, +0.002, -0.001 -> the interval holds 0
+    assert chamfer["higher_is_better"] is False and chamfer["difference"]["verdict"] == "within the noise"
+    rows = summary_table([psnr, chamfer], "held-out views")
+    assert rows[0] == ["", "baseline (3 seeds)", "SP (3 seeds)", "SP - baseline [95% t interval]", "verdict for SP"]
+    assert rows[1] == ["PSNR (dB), held-out views", "21 ± 1", "22 ± 1.1", f"+1 [{1 - half:+.3g}, {1 + half:+.3g}]", "better"]
+    assert rows[2][0] == "Chamfer (of the true diagonal)" and rows[2][4] == "within the noise"
+    assert per_seed_table([psnr, chamfer])[1:] == [["0", "20 -> 21", "0.01 -> 0.012"], ["1", "22 -> 23.2", "0.011 -> 0.013"],
+                                                   ["2", "21 -> 21.8", "0.012 -> 0.011"]]
+
+
+def test_a_lower_is_better_metric_that_falls_everywhere_is_better_and_a_missing_metric_is_left_out():
+    from sp_plugins.cli.compare import seed_summary
+
+    pairs = [_payload(s, {"psnr": 20.0, "lpips": 0.30 + s / 100}, {"psnr": 20.0 + s / 10, "lpips": 0.20 + s / 90}) for s in range(3)]
+    pairs.append(_payload(3, {"psnr": 20.0, "lpips": 0.31}, {"psnr": 20.4, "lpips": 0.215}))
+    lpips = next(item for item in seed_summary(pairs) if item["metric"] == "lpips")
+    assert lpips["difference"]["verdict"] == "better" and lpips["difference"]["high"] < 0
+    assert [item["metric"] for item in seed_summary(pairs)] == ["psnr", "lpips"]  # no SSIM, no mesh: no rows
+    worse = [_payload(s, {"psnr": 25.0 + s}, {"psnr": 24.0 + s - s / 10}) for s in range(3)]
+    assert seed_summary(worse)[0]["difference"]["verdict"] == "worse"
+    one = seed_summary([_payload(0, {"psnr": 20.0}, {"psnr": 25.0})])[0]["difference"]
+    assert one["verdict"] == "one pair: cannot tell" and one["low"] is None
+
+
+def test_the_pair_table_is_b_minus_a_for_each_metric_both_runs_have():
+    from pathlib import Path
+
+    from sp_plugins.cli.compare import Run, table
+
+    a, b = Run("A", Path("a"), None), Run("B", Path("b"), None)
+    a.overall, b.overall = {"psnr": 20.0, "ssim": 0.5}, {"psnr": 21.25, "ssim": 0.45, "lpips": 0.2}
+    a.views, b.views = [{}] * 3, [{}] * 3
+    a.mesh, b.mesh = {"chamfer": 0.02, "fscore": 0.5}, {"chamfer": 0.015, "fscore": 0.75}
+    a.step, b.step = 99, 100
+    assert table([a, b], "training views") == [
+        ["", "A", "B", "B - A"],
+        ["PSNR (dB), 3 training views", "20", "21.25", "+1.25"],
+        ["SSIM, 3 training views", "0.5", "0.45", "-0.05"],
+        ["Chamfer (of the true diagonal)", "0.02", "0.015", "-0.005"],
+        ["F-score @1%", "0.5", "0.75", "+0.25"],
+        ["trained steps", "99", "100", ""],
+    ]
+
+
+@pytest.fixture(scope="module")
+def second_seed(tiny_scene, ns_server, tmp_path_factory):
+    """The pair again at seed 4 (the module's pair is seed 3)."""
+    out = {}
+    for method in PAIR:
+        config = ns_train(method, tmp_path_factory.mktemp(f"{method}-4"), ["sdfstudio-data", "--data", str(tiny_scene / "sdfstudio")],
+                          *SDF_FLAGS, "--vis", "viewer+tensorboard", "--machine.seed", "4",
+                          *(["--pipeline.model.sp.end", "1.0"] if method.startswith("sp-") else []), steps=3, server=ns_server)
+        out[method] = config.parent
+    return out
+
+
+def test_runs_over_seeds_are_paired_by_seed_and_summarised_from_each_pair_s_own_report(pair, second_seed, tmp_path):
+    out = tmp_path / "seeds"
+    # given in different orders on the two sides: the pairing is by --machine.seed, not by position
+    proc = _compare("--baseline", pair["neus-hashgrid"], second_seed["neus-hashgrid"], "--sp", second_seed["sp-neus-hashgrid"],
+                    pair["sp-neus-hashgrid"], "--output-dir", out, "--max-views", "1", "--mesh-resolution", "32")
+    report = json.loads((out / "compare.json").read_text())
+    assert report["seeds"] == [3, 4] and report["interval"].startswith("95% Student t")
+    for seed, steps in ((3, 10), (4, 2)):
+        pair_report = json.loads((out / f"seed-{seed}" / "compare.json").read_text())
+        base, sp = pair_report["runs"]
+        assert (base["seed"], sp["seed"]) == (seed, seed) and "SP off" in base["sp"] and "SP alpha0" in sp["sp"]
+        assert base["step"] == sp["step"] == steps
+        assert len(base["views"]) == len(sp["views"]) == 1  # --max-views 1
+        i = report["seeds"].index(seed)
+        for item in report["summary"]:
+            where = "overall" if item["metric"] in ("psnr", "ssim", "lpips") else "mesh"
+            assert item["baseline"][i] == base[where][item["metric"]] and item["sp"][i] == sp[where][item["metric"]]
+    psnr = next(item for item in report["summary"] if item["metric"] == "psnr")
+    diffs = [b - a for a, b in zip(psnr["baseline"], psnr["sp"])]
+    assert psnr["difference"]["mean"] == pytest.approx(sum(diffs) / 2) and psnr["difference"]["n"] == 2
+    assert report["table"][1][0] == "PSNR (dB), training views" and psnr["difference"]["verdict"] in proc.stdout
+    page = (out / "compare.html").read_text()
+    assert 'href="seed-3/compare.html"' in page and 'href="seed-4/compare.html"' in page and (out / "seeds.png").is_file()
+
+
+def test_one_pair_says_it_cannot_tell_sp_from_noise(pair, tmp_path):
+    out = tmp_path / "one"
+    proc = _compare(pair["neus-hashgrid"], pair["sp-neus-hashgrid"], "--output-dir", out, "--max-views", "1",
+                    "--mesh-resolution", "32")
+    from sp_plugins.cli.compare import ONE_PAIR_NOTE
+
+    assert ONE_PAIR_NOTE in proc.stdout and json.loads((out / "compare.json").read_text())["noise"] == ONE_PAIR_NOTE
+    assert "1.6-2.3 dB" in ONE_PAIR_NOTE and "0.0006" in ONE_PAIR_NOTE
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--baseline", "A"], "--sp is missing"),
+    (["--baseline", "A", "B", "--sp", "C"], "--baseline has 2 runs and --sp 1"),
+    (["X", "Y", "--baseline", "A", "--sp", "B"], "either RUN_A RUN_B or --baseline"),
+    (["X"], "pass two runs"),
+])
+def test_malformed_seed_options_are_refused_in_one_line(args, message, tmp_path):
+    proc = _compare(*args, "--output-dir", tmp_path / "x", expect=2)
+    line = refused(proc, "sp-compare")
+    assert line.startswith("sp-compare: error: ") and message in line
+
+
+def test_two_runs_of_one_seed_on_a_side_or_unmatched_seeds_are_refused(pair, second_seed, tmp_path):
+    proc = _compare("--baseline", pair["neus-hashgrid"], pair["neus-hashgrid"], "--sp", pair["sp-neus-hashgrid"],
+                    second_seed["sp-neus-hashgrid"], "--output-dir", tmp_path / "x", expect=2)
+    assert "--baseline has two runs of seed 3" in refused(proc, "sp-compare")
+    proc = _compare("--baseline", pair["neus-hashgrid"], "--sp", second_seed["sp-neus-hashgrid"], "--output-dir", tmp_path / "y",
+                    expect=2)
+    assert "different seeds (baseline [3], SP [4])" in refused(proc, "sp-compare")
