@@ -86,16 +86,25 @@ def train(config: TrainerConfig) -> Trainer:
 
     nerfstudio's event writers are module globals that its trainer adds and never removes: the writers this run
     added are closed and dropped at its end, or the next run trained in the same process would also write its
-    scalars into this run's event file (two runs' curves interleaved in one file)."""
+    scalars into this run's event file (two runs' curves interleaved in one file).
+
+    Seeded as ``ns-train`` seeds (nerfstudio's own ``_set_random_seed`` with ``--machine.seed``) and trained with
+    deterministic kernels (``patches/torch_deterministic.py``): the same config gives the same checkpoint, in this
+    process or another (torch starts each process with a random seed)."""
+    from nerfstudio.scripts.train import _set_random_seed
     from nerfstudio.utils import writer
+
+    from sp_plugins.patches import registry
 
     config.set_timestamp() if not config.timestamp else None
     config.save_config()
     before = len(writer.EVENT_WRITERS)
     try:
-        trainer = config.setup(local_rank=0, world_size=1)
-        trainer.setup()
-        trainer.train()
+        with registry.scope("torch_deterministic"):
+            _set_random_seed(config.machine.seed)
+            trainer = config.setup(local_rank=0, world_size=1)
+            trainer.setup()
+            trainer.train()
     finally:
         for added in writer.EVENT_WRITERS[before:]:
             tb = getattr(added, "tb_writer", None)

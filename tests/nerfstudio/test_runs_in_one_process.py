@@ -46,3 +46,21 @@ def test_a_run_that_fails_drops_its_writers_too(tiny_scene, tmp_path, tiny_confi
     with pytest.raises(RuntimeError, match="a failing step"):
         train(tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path, steps=2))
     assert len(writer.EVENT_WRITERS) == writers_before
+
+
+def test_the_same_config_trained_twice_in_one_process_gives_the_same_weights(tiny_scene, tmp_path, tiny_config):
+    """``runs.train`` seeds as ``ns-train`` does (``--machine.seed``): before, it trained from whatever state the
+    process's generator was in, so two trainings of one config (the sparse-view pair) scored differently."""
+    import torch
+
+    weights = []
+    for name in ("a", "b", "c"):
+        config = tiny_config("sp-neus-hashgrid", tiny_scene, tmp_path / name, steps=3)
+        if name == "c":
+            config.machine.seed = 43
+        torch.rand(7)  # the process's generator moved on between the runs, as it does in a benchmark
+        trainer = train(config)
+        weights.append({k: v.clone() for k, v in trainer.pipeline.model.state_dict().items() if torch.is_tensor(v) and v.is_floating_point()})
+    assert weights[0].keys() == weights[1].keys() and len(weights[0]) > 10
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    assert sum(not torch.equal(weights[0][k], weights[2][k]) for k in weights[0]) > len(weights[0]) // 2

@@ -17,12 +17,13 @@ import torch
 from sp_plugins.cli.gpu_check.budget import DEADLINE_S, Deadline, Sizes
 from sp_plugins.cli.gpu_check.checkpoint import check_checkpoint
 from sp_plugins.cli.gpu_check.fit import check_fit
+from sp_plugins.cli.gpu_check.repeat import check_repeat
 from sp_plugins.cli.gpu_check.grid import check_grid
 from sp_plugins.cli.gpu_check.machine import cuda_problem, machine_report
 from sp_plugins.cli.gpu_check.report import Report, failure, log, summary_lines
 from sp_plugins.cli.gpu_check.runs import check_runs
 
-PARTS = ("grid", "runs", "checkpoint", "fit")
+PARTS = ("grid", "runs", "checkpoint", "fit", "repeat")
 DESCRIPTION = "sp-gpu-check: the first thing to run on a machine with an NVIDIA GPU (8 minutes at most)."
 
 
@@ -98,8 +99,9 @@ def main(argv: Optional[Sequence[str]] = None, own_process: bool = False) -> int
         "runs": lambda: check_runs(device, sizes, out, deadline, artifacts),
         "checkpoint": lambda: check_checkpoint(device, sizes, out, deadline, artifacts),
         "fit": lambda: check_fit(device, sizes, deadline),
+        "repeat": lambda: check_repeat(device, sizes, deadline),
     }
-    needs = {"grid": 20, "runs": 60, "checkpoint": 20, "fit": 15}
+    needs = {"grid": 20, "runs": 60, "checkpoint": 20, "fit": 15, "repeat": 20}
     log_path = out / "log.txt"
     with open(log_path, "w") as host_output:
         for part in PARTS:

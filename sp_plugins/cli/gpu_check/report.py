@@ -81,6 +81,12 @@ def summary_lines(report: dict) -> List[str]:
             lines.append(f"runs: {name}: {r.get('status')}: {r.get('error')}")
     for key, v in runs.get("sp_overhead", {}).items():
         lines.append(f"runs: SP overhead on {key}: {v['ratio'] - 1:+.1%} per step" + ("" if v["comparable"] else " (different hash grids)"))
+    repeat = parts.get("repeat", {})
+    if "repeats" in repeat:
+        lines.append(f"repeat: the same {repeat['steps']}-step fit twice ({repeat['hash_grid']} hash grid, deterministic kernels "
+                     f"{'on' if repeat['deterministic_kernels'] else 'off'}): "
+                     + ("bit-identical" if repeat["repeats"] else f"{len(repeat['differing'])} of {repeat['tensors']} tensors differ"
+                        + (f" ({repeat['why']})" if "why" in repeat else "")))
     for name, part in parts.items():
         for skip in ([part["reason"]] if "reason" in part else []) + part.get("skipped", []):
             lines.append(f"{name}: skipped {skip}")
