@@ -6,6 +6,7 @@ from sp_plugins.core.config import SPConfig
 from sp_plugins.core.noise import NOISE_KINDS, sample_noise
 from sp_plugins.core.perturb import perturb, perturbed_mean
 from sp_plugins.core.preconditioner import StochasticPreconditioner
+from sp_plugins.core.run import SPNotReached, SPRun
 from sp_plugins.core.schedule import SCHEDULE_KINDS, AlphaSchedule
 from sp_plugins.core.stencil import (
     STENCIL_KINDS,
@@ -17,6 +18,8 @@ from sp_plugins.core.stencil import (
 )
 
 __all__ = [
+    "SPNotReached",
+    "SPRun",
     "AlphaGrid",
     "AlphaSchedule",
     "BOUNDARY_KINDS",
