@@ -1,4 +1,4 @@
-"""Adapter or scale? SP done by hand, beside the adapter's SP, on the same field (issue 21).
+"""Adapter or scale? SP done by hand, beside the adapter's SP, on the same field.
 
 Where the failure search finds a baseline that fails and SP that does not reliably rescue it, the
 cause could be our adapter (SP entering NeuS wrongly, or not at all) or the scale (a CPU-sized

@@ -1,4 +1,4 @@
-"""Where does NeuS on a hash grid fail at CPU scale, and does SP rescue it? (issue 21)
+"""Where does NeuS on a hash grid fail at CPU scale, and does SP rescue it?
 
 A paired search over settings that could make the baseline (`neus-hashgrid`) fail as it does on
 half of DTU in the paper: DTU-like scenes (`sp-scene --dtu-like`: textured ground and backdrop,

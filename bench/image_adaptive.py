@@ -1,4 +1,4 @@
-"""Image fitting: Instant-NGP vs SP vs SP + alpha-map guided adaptive techniques (issue 16.1).
+"""Image fitting: Instant-NGP vs SP vs SP + alpha-map guided adaptive techniques.
 
 Five photographs bundled with scikit-image (no download), resized so the long side is
 ``--size`` pixels. Every variant uses the same seed, steps, batch and field:

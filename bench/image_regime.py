@@ -144,7 +144,7 @@ def report() -> None:
 
         cells = {k: diff(*k) for k in (("baseline", "sp"), ("baseline", "adaptive"), ("sp", "adaptive"))}
         lines.append(f"| {photo} | {first['width']}x{first['height']} | {first['params_per_pixel']:.2f} | "
-                     + " | ".join(cell(v) for v in VARIANTS) + " | " + " | ".join(c[0] for c in cells.values()) + f" |")
+                     + " | ".join(cell(v) for v in VARIANTS) + " | " + " | ".join(c[0] for c in cells.values()) + " |")
         summary["table"][photo] = {"seeds": seeds, "psnr": vals, "differences": {f"{b} - {a}": c[1] for (a, b), c in cells.items()}}
     sweep = sorted({r["log2_table_size"] for r in rows if r["image"] == SWEEP_PHOTO and r["seed"] == 0})
     if sweep:

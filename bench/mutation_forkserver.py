@@ -1,4 +1,4 @@
-"""Fork server for the mutation study (issue 44): each mutant's pytest runs in a fresh fork of a
+"""Fork server for the mutation study: each mutant's pytest runs in a fresh fork of a
 process that has already imported the heavy third-party modules (torch, numpy, trimesh, pytest...),
 so a mutant costs its tests, not the ~4-5 s of interpreter start and imports a fresh ``pytest``
 pays (most mutants die in the first second of their tests).

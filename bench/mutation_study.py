@@ -1,4 +1,4 @@
-"""Mutation study (issue 44): every mutant a mutation tool makes of SP's modules, each module run
+"""Mutation study: every mutant a mutation tool makes of SP's modules, each module run
 against the test files that cover it, resumable, one torch thread. Outside the suite.
 
 The tool is cosmic-ray (the ``dev`` extra), chosen over mutmut because:
@@ -136,7 +136,7 @@ ISSUE_FOLDERS = ["sp_plugins/core", "sp_plugins/adapter", "sp_plugins/tasks"]
 
 
 BEFORE = os.environ.get("SP_MUTATION_BEFORE") == "1"
-"""``--before``: the covering tests without issue 44's exact-value modules (``*_exact.py``), in
+"""``--before``: the covering tests without the exact-value modules (``*_exact.py``), in
 sessions and results of their own (``*.before.*``): the figures before those tests existed."""
 
 

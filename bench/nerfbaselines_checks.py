@@ -1,4 +1,4 @@
-"""nerfbaselines' own per-method checks (``nerfbaselines test-method``) on our specs (issue 46): train,
+"""nerfbaselines' own per-method checks (``nerfbaselines test-method``) on our specs: train,
 eval-few, eval-all, render, save, reload without and with the dataset, re-save identical, render
 after reload identical, a full Trainer run; exit 0 = all passed, 7 = some failed.
 

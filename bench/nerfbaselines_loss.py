@@ -1,5 +1,5 @@
 """The same method, seed and steps through ``ns-train`` and through nerfbaselines: the loss curves
-(issue 46).
+.
 
 ``ns-train sp-nerfacto ... blender-data`` (its ``Train Loss`` every step, from its tensorboard
 events) against nerfbaselines' ``python`` backend building ``sp-nerfacto`` from its spec with the

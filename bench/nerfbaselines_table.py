@@ -1,4 +1,4 @@
-"""Baseline vs SP in a nerfbaselines results table (issue 46), at a CPU budget.
+"""Baseline vs SP in a nerfbaselines results table, at a CPU budget.
 
 Four runs of ``nerfbaselines train --backend python`` on the bundled Spot scene (sp-scene, Blender
 layout through nerfbaselines' own loader): ``nerfacto+sp-off`` against ``nerfacto+sp`` (nerfbaselines'

@@ -1,4 +1,4 @@
-"""Every command of the README and the docs at the budget it writes, to the end, in order (issue 57).
+"""Every command of the README and the docs at the budget it writes, to the end, in order.
 
 The suite (``tests/test_readme.py``) runs the same blocks with their budget flags lowered: that shows a
 command works, not what it costs or whether it reaches its last step at the budget the text gives. This

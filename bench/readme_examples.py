@@ -1,4 +1,4 @@
-"""The README's first SP examples, SP on and off, over seeds, as a user types them (issue 57).
+"""The README's first SP examples, SP on and off, over seeds, as a user types them.
 
 Each run is the README's command in a subprocess, with ``--machine.seed S`` and SP on or off, then the
 README's evaluation of it. ``--example nerfacto``: ``sp-train nerfacto ... blender-data --data SCENE`` (off:

@@ -38,7 +38,7 @@ from bench.harness.scenes import mesh_source, synthetic
 PAIRS = {
     "neus": ("neus-hashgrid", "sp-neus-hashgrid"),
     "neuralangelo": ("neuralangelo-lite", "sp-neuralangelo-lite"),
-    # the paper's two Neuralangelo variants: the annealed scalar vs the learned alpha grid (issue 37)
+    # the paper's two Neuralangelo variants: the annealed scalar vs the learned alpha grid
     "neuralangelo-grid": ("sp-neuralangelo-lite", "sp-neuralangelo-lite+grid"),
 }
 """Pairs of registered methods; ``+grid`` is the method with ``--pipeline.model.sp.alpha-grid True``."""

@@ -1,4 +1,4 @@
-"""The failure search of `bench.failure_regime` in sdfstudio, the host the paper used for NeuS (issue 21).
+"""The failure search of `bench.failure_regime` in sdfstudio, the host the paper used for NeuS.
 
 Run it in the sdfstudio environment::
 

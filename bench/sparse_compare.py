@@ -1,4 +1,4 @@
-"""``sp-compare`` on one pair of the sparse-view study, where SP's effect is visible (issue 56).
+"""``sp-compare`` on one pair of the sparse-view study, where SP's effect is visible.
 
     OMP_NUM_THREADS=1 python -m bench.sparse_compare      # about 30 minutes on one CPU core
 

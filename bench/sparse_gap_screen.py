@@ -1,4 +1,4 @@
-"""The size screen behind issue 31's regression test: one pair (MipNeRF, MipNeRF + SP at the
+"""The size screen behind the regression test: one pair (MipNeRF, MipNeRF + SP at the
 sparse-view setting) on 3 DTU-like views at a budget smaller than ``bench.sparse_views``' own, to
 find the smallest size at which SP's gap still shows (on every seed). Paired like the study (same
 initial weights, same rays); results under ``bench/out/sparse_views/gap-screen``, one JSON per run.

@@ -1,4 +1,4 @@
-"""Sparse views (issue 31): MipNeRF vs FreeNeRF-lite vs MipNeRF + SP, paired, resumable per run.
+"""Sparse views: MipNeRF vs FreeNeRF-lite vs MipNeRF + SP, paired, resumable per run.
 
 Every run of a *group* (one scene, number of views, seed and budget) starts from the same weights
 (the RNG seeded before each model is built; MipNeRF, FreeNeRF-lite and MipNeRF + SP build the same
@@ -21,9 +21,9 @@ weights that are not downloaded here (no network): it is reported only where the
 ``--white`` trains on the white-background Blender-like scene of the earlier 6-view study instead
 (24 views of 64x64, 8 test views, whole-image metrics).
 
-Usage (one thread each; see bench/RESULTS.md "Sparse views against FreeNeRF-lite (issue 31)")::
+Usage (one thread each; see bench/RESULTS.md "Sparse views against FreeNeRF-lite")::
 
-    # the SP screen at the cheapest size that fails (issue 21: 3 views, 2000 steps, lr 2e-3)
+    # the SP screen at the cheapest size that fails (3 views, 2000 steps, lr 2e-3)
     python -m bench.sparse_views --scenes spot --views 3 --seeds 0 --tag screen \\
         --sp 0.04@0.333 0.15@0.333 0.4@0.333 1.0@0.333 0.4@0.1 0.4@0.7 0.04@0.333:grid 0.4@0.333:grid
     # the table: the best screen setting and the paper's preset, 2 meshes x 3 / 6 / 9 views x 3 seeds
@@ -54,7 +54,7 @@ from bench.harness.scenes import object_mask_paths
 BASELINE = "mipnerf"
 FREENERF = "freenerf-lite"
 QUICK = dict(views=3, steps=2000, lr=2e-3)
-"""The cheapest size at which MipNeRF fails on the DTU-like Spot (issue 21: 11.4 dB inside the object
+"""The cheapest size at which MipNeRF fails on the DTU-like Spot (11.4 dB inside the object
 with 3 views, 24.4 dB with all 49): the size of ``--quick`` and of the screen."""
 PRESET = "0.04@0.333"
 """sp-mipnerf's preset: alpha0 0.04, exponential to 0 at a third of training."""
@@ -62,7 +62,7 @@ SPARSE = "1.0@0.333"
 """The sparse-view setting this study recommends: alpha0 about the object's radius (0.85 for the
 DTU-like scenes' normalised meshes, in the units of their cameras), to 0 at a third of training. On 3 views it lifts
 MipNeRF's whole-image SSIM beyond the seed spread on every seed measured where the preset does
-nothing (``bench/RESULTS.md``, issue 31)."""
+nothing (``bench/RESULTS.md``)."""
 
 
 def out_dir() -> Path:

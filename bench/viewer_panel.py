@@ -1,5 +1,5 @@
 """The viewer's SP panel in a real browser on the issue's two runs, and a training step's time with
-and without the viewer connected (issue 56).
+and without the viewer connected.
 
     python -m bench.viewer_panel                 # both parts; about 10 minutes on 2 CPU cores
     python -m bench.viewer_panel --part panel    # or --part timing
@@ -156,7 +156,7 @@ def timing_part(browser, results: dict) -> None:
 def write(results: dict) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "results.json").write_text(json.dumps(results, indent=1))
-    lines = ["# The viewer's SP panel (issue 56)", "", "`python -m bench.viewer_panel`; 2 CPU cores, no GPU.", ""]
+    lines = ["# The viewer's SP panel", "", "`python -m bench.viewer_panel`; 2 CPU cores, no GPU.", ""]
     for name, r in results.get("panel", {}).items():
         lines += [f"## {name}", "", f"`{r['command']}`", "", "| when | alpha now | schedule | frame change, field SP trains vs plain | plain again |",
                   "|---|---:|---|---:|---:|"]

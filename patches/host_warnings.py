@@ -15,7 +15,7 @@ Scope (:mod:`sp_plugins.patches.registry`):
   objects (``registry.hold``: ``ns-train``'s checked run config; our model and data manager under
   ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer``), and removed with the last of them
   (``warnings.filters`` is the same list object with the entries it had). Building one of our models
-  in a Python session, a notebook or a test installs none (issue 55). A nerfacto user sees every
+  in a Python session, a notebook or a test installs none. A nerfacto user sees every
   warning nerfstudio and torch print, as without sp-plugins; warnings raised before our run starts
   (nerfstudio's imports, ``torch.jit.script``) still print once.
 - ``SP_HOST_WARNINGS=1`` in the environment keeps every warning.

@@ -12,7 +12,7 @@ nerfstudio's ``ns-*`` commands working on a run of ours it is held
 our model and data manager under ``ns-eval`` / ``ns-render`` / ``ns-export`` / ``ns-viewer``), so a
 failure while they exist (a bad input, a damaged checkpoint) reaches the top as one line (the
 traceback keeps them alive). In a Python session, a notebook or a test, building our model installs
-nothing (issue 55); there each ``InputError`` of ours holds the hook while it exists. Once the
+nothing; there each ``InputError`` of ours holds the hook while it exists. Once the
 holders are gone ``sys.excepthook`` is again the hook it was. A hook someone installed over ours
 meanwhile is left in place; ours then only passes through.
 """

@@ -1,4 +1,4 @@
-"""Mutation check: does a test go red when the behaviour it names breaks? (issue 37)
+"""Mutation check: does a test go red when the behaviour it names breaks?
 
 Not part of the suite (no ``test_`` prefix): run it by hand, after changing SP code or the tests
 that guard it::
@@ -50,7 +50,7 @@ SDF_TRAINS: TestSet = ("sdfstudio", (_ANY + "test_sp_method_trains_two_steps_wit
                                      _ANY + "test_sp_method_trains_two_steps_with_sp_active[neuralangelo]"))
 SDF_MOVES: TestSet = ("sdfstudio", (_ANY + "test_the_fields_queries_move_against_the_plain_positions",))
 SPARSE_GAP: TestSet = ("main", ("tests/bench/test_sparse_views_gap.py",))
-# issue 44's exact-value tests: what a field reads equals the paper's formula for a fixed draw
+# the exact-value tests: what a field reads equals the paper's formula for a fixed draw
 NS_EXACT: TestSet = ("main", ("tests/nerfstudio/test_seam_exact.py",))
 SDF_EXACT: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam_exact.py",))
 SDF_SEAM: TestSet = ("sdfstudio", ("tests/sdfstudio/test_seam.py",))
@@ -80,14 +80,14 @@ MUTATIONS: List[Mutation] = [
     Mutation("nerfstudio seam: offsets not applied", "sp_plugins/nerfstudio/seam.py",
              'values["origins"] = frustums.origins + (q - x)', 'values["origins"] = frustums.origins',
              (NS_SEAM, NS_MATRIX)),
-    Mutation("MipNeRF's Gaussian means not moved (issue 31's gap)", "sp_plugins/nerfstudio/seam.py",
+    Mutation("MipNeRF's Gaussian means not moved", "sp_plugins/nerfstudio/seam.py",
              'values["origins"] = frustums.origins + (q - x)', 'values["origins"] = frustums.origins',
              (SPARSE_GAP,)),
     Mutation("sdfstudio seam: contraction does not move", "sp_plugins/sdfstudio/seam.py",
              "moved = handle.sp(plain)", "moved = plain", (SDF_TRAINS, SDF_MOVES)),
     Mutation("sdfstudio seam: contraction returns its input", "sp_plugins/sdfstudio/seam.py",
              "        return moved\n", "        return plain\n", (SDF_TRAINS, SDF_MOVES)),
-    # -- where SP moved a query, not only that it moved (issue 44: the exact-value tests) -----------
+    # -- where SP moved a query, not only that it moved (the exact-value tests) -----------
     Mutation("nerfstudio seam: SDF fields' offset taken at the midpoint", "sp_plugins/nerfstudio/table.py",
              '"nerfstudio.fields.sdf_field.SDFField": "get_start_positions",',
              '"nerfstudio.fields.sdf_field.SDFField": "get_positions",', (NS_EXACT,)),
@@ -182,7 +182,7 @@ MUTATIONS: List[Mutation] = [
     Mutation("alpha grid times the schedule (old variant)", "sp_plugins/core/preconditioner.py",
              'self._grid_scale = decay if c.alpha_grid_mode == "scaled" else', "self._grid_scale = decay if True else",
              (CORE,)),
-    # issue 44's later survivors: what the core's study found no test reading exactly
+    # the later survivors: what the core's study found no test reading exactly
     Mutation("alpha grid read half a cell off (its cell centres not on the bounds)", "sp_plugins/core/alpha_grid.py",
              'padding_mode="border", align_corners=True)', 'padding_mode="border", align_corners=False)', (ALPHA_GRID_EXACT,)),
     Mutation("unseeded noise: every rank draws the same stream", "sp_plugins/core/preconditioner.py",

@@ -1,4 +1,4 @@
-"""The lint and type checks (issue 58): ``ruff check`` and ``mypy`` with the settings in pyproject.toml
+"""The lint and type checks: ``ruff check`` and ``mypy`` with the settings in pyproject.toml
 (``[tool.ruff]``, ``[tool.mypy]``) find nothing. Both run from the checkout's root, as
 .pre-commit-config.yaml runs them. They are in the dev extra (``./run.sh setup`` installs it): a missing
 tool fails these tests, it does not skip them."""

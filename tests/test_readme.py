@@ -1,4 +1,4 @@
-"""The README and the docs are executable (issue 47): every fenced block of README.md and the docs pages
+"""The README and the docs are executable: every fenced block of README.md and the docs pages
 (in the order of the site's tables of contents) runs here as a user types it, in order, in one working
 folder, through ``tests/helpers/readme_runner.py`` (Sybil, with a shell evaluator of ours; why Sybil:
 see that module). The blocks of docs/guides/sdfstudio.md run in sdfstudio's environment

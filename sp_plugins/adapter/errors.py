@@ -27,7 +27,7 @@ class InputError(ValueError):
     Raised under any command (a host's ``ns-eval`` included), it reaches the top of the process as
     one line: the error itself holds the one-line hook while it exists
     (:func:`sp_plugins.patches.registry.hold`, entry ``input_error_hook``), so nothing else in the
-    process (building a model, loading a run) installs a hook (issue 55)."""
+    process (building a model, loading a run) installs a hook."""
 
     def __init__(self, *args: object) -> None:
         super().__init__(*args)

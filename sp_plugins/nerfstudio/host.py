@@ -18,7 +18,7 @@ HOST = Host(
     table="sp_plugins.nerfstudio.table",
     flags=Flags(steps="--max-num-iterations", device="--machine.device-type", devices="--machine.num-devices"),
     docs_page="docs/guides/any-method.md",
-    renamed={  # our SDF field before issue 55 (it perturbs nothing itself), in run folders saved then
+    renamed={  # our SDF field in earlier releases (it perturbs nothing itself), in run folders saved then
         "sp_plugins.nerfstudio.sdf_field.SPSDFFieldConfig": "sp_plugins.nerfstudio.sdf_field.CoarseToFineSDFFieldConfig",
         "sp_plugins.nerfstudio.sdf_field.SPSDFField": "sp_plugins.nerfstudio.sdf_field.CoarseToFineSDFField",
     },

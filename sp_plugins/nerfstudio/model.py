@@ -62,7 +62,7 @@ def refuse_inert_options(config: SPConfig) -> None:
 def host_command() -> bool:
     """True when this process is one of the host's console commands (``ns-*``): a command working on
     a run of ours. A Python session, a notebook or a test building our model is not one, and gets
-    nothing installed (issue 55)."""
+    nothing installed."""
     return Path(sys.argv[0] if sys.argv else "").name.startswith("ns-")
 
 
@@ -85,7 +85,7 @@ def install_process_settings(owner: object = None, *, run: bool = False) -> None
       held while ``owner`` exists (a damaged checkpoint or a full disk is one line too).
     - With ``owner`` alone: only the one-line hook, held while ``owner`` exists.
 
-    Building one of our models in a Python session, a notebook or a test installs nothing (issue 55);
+    Building one of our models in a Python session, a notebook or a test installs nothing;
     there an ``InputError`` holds the hook itself while it exists (:class:`~sp_plugins.adapter.errors.InputError`)."""
     from sp_plugins.patches import registry
 

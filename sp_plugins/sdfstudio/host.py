@@ -12,7 +12,7 @@ HOST = Host(
     imports=("scripts",),
     flags=Flags(steps="--trainer.max-num-iterations", device="--machine.device-type", devices="--machine.num-gpus"),
     docs_page="docs/guides/sdfstudio.md",
-    renamed={  # the seam's names before issue 45, in run folders saved then
+    renamed={  # the seam's names in earlier releases, in run folders saved then
         "sp_plugins.sdfstudio.seam.SPSDFFieldConfig": "sp_plugins.sdfstudio.seam.SeamSDFFieldConfig",
         "sp_plugins.sdfstudio.seam.SPSDFField": "sp_plugins.sdfstudio.seam.SeamSDFField",
     },

@@ -1,4 +1,4 @@
-"""The host contract (issue 55): what every host adapter must do, as checks any host's driver runs.
+"""The host contract: what every host adapter must do, as checks any host's driver runs.
 
 A *driver* builds a small SP model the way its host does and runs it the way the host's trainer
 does (:class:`Driver`); each contract item is a function of a driver that raises ``AssertionError``

@@ -1,4 +1,4 @@
-"""What a host must provide is declared by ``SPModelBase`` (issue 45): a host model that leaves a
+"""What a host must provide is declared by ``SPModelBase``: a host model that leaves a
 declared method out is refused when its class is made, and the base runs the "reached" check once,
 after the first training step with alpha > 0, for every host (here a toy host of our own)."""
 

@@ -1,4 +1,4 @@
-"""One host contract, checked on every host (issue 55): the same items (:mod:`tests.adapter.contract`)
+"""One host contract, checked on every host: the same items (:mod:`tests.adapter.contract`)
 on the toy host and nerfstudio here, on sdfstudio in its own environment
 (``tests/sdfstudio/test_host_contract.py``); and a host with a broken hook fails them."""
 

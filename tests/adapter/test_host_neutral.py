@@ -1,4 +1,4 @@
-"""``sp_plugins.adapter`` imports no host (issue 45): every module of it imports, and a host written
+"""``sp_plugins.adapter`` imports no host: every module of it imports, and a host written
 against it (tests/adapter/toy_host.py) builds and trains, in a process where neither nerfstudio nor
 sdfstudio (both the package ``nerfstudio``, plus sdfstudio's ``scripts``) can be imported."""
 

@@ -1,4 +1,4 @@
-"""The host registry (issue 55, :mod:`sp_plugins.adapter.hosts`): a third host registers itself with one
+"""The host registry (:mod:`sp_plugins.adapter.hosts`): a third host registers itself with one
 entry point of its own distribution, and the adapter then knows it (its packages for the safe config
 reader, its flags, its table, its renamed classes) with no file of sp-plugins edited."""
 

@@ -1,4 +1,4 @@
-"""No import cycle among the modules of ``sp_plugins`` (issues 45, 55), counting every import: at
+"""No import cycle among the modules of ``sp_plugins``, counting every import: at
 module level, inside functions and under ``TYPE_CHECKING`` (:mod:`tests.adapter.import_graph`)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The docs' worked example (docs/extending.md, "A field with its own read point") (issue 45): a toy field declares where it queries with one
+"""The docs' worked example (docs/extending.md, "A field with its own read point"): a toy field declares where it queries with one
 method, ``sp_read_positions``, and the seam, unedited, moves its queries there. Runs the page's own
 block, then the same field without the method: its queries then leave the box."""
 

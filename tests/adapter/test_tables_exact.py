@@ -1,6 +1,6 @@
 """The host method tables' lookups (sp_plugins.adapter.tables), exactly: ``lookup`` takes the most derived
 class a table names, and ``merged`` gathers the entries of every class with the same rule where two name
-one key (issue 55: the two used to disagree)."""
+one key (the two used to disagree)."""
 
 from __future__ import annotations
 

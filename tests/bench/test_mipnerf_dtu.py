@@ -1,4 +1,4 @@
-"""bench/radiance_methods.py's MipNeRF study on the DTU-like scene (issue 21, part 3) at a toy size:
+"""bench/radiance_methods.py's MipNeRF study on the DTU-like scene (part 3) at a toy size:
 the views it trains on, a far plane that reaches the backdrop, PSNR inside the object mask, SP on."""
 
 import dataclasses

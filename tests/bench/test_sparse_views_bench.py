@@ -1,4 +1,4 @@
-"""bench/sparse_views.py (issue 31) at a toy size: MipNeRF, FreeNeRF-lite and MipNeRF + SP on the
+"""bench/sparse_views.py at a toy size: MipNeRF, FreeNeRF-lite and MipNeRF + SP on the
 DTU-like scene of a mesh file, paired (same initial weights, same rays), one resumable JSON per run,
 the summary over seeds, and ``radiance_methods mipnerf --dtu-like --quick MESH``'s last line."""
 

@@ -1,4 +1,4 @@
-"""Issue 31's regression test: on 3 views of the DTU-like Spot, MipNeRF + SP at the sparse-view
+"""the regression test: on 3 views of the DTU-like Spot, MipNeRF + SP at the sparse-view
 setting (alpha0 about the object's radius, to 0 at a third of training) ends above plain MipNeRF,
 trained as a pair (same initial weights, same rays at every step).
 

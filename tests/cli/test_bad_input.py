@@ -1,4 +1,4 @@
-"""Bad input to ``sp-fit`` (issue 22): each kind answered by the console script, run as a user runs
+"""Bad input to ``sp-fit``: each kind answered by the console script, run as a user runs
 it, as one line naming the file or flag and what was expected, exit status 2, nothing written or
 overwritten. Meshes the fits can still use (open, non-manifold, several parts, some degenerate
 faces) are accepted with a warning line each, checked here in-process.

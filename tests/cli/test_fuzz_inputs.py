@@ -1,4 +1,4 @@
-"""Fuzz (Hypothesis) over every file kind a user hands our commands (issue 38).
+"""Fuzz (Hypothesis) over every file kind a user hands our commands.
 
 Each generated or corrupted file goes to the command a user runs with it (its ``main``, in this
 process, the way the console script runs it: ``sys.argv`` set, an uncaught exception handed to

@@ -1,4 +1,4 @@
-"""Exact draws of each noise kind (issue 44): ``sample_noise`` is the paper's kind computed from the
+"""Exact draws of each noise kind: ``sample_noise`` is the paper's kind computed from the
 generator's raw draws (the reference of ``tests/core/test_properties.py``), whatever string object
 names the kind. Written for the survivors of the pilot mutation study (``bench/mutation_study.py``
 on ``sp_plugins/core/noise.py``)."""

@@ -220,7 +220,7 @@ def test_samples_that_start_outside_the_box_are_not_pulled_in(boundary):
 @pytest.mark.parametrize("sparse", [True, False], ids=["sparse-fold", "dense-fold"])
 @pytest.mark.parametrize("box", ["cube", "non-cubic"])
 def test_multi_sample_reflect_folds_each_draw_against_its_own_origin(sparse, box, monkeypatch):
-    """K > 1 with reflect: ``[K, N, 3]`` draws folded against the ``[N, 3]`` origins (issue 37,
+    """K > 1 with reflect: ``[K, N, 3]`` draws folded against the ``[N, 3]`` origins (
     defect 1: the CPU's sparse fold indexed the origins with the draws' flat indices)."""
     import sp_plugins.core.boundary as boundary
 
@@ -247,7 +247,7 @@ def test_multi_sample_reflect_folds_each_draw_against_its_own_origin(sparse, box
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_precision_positions_are_perturbed_in_float32(dtype):
-    """A tiny alpha must move half-precision positions (issue 36): fp16 has a spacing of 2^-11 on
+    """A tiny alpha must move half-precision positions: fp16 has a spacing of 2^-11 on
     [0.5, 1] and bf16 2^-8, so rounding x + 1e-4 * eps back would undo the move."""
     x = (0.5 + 0.5 * torch.rand(20_000, 3, generator=gen(31))).to(dtype)
     y = perturb(x, 1e-4, generator=gen(32))

@@ -130,7 +130,7 @@ def test_alpha_grid_builds_before_the_total_is_known():
 
 def test_every_attribute_reads_before_the_total_is_known():
     """nerfstudio's viewer getattr's every attribute of the pipeline before the trainer sets the step
-    count (issue 47: ``schedule`` raised "end=0.2 is a fraction of training" and stopped ns-train).
+    count (``schedule`` raised "end=0.2 is a fraction of training" and stopped ns-train).
     What is not known yet reads as unknown; once the total is set it resolves."""
     sp = SPConfig(alpha0=0.02, end=0.2).setup(bounds=(-1.0, 1.0))
     values = {name: getattr(sp, name) for name in dir(sp) if not name.startswith("__")}
@@ -309,7 +309,7 @@ def test_unseeded_noise_is_seeded_from_the_global_generator():
 
 
 def test_alpha_grid_with_alpha0_zero_is_active_at_its_own_init():
-    """alpha0 = 0 with alpha_grid_init set: the grid alone gives alpha (issue 37, defect 2: the
+    """alpha0 = 0 with alpha_grid_init set: the grid alone gives alpha (the
     preconditioner was silently inactive)."""
     sp = make(alpha0=0.0, schedule="constant", alpha_grid=True, alpha_grid_init=0.03, alpha_grid_resolution=4, seed=0)
     sp.train()
@@ -360,7 +360,7 @@ def test_scaled_grid_mode_works_with_alpha0_zero():
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 @pytest.mark.parametrize("grid", [False, True])
 def test_preconditioner_returns_float32_for_half_positions(dtype, grid):
-    """Issue 36: half-precision positions come back in float32, moved by a tiny alpha."""
+    """half-precision positions come back in float32, moved by a tiny alpha."""
     kw = dict(alpha_grid=True, alpha_grid_resolution=4) if grid else {}
     sp = SPConfig(alpha0=1e-4, schedule="constant", boundary="reflect", seed=0, **kw).setup(total_steps=10, bounds=(0.0, 1.0))
     sp.train()

@@ -1,4 +1,4 @@
-"""Property-based reference check of the core (issue 37): Hypothesis draws the settings, and each
+"""Property-based reference check of the core: Hypothesis draws the settings, and each
 result is compared with a direct implementation of the paper's formulas written here, not with
 the library's own helpers.
 

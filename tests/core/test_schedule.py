@@ -64,7 +64,7 @@ def test_bad_schedules_raise_value_errors(kwargs, word):
 @pytest.mark.parametrize("total", [2, 7, 300, 100_000])
 def test_end_of_training_reaches_exactly_zero_at_the_last_step(kind, total):
     """Steps run 0 .. total - 1: ``end=1.0`` (and an absolute end at the total) must switch SP off
-    at the last step, so the last update trains the plain field (issue 37, defect 3)."""
+    at the last step, so the last update trains the plain field (defect 3)."""
     for end in (1.0, total) if total > 1 else (1.0,):
         s = AlphaSchedule.resolve(kind, 0.1, end=end, total_steps=total)
         assert s.end_step == total - 1

@@ -1,4 +1,4 @@
-"""The docs site (issue 58): ``docs/`` builds with Sphinx + furo + MyST with warnings as errors (broken internal
+"""The docs site: ``docs/`` builds with Sphinx + furo + MyST with warnings as errors (broken internal
 links, unknown cross-references, docstrings autodoc cannot read), every page is in a table of contents, and
 the built site reads in a real browser: the index, its navigation and one guide.
 

@@ -1,4 +1,4 @@
-"""Shared by the exact-value tests of the ``sp-fit`` tasks (issue 44): a field wrapper that records
+"""Shared by the exact-value tests of the ``sp-fit`` tasks: a field wrapper that records
 what the trainer queried, and the paper's perturbed query from raw seeded draws."""
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ def run(args: Sequence[str], timeout: int = 600, server=None) -> subprocess.Comp
 
 
 RUN_FLAGS = [
-    # nerfstudio's default front end, the web viewer, as users run it (issue 47: a property of ours that
+    # nerfstudio's default front end, the web viewer, as users run it (a property of ours that
     # raised under its getattr walk stopped every SP run; --vis tensorboard hid it). The one flag added
     # lets the trainer exit after its last step instead of serving until a user closes it.
     "--machine.device-type", "cpu", "--viewer.quit-on-train-completion", "True", "--timestamp", "t",

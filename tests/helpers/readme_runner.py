@@ -1,4 +1,4 @@
-"""Runs the fenced command blocks of the README (and docs pages) as a user types them (issue 47).
+"""Runs the fenced command blocks of the README (and docs pages) as a user types them.
 
 The blocks are found by Sybil (``sybil.parsers.markdown``), the Markdown example runner from PyPI:
 its ``CodeBlockParser`` takes a language and an evaluator of our own, so ``bash`` blocks run in a

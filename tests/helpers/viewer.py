@@ -2,7 +2,7 @@
 under the default ``--vis viewer``, ``ns-viewer --load-config``), read the port viser bound from its
 output, wait until that port serves the viser client page, stop it.
 
-Shared by tests/nerfstudio/test_ns_viewer.py (issue 47: ``ns-viewer`` serves each method family's
+Shared by tests/nerfstudio/test_ns_viewer.py (``ns-viewer`` serves each method family's
 finished run) and the headless-browser test (tests/nerfstudio/test_viewer_browser.py).
 
     with serving([command("ns-viewer"), "--load-config", config], tmp_path / "viewer.log") as viewer:

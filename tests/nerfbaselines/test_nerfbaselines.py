@@ -1,4 +1,4 @@
-"""nerfbaselines' own commands on our methods (issue 46), run as a user types them, at a tiny budget.
+"""nerfbaselines' own commands on our methods, run as a user types them, at a tiny budget.
 
 One module fixture trains ``sp-nerfacto`` three steps through ``nerfbaselines train --backend python``
 on a bundled scene (Blender layout, loaded by nerfbaselines' own Blender loader through the

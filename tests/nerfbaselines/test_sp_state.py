@@ -1,4 +1,4 @@
-"""What decides a table row is checked by what the run did (issue 55).
+"""What decides a table row is checked by what the run did.
 
 ``nerfacto+sp`` and ``nerfacto+sp-off`` are built as ``nerfbaselines train`` builds them (the spec from
 nerfbaselines' registry, its python backend, the tiny scene loaded and the presets applied), in this

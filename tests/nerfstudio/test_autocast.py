@@ -1,4 +1,4 @@
-"""The mixed-precision path (issue 36): one training step of sp-nerfacto and ``sp-train nerfacto``
+"""The mixed-precision path: one training step of sp-nerfacto and ``sp-train nerfacto``
 under autocast, our hash grid and the seam inside it.
 
 nerfstudio's trainer turns ``--mixed-precision`` off on a CPU; the test switches it back on after

@@ -1,4 +1,4 @@
-"""Bad input to the nerfstudio commands on our methods (issue 22): each kind answered by the command
+"""Bad input to the nerfstudio commands on our methods: each kind answered by the command
 a user runs as one line naming the file or flag and what was expected, exit status 2, nothing
 written or overwritten.
 
@@ -11,7 +11,7 @@ real interpreter's top level (our exception hook ends with ``SystemExit(2)``). T
 commands load are written as ``ns-train`` leaves them (config.yml, nerfstudio_models/) without
 training: every case fails before a model's weights would be read.
 
-The ``typed-*`` cases (issue 47) are commands as a new user types them, with the host's defaults
+The ``typed-*`` cases are commands as a new user types them, with the host's defaults
 (no ``--output-dir``: each runs in a folder of its own, which must stay empty; no ``--vis``): no
 device flag on a CPU-only machine, no dataparser named, SP options that cannot act, ``sp-train`` on
 a host method whose worker-process data manager hung on a damaged image, and the host's ``wandb``
@@ -126,7 +126,7 @@ def cases(tiny_scene, ns_server, tmp_path_factory):
 
     cpu = ["--machine.device-type", "cpu"]
     plan = {
-        # issue 47: the commands users reach for first
+        # the commands users reach for first
         "typed-neus-no-device": typed("neus-no-device", "ns-train", "sp-neus", "--data", str(tiny_scene / "sdfstudio")),
         "typed-sp-train-no-device": typed("sp-train-no-device", "sp-train", "nerfacto", "--data", str(scene)),
         "typed-nerfacto-no-dataparser": typed("nerfacto-no-dataparser", "ns-train", "sp-nerfacto", *cpu, "--data", str(scene)),

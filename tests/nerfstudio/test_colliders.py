@@ -1,4 +1,4 @@
-"""The README's NeuS recipe went NaN at step 93 (issue 57): a training ray that misses the scene box almost
+"""The README's NeuS recipe went NaN at step 93: a training ray that misses the scene box almost
 parallel to a face gets a near plane beyond the background's far plane from nerfstudio's box collider, its
 background bins run backwards and the rendered colour is NaN. These tests pin that cause on the host, and
 that our surface models render such a ray finitely and leave every other ray as nerfstudio meets it."""

@@ -1,4 +1,4 @@
-"""``sp-compare RUN_A RUN_B`` (issue 56) on a baseline / SP pair trained by ``ns-train`` as a user types it: the same
+"""``sp-compare RUN_A RUN_B`` on a baseline / SP pair trained by ``ns-train`` as a user types it: the same
 held-out views rendered from both beside the truth, per-view and overall metrics equal to the model's own
 evaluation, training curves with SP's alpha, both meshes against the scene's true mesh, one offline HTML page;
 two runs on different data are refused in one line before anything is rendered."""

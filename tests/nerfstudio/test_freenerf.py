@@ -206,7 +206,7 @@ def test_a_checkpoint_keeps_its_mask_and_ns_eval_loads_it(tiny_scene, ns_server,
 
 
 def test_a_training_step_of_freenerf_with_sp_has_no_sync_of_ours(tiny_scene, tmp_path):
-    """The mask moves on the device, the occlusion term stays a tensor (issue 36's counter)."""
+    """The mask moves on the device, the occlusion term stays a tensor (the counter)."""
     from tests.nerfstudio.test_syncs_ns import steady_state_syncs
 
     from sp_plugins.core.boundary import dense_fold

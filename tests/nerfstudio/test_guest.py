@@ -1,4 +1,4 @@
-"""Installing sp-plugins changes nothing for methods that are not ours (issue 20, item 6).
+"""Installing sp-plugins changes nothing for methods that are not ours.
 
 nerfstudio imports every plugin's method configs in every ``ns-*`` command. In a fresh process we
 snapshot what a plugin could change (the exception hook, the warning filters, the host names our
@@ -98,7 +98,7 @@ def test_discovering_our_methods_changes_nothing_and_building_ours_is_scoped():
     if torch.cuda.is_available():
         assert "HELD_BY_OUR_MODEL []" in out and "MESHER_UNTOUCHED True" in out, out
     else:
-        # building our model installs no hook and filters no warning (issue 55): only the mesher it serves
+        # building our model installs no hook and filters no warning: only the mesher it serves
         assert "HELD_BY_OUR_MODEL ['nerfstudio_marching_cubes']" in out, out
         assert "OTHER_GOES_TO_HOST True" in out, out
         assert "OURS_ON_CPU True" in out, out

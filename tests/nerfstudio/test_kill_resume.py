@@ -1,4 +1,4 @@
-"""Kill and resume through nerfstudio's own trainer (issue 22), one run per method family: a run
+"""Kill and resume through nerfstudio's own trainer, one run per method family: a run
 killed with SIGKILL after its checkpoint at step K, resumed with ``load_dir`` (``ns-train
 --load-dir``), against the uninterrupted run of the same N steps, on the CPU.
 
@@ -251,7 +251,7 @@ def test_killed_run_resumes_to_the_same_schedule_and_sp_state_and_drifts_only_by
 def test_a_second_load_pass_without_the_preconditioners_entries_keeps_its_restored_state():
     """nerfstudio's ``VanillaPipeline.load_state_dict`` loads its model, then itself non-strictly with
     the model's entries left out, so the preconditioner is loaded a second time with none of its keys:
-    that pass must not drop the generator state the first one restored (it did, until issue 22's kill
+    that pass must not drop the generator state the first one restored (it did, until the kill
     and resume test caught it: every nerfstudio resume started a new noise stream)."""
     from sp_plugins import SPConfig
 

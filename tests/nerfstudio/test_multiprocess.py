@@ -1,4 +1,4 @@
-"""Multi-process training (issue 22): nerfstudio's own ``train_loop`` in two CPU processes over gloo.
+"""Multi-process training: nerfstudio's own ``train_loop`` in two CPU processes over gloo.
 
 ``ns-train --machine.num-devices 2`` cannot run on a machine without CUDA (nerfstudio's launcher
 asserts CUDA, and its pipeline asks DDP for ``device_ids=[local_rank]``, which a CPU module refuses).

@@ -5,7 +5,7 @@ method. (sp-nerfacto and sp-neus-hashgrid run the whole command line on a real c
 test_real_capture.py.)
 
 The runs use the command line a user types plus budget flags (tiny sizes, 2 steps) and the one flag
-a test adds under the viewer, ``--viewer.quit-on-train-completion True`` (issue 47: every SP method
+a test adds under the viewer, ``--viewer.quit-on-train-completion True`` (every SP method
 stopped in ``Trainer.setup`` under the default viewer, and these runs used to pass ``--vis
 tensorboard`` or train in-process).
 
@@ -150,7 +150,7 @@ def test_sp_export_mesh_refuses_a_density_field_in_one_line(checkpoints, tmp_pat
 
 
 VIEWER_FAMILIES = {"SDF": "sp-neus", "radiance": "sp-mipnerf", "ReLU field": "sp-relu-field", "sp-train": SP_TRAIN}
-"""A finished run of each method family that ``ns-viewer`` loads (issue 47)."""
+"""A finished run of each method family that ``ns-viewer`` loads."""
 
 
 def test_ns_viewer_serves_every_method_familys_finished_run(checkpoints, ns_server, tmp_path):

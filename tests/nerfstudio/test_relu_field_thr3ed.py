@@ -1,5 +1,5 @@
 """The ReLU-field options that follow thr3ed_atom: cell grid, world-unit density, L1 + diffuse
-loss, per-stage learning-rate restarts (issue 16 part 2)."""
+loss, per-stage learning-rate restarts."""
 
 from __future__ import annotations
 

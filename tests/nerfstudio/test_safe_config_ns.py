@@ -1,4 +1,4 @@
-"""Opening a run folder never runs its code (issue 38): our commands read ``config.yml`` with the
+"""Opening a run folder never runs its code: our commands read ``config.yml`` with the
 restricted loader (:mod:`sp_plugins.adapter.safe_config`) and checkpoints weights-only.
 
 - every config ``ns-train`` / ``sp-train`` writes (each registered method of nerfstudio, ours, and
@@ -66,7 +66,7 @@ def trained(tiny_scene, tmp_path_factory) -> Path:
 
 
 def test_a_config_yml_saved_with_our_sdf_fields_old_names_loads_with_either_loader():
-    """Issue 55 renamed our nerfstudio SDF field ``SPSDFField`` (it perturbs nothing itself) to
+    """An earlier release renamed our nerfstudio SDF field ``SPSDFField`` (it perturbs nothing itself) to
     ``CoarseToFineSDFField``; a run folder saved before names the old classes. The nerfstudio host's
     registry entry maps them (``Host.renamed``): our restricted reader and the host's own loader (``ns-eval``,
     ``ns-export``) both build the new classes; the module defines no alias."""

@@ -1,4 +1,4 @@
-"""Exact values of the nerfstudio seam (issue 44): for a fixed noise draw, what a field reads equals
+"""Exact values of the nerfstudio seam: for a fixed noise draw, what a field reads equals
 the paper's ``x + alpha * eps`` folded into the scene box, computed here from the raw draws with
 the reference of ``tests/core/test_properties.py`` (not with the library's ``perturb``).
 

@@ -1,5 +1,5 @@
-"""Every SP setting works on every registered method (issue 12's matrix), and on nerfstudio's own
-methods wrapped by ``sp-train`` (issue 20).
+"""Every SP setting works on every registered method (the matrix), and on nerfstudio's own
+methods wrapped by ``sp-train``.
 
 For each SP method, four short runs cover every value of every option at least once (a covering
 design, not the full product: the product is 8 x 2 x 2 x 3 x 3 x 4 runs):

@@ -1,4 +1,4 @@
-"""No host-device sync of ours inside a training step of any nerfstudio method (issue 36).
+"""No host-device sync of ours inside a training step of any nerfstudio method.
 
 Each method trains with nerfstudio's trainer; the body of the training loop (the callbacks before,
 ``train_iteration``, the callbacks after) runs under :class:`sp_plugins.sync_count.SyncCounter` for

@@ -1,4 +1,4 @@
-"""nerfstudio's web viewer in a real browser (issue 47): headless Chromium, driven by Playwright from the
+"""nerfstudio's web viewer in a real browser: headless Chromium, driven by Playwright from the
 package index with the system's ``chromium`` (run.sh installs it; no browser download), against the viewer
 of an ``ns-train sp-relu-field`` run while it trains and against ``ns-viewer --load-config`` on that run
 once it finished. The commands are typed as a user would; the only flag beyond CPU budget and size is
@@ -204,7 +204,7 @@ def control(page, label: str):
 
 
 def sp_panel(page) -> dict:
-    """The SP panel's readouts (issue 56), read from the page."""
+    """The SP panel's readouts, read from the page."""
     return {"alpha": float(control(page, "alpha now").input_value()), "schedule": control(page, "schedule").input_value(),
             "settings": control(page, "settings").input_value(), "render": control(page, "render").input_value()}
 
@@ -279,7 +279,7 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
     prepare_view(page)
     first = at("first frame", wait_for(lambda: (r := readout(page)) and r[1] > 0 and r, 90, "a rendered frame", why))
     at("first frame's pixels", frame_stats(page))
-    # the SP panel (issue 56): alpha above 0 while SP is on, and its render control changes the frame
+    # the SP panel: alpha above 0 while SP is on, and its render control changes the frame
     panel = at("SP panel", sp_panel(page))
     assert panel["alpha"] > 0 and panel["render"] == "plain field" and "boundary reflect" in panel["settings"], (panel, why())
     plain = settled(page)
@@ -336,7 +336,7 @@ def test_ns_viewer_serves_the_finished_run(finished, browser, spot, tmp_path):
         first = wait_for(lambda: (r := readout(page)) and r[1] > 0 and r, 90, "a rendered frame", why)
         stats = wait_for(lambda: (s := frame_stats(page)) and shows_the_object(s) and s, 60,
                          "a frame that shows the object (grey spread > 15, coloured pixels > 1%)", why)
-        # the SP panel of the finished run (issue 56): alpha 0 after the schedule's end, and the render
+        # the SP panel of the finished run: alpha 0 after the schedule's end, and the render
         # control changes nothing (the field SP trains is the plain field then)
         panel = sp_panel(page)
         assert panel["alpha"] == 0.0 and "SP is off" in panel["schedule"], (panel, why())
@@ -351,7 +351,7 @@ def test_ns_viewer_serves_the_finished_run(finished, browser, spot, tmp_path):
 
 def test_a_baseline_run_shows_no_sp_panel(browser, spot, tmp_path):
     """The same page on a run with SP off (``relu-field-flat``, our baseline of ``sp-relu-field``): the
-    control panel is there, the SP panel is not (issue 56)."""
+    control panel is there, the SP panel is not."""
     out = tmp_path / "outputs"
     train = [command("ns-train"), "relu-field-flat", *TINY[:2], "--max-num-iterations", "5", *TINY[4:8], "--vis", "tensorboard",
              "--output-dir", out, "blender-data", "--data", spot / "blender"]

@@ -1,4 +1,4 @@
-"""The viewer's SP panel (issue 56, :mod:`sp_plugins.nerfstudio.components.viewer_panel`): on every model that
+"""The viewer's SP panel (:mod:`sp_plugins.nerfstudio.components.viewer_panel`): on every model that
 trains with SP and on no other; its "render" control changes the viewer's renders only (nerfstudio's
 render thread), never evaluation, the training noise or the reach check's record."""
 

@@ -1,4 +1,4 @@
-"""Nothing of ours raises when read (issue 47): the objects nerfstudio's viewer walks, for every method
+"""Nothing of ours raises when read: the objects nerfstudio's viewer walks, for every method
 we register and for ``sp-train`` on nerfstudio's built-ins, before the trainer sets the step count and
 after a training step.
 

@@ -1,4 +1,4 @@
-"""SP on any nerfstudio method (issues 20, 33): ``with_sp``, ``sp-train``, third-party plugins, refusals.
+"""SP on any nerfstudio method: ``with_sp``, ``sp-train``, third-party plugins, refusals.
 
 The plugin (``plugin_fixture/toyplugin``: its own ``Model`` and ``Field`` classes sp-plugins has
 never seen) is installed as a temporary distribution with ``nerfstudio.method_configs`` entry

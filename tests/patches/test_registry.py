@@ -1,4 +1,4 @@
-"""The patch registry (issue 32): every entry is guarded, and after each scope the host is exactly
+"""The patch registry: every entry is guarded, and after each scope the host is exactly
 as it was.
 
 For every entry that imports here (nerfstudio 1.x, torchmetrics and Python's own; the sdfstudio

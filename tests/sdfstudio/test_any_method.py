@@ -1,4 +1,4 @@
-"""SP on any sdfstudio SDF method (issue 20, item 3): every method sdfstudio registers is either
+"""SP on any sdfstudio SDF method: every method sdfstudio registers is either
 offered as ``sp-<method>`` (and trains with SP active) or refused in one line that says why.
 
 README's table of sdfstudio's methods is the generated one (``python -m sp_plugins.method_table``).

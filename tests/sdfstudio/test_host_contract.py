@@ -1,4 +1,4 @@
-"""The host contract (issue 55, :mod:`tests.adapter.contract`) on sdfstudio, in its own environment:
+"""The host contract (:mod:`tests.adapter.contract`) on sdfstudio, in its own environment:
 the same items as nerfstudio and the toy host keep in ``tests/adapter/test_host_contract.py``."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Kill and resume through sdfstudio's own trainer (issue 22): an ``sp-neus`` run killed with SIGKILL
+"""Kill and resume through sdfstudio's own trainer: an ``sp-neus`` run killed with SIGKILL
 after its checkpoint at step K, resumed with ``--trainer.load-dir``, against the uninterrupted run of
 the same N steps, on the CPU.
 

@@ -215,7 +215,7 @@ def test_checkpoints_with_numpy_learning_rates_load_in_sdfstudio_and_nowhere_els
     ExponentialDecaySchedule from the start) leaves numpy float64 learning rates in every checkpoint;
     torch >= 2.6 loads weights-only by default and refused them in both of sdfstudio's loads
     (--trainer.load-dir, eval_setup): a real run could be neither resumed nor evaluated after 5000
-    steps. The patch allows numpy scalars there and only there (found by issue 22's kill and resume test)."""
+    steps. The patch allows numpy scalars there and only there (found by the kill and resume test)."""
     import numpy as np
     from nerfstudio.engine.schedulers import NeuSScheduler
     from nerfstudio.engine.trainer import Trainer
@@ -261,7 +261,7 @@ def test_checkpoints_with_numpy_learning_rates_load_in_sdfstudio_and_nowhere_els
         torch.load(path, map_location="cpu")
 
 
-# -- the registry (issue 32): every sdfstudio entry guarded; after each scope the host as it was --------------------
+# -- the registry: every sdfstudio entry guarded; after each scope the host as it was --------------------
 
 
 def _sdfstudio_entries():
@@ -399,7 +399,7 @@ except ImportError:
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU run")
 def test_an_sdfstudio_run_leaves_the_rest_of_the_process_as_it_was(sdf_scene, tmp_path):
-    """The guest test for sdfstudio (issue 32): a fresh process with every sdfstudio patch (as
+    """The guest test for sdfstudio: a fresh process with every sdfstudio patch (as
     sp-sdfstudio-train has them) trains sp-neus two steps through sdfstudio's own train_loop; then
     dataclasses.dataclass, sys.excepthook, warnings.filters and torch's CUDA functions are the
     objects they were, no module outside sdfstudio's packages holds our tolerant dataclass (the

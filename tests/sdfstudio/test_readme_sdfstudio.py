@@ -1,4 +1,4 @@
-"""The docs' sdfstudio guide (docs/guides/sdfstudio.md) is executable (issue 47): its blocks run here, in sdfstudio's
+"""The docs' sdfstudio guide (docs/guides/sdfstudio.md) is executable: its blocks run here, in sdfstudio's
 environment, as a user types them, through the same runner as tests/test_readme.py (Sybil; the
 budget flags, placeholders and skip markers declared in tests/helpers/readme_runner.py). The scene
 they train on is made first by the README's own ``sp-scene spot my-scene`` line."""

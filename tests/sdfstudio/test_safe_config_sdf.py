@@ -1,4 +1,4 @@
-"""Opening a run folder never runs its code, under sdfstudio (issue 38).
+"""Opening a run folder never runs its code, under sdfstudio.
 
 - every sdfstudio method config (sdfstudio's own and ours) and a real run's ``config.yml`` load with
   the restricted loader as with PyYAML's full loader;

@@ -134,8 +134,8 @@ def test_fixed_fd_step_wins_over_the_host_schedule_and_checkpoint_keys_match_the
 
 
 def test_a_config_yml_saved_with_the_seams_old_class_names_loads(tmp_path):
-    """Issue 45 renamed the sdfstudio seam's field to ``SeamSDFField``; a config.yml saved before names
-    ``SPSDFFieldConfig`` / ``SPSDFField``. The module defines no alias (issue 55): the host's registry entry
+    """An earlier release renamed the sdfstudio seam's field to ``SeamSDFField``; a config.yml saved before names
+    ``SPSDFFieldConfig`` / ``SPSDFField``. The module defines no alias: the host's registry entry
     maps the old paths (``Host.renamed``), which our commands' config reader and, through the module's
     ``__getattr__``, any YAML loader (sdfstudio's own commands) read."""
     import yaml

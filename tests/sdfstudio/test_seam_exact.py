@@ -1,4 +1,4 @@
-"""Exact values of the sdfstudio seam (issue 44): for a fixed noise draw, the SDF field is queried
+"""Exact values of the sdfstudio seam: for a fixed noise draw, the SDF field is queried
 at the paper's ``x + alpha * eps`` taken in sdfstudio's contracted space and folded into the
 contraction's range ``[-2, 2]^3``, computed here from the raw draws with the reference fold of
 ``tests/core/test_properties.py`` and a contraction written here (not the library's ``perturb`` or

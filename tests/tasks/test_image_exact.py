@@ -1,4 +1,4 @@
-"""Exact values of the image-fitting task (issue 44): in one step with the learnable alpha map the
+"""Exact values of the image-fitting task: in one step with the learnable alpha map the
 field is queried at ``p + alpha_map(p) * eps`` (K draws averaged) folded into the image square
 ``[0, 1]^2``, and the gradient reaching the alpha map is the reparameterised ``eps``-weighted value,
 computed here by autograd through the paper's formula on copies of the field and the map.
@@ -69,7 +69,7 @@ def test_one_step_queries_p_plus_the_maps_alpha_eps_and_the_map_gets_the_eps_wei
     assert trainer.history["loss"][0] == pytest.approx(float(loss), rel=1e-5)
 
 
-# --- ahead of the mutation study of image.py (issue 44) ---------------------------------------------
+# --- ahead of the mutation study of image.py ---------------------------------------------
 
 GRID = EncodingConfig(levels=3, log2_table_size=8, base_resolution=2, max_resolution=8)
 

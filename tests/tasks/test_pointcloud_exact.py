@@ -1,4 +1,4 @@
-"""Exact values of the point cloud -> SDF task (issue 44): in one training step the field is
+"""Exact values of the point cloud -> SDF task: in one training step the field is
 queried at the paper's ``x + alpha * eps`` (K draws averaged), folded into the frame's box
 ``[-1, 1]^3``, and the SIREN terms get the SDF there and its gradient with respect to ``x``
 (the perturbed field's: the fold's sign included), computed here from the raw seeded draws.
@@ -68,7 +68,7 @@ def test_one_step_queries_x_plus_alpha_eps_in_the_frame_box_and_takes_the_gradie
     torch.testing.assert_close(seen["g"], g, rtol=1e-4, atol=1e-5)
 
 
-# --- the mutation study's survivors in pointcloud.py (issue 44) -------------------------------------
+# --- the mutation study's survivors in pointcloud.py -------------------------------------
 
 def tiny(grid, **kw) -> PointCloudSDFConfig:
     base = dict(steps=2, surface_batch=16, space_batch=16, hidden=(16,), encoding=grid)

@@ -1,4 +1,4 @@
-"""Exact values of the direct SDF-fitting task (issue 44): in one step the field is queried at the
+"""Exact values of the direct SDF-fitting task: in one step the field is queried at the
 paper's ``x + alpha * eps`` (K draws averaged) folded into the frame's box ``[-1, 1]^3``, and the
 loss is the MAPE of that (mean) prediction against the plain points' distances, computed here
 from the raw seeded draws. The mutation of ``sp_plugins/tasks/sdf.py`` each test kills is listed in
@@ -60,7 +60,7 @@ def test_one_step_queries_x_plus_alpha_eps_and_fits_the_mean_to_the_plain_distan
     assert trainer.history["loss"][0] == pytest.approx(float(loss), rel=1e-5)
 
 
-# --- the mutation study's survivors in sdf.py (issue 44) --------------------------------------------
+# --- the mutation study's survivors in sdf.py --------------------------------------------
 
 def tiny(grid, **kw) -> SDFFitConfig:
     base = dict(steps=2, batch=9, pool=28, hidden=(16,), encoding=grid, mesh_resolution=8, refine=0, metric_points=100)

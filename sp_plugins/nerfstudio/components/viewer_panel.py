@@ -1,5 +1,5 @@
 """SP in nerfstudio's viewer: a panel on every model that trains with SP, and a render of the field
-as the optimizer sees it (issue 56).
+as the optimizer sees it.
 
 nerfstudio's viewer turns every ``ViewerElement`` reachable from the pipeline's modules into a
 control (``nerfstudio.viewer.utils.parse_object``), in a folder named by the attribute path. Our
