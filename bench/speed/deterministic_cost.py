@@ -6,7 +6,7 @@ nerfstudio's own nerfacto as ``sp-train`` builds it (its torch ``HashEncoding`` 
 backward of ``table[index]`` needed the ordered kernel; its parallel data manager included) and
 our ``sp-neus-hashgrid``, both with SP on.
 
-Usage: ``python -m bench.speed.deterministic_cost [--repeats 30] [--threads 2] [--rays 1024]``
+Usage: ``python -m bench.speed.deterministic_cost [--repeats 20] [--threads 2] [--rays 256]``
 Writes ``bench/out/deterministic_cost.json`` and prints a markdown table.
 """
 
@@ -62,9 +62,9 @@ def steps_for(trainer):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--rays", type=int, default=1024)
+    parser.add_argument("--rays", type=int, default=256, help="rays per step (the README recipes: 256)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     from sp_plugins.data import make_scene
@@ -75,6 +75,7 @@ def main() -> None:
         for method in ("sp-train nerfacto", "sp-neus-hashgrid"):
             times = paired_timing(steps_for(trainer_for(method, scene, Path(tmp), args.rays)), args.repeats)
             results[method] = ratio_summary(times, "default kernels")
+            print(method, results[method], flush=True)
     torch.use_deterministic_algorithms(False)
     payload = {"results": results, "args": vars(args), "machine": machine_info()}
     write_json("deterministic_cost", payload)
