@@ -3,20 +3,23 @@
 Two runs of the same command at the same seed differed on a CPU with more than one thread: the
 backward of advanced indexing (``table[index]``, as in nerfstudio's torch ``HashEncoding``) adds
 into the table with ``index_put_(accumulate=True)``, whose CPU kernel sums colliding rows in
-thread order. ``torch.use_deterministic_algorithms(True)`` gives it an ordered kernel, at no
-measurable cost per step on our CPU (``bench/speed/deterministic_cost.py``).
+thread order. ``torch.use_deterministic_algorithms(True)`` gives it an ordered kernel
+(``bench/speed/deterministic_cost.py``, 2 threads: nerfstudio's nerfacto +8% per step, our
+``sp-neus-hashgrid`` +0%).
 
 ``SP_DETERMINISTIC`` decides, read when the scope opens:
 
-- ``auto`` (the default): deterministic kernels when torch sees no GPU; on a GPU nothing changes;
+- ``auto`` (the default): deterministic kernels when torch sees no GPU, except for a model with
+  nerfstudio's torch ``HashEncoding`` on several threads, where they cost more than 5% of a step
+  (:func:`sp_plugins.nerfstudio.model.hold_deterministic_kernels` says so once); on a GPU nothing changes;
 - ``1``: deterministic kernels on every device: also ``cudnn.deterministic``, no cudnn autotuning
   and ``CUBLAS_WORKSPACE_CONFIG=:4096:8`` where unset (needed by cuBLAS before its first call);
   an op with no deterministic kernel warns once instead of stopping the run (``warn_only``);
 - ``0``: nothing changes.
 
-Scope: ``sp-train``'s process (``sp-fit``'s own fields repeat without it); the host's
-``ns-*`` commands on a run of ours while our model exists, and nerfbaselines while our method
-wrapper exists (``registry.hold``). Building our model
+Scope: while our model exists under ``sp-train`` or the host's ``ns-*`` commands, and under
+nerfbaselines while our method wrapper exists with ``SP_DETERMINISTIC=1`` (``registry.hold``).
+``sp-fit``'s own fields repeat without it. Building our model
 in a Python session changes nothing: call :func:`deterministic_kernels` there. After the scope the
 three settings are what they were.
 """
@@ -80,9 +83,8 @@ PATCH = Patch(
     host="torch",
     version=", ".join(TESTED_TORCH_VERSIONS),
     changes="torch.use_deterministic_algorithms(True, warn_only=True), cudnn deterministic: runs repeat (SP_DETERMINISTIC)",
-    scope_text="sp-train's process; ns-* commands on a run of ours and nerfbaselines' wrapper of ours while they exist",
+    scope_text="our model under sp-train and ns-* while it exists; nerfbaselines' wrapper of ours with SP_DETERMINISTIC=1",
     check=_check,
     enter=deterministic_kernels,
     guarded=(("torch", "use_deterministic_algorithms"), ("torch", "are_deterministic_algorithms_enabled")),
-    owned_commands=("sp-train",),
 )

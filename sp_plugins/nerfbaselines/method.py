@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import functools
 import logging
+import os
 import sys
 from typing import Any, Optional
 
@@ -68,7 +69,8 @@ class SPNerfStudio(NerfStudio):
             raise RuntimeError(f"{type(self).__name__} is built by nerfbaselines from one of our specs, not {self._sp_id!r}")
         self._sp_entry = specs.ENTRIES[self._sp_id]
         registry.hold("nerfbaselines_lpips", self)
-        registry.hold("torch_deterministic", self)  # runs repeat at any thread count (patches/torch_deterministic.py)
+        if os.environ.get("SP_DETERMINISTIC", "").strip() == "1":  # repeatable at any thread count (patches/torch_deterministic.py)
+            registry.hold("torch_deterministic", self)
         overrides = dict(config_overrides or {})
         passed = {key: overrides.pop(key) for key in PASSED if key in overrides}
         # (read by nerfbaselines' __init__; a "method" key it would also try to set as a config field)

@@ -18,6 +18,7 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -44,6 +45,38 @@ from sp_plugins.nerfstudio.seam import ALPHA_GRID_OUTPUT, attach_seam, check_rea
 
 __all__ = ["SPModel", "SPModelConfig", "hold_under_host_command", "host_command", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
+
+
+TORCH_HASH_ENCODING_COST = "about 8% per step at 2 threads (bench/speed/deterministic_cost.py)"
+
+
+def uses_torch_hash_encoding(model: torch.nn.Module) -> bool:
+    """Whether ``model`` holds nerfstudio's torch ``HashEncoding`` (the one whose backward needs the ordered kernel)."""
+    from nerfstudio.field_components.encodings import HashEncoding
+
+    return any(isinstance(m, HashEncoding) and getattr(m, "tcnn_encoding", None) is None for m in model.modules())
+
+
+def hold_deterministic_kernels(model: torch.nn.Module) -> bool:
+    """Under ``ns-*`` or ``sp-train`` on a run of ours: torch's deterministic kernels while ``model`` exists
+    (``patches/torch_deterministic.py``), where they cost nothing measurable. ``SP_DETERMINISTIC=auto`` (the
+    default) leaves them off for a model with nerfstudio's torch ``HashEncoding`` on several threads, where they
+    cost about 8% per step, and says so once; ``SP_DETERMINISTIC=1`` turns them on there too. Returns whether held."""
+    import os
+
+    from sp_plugins.patches import registry
+
+    if not (host_command() or registry.our_console_command() == "sp-train"):
+        return False
+    if (os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() in ("", "auto") and torch.get_num_threads() > 1
+            and uses_torch_hash_encoding(model)):
+        logging.getLogger(__name__).warning(
+            "nerfstudio's torch hash encoding on %d threads: runs are not bit-repeatable (its backward sums colliding "
+            "rows in thread order); SP_DETERMINISTIC=1 makes them repeatable at %s, or train on one thread "
+            "(OMP_NUM_THREADS=1)", torch.get_num_threads(), TORCH_HASH_ENCODING_COST)
+        return False
+    registry.hold("torch_deterministic", model)
+    return True
 
 
 def refuse_inert_options(config: SPConfig) -> None:
@@ -90,10 +123,10 @@ def install_process_settings(owner: object = None, *, run: bool = False) -> None
     from sp_plugins.patches import registry
 
     if owner is None:
-        for name in ("input_error_hook", "host_warnings", "torch_deterministic"):
+        for name in ("input_error_hook", "host_warnings"):
             registry.install_for_process(name, command="sp-train")
         return
-    for name in ("input_error_hook", "host_warnings", "torch_deterministic") if run else ("input_error_hook",):
+    for name in ("input_error_hook", "host_warnings") if run else ("input_error_hook",):
         registry.hold(name, owner)
 
 
@@ -153,6 +186,7 @@ class SPModel(adapter_model.SPModelBase):
         return super().build_preconditioner()
 
     def attach_sp(self) -> None:
+        hold_deterministic_kernels(self)  # the host's modules are built: what they need is known
         self._attach_seam()
         if self.sp.config.enabled:  # the viewer's SP panel (a baseline shows none)
             self.stochastic_preconditioning = SPPanel(self.sp)

@@ -70,6 +70,9 @@ def test_cpu_quick_runs_every_part_and_says_what_it_skipped(cpu_quick):
     assert resume["ok"] and resume["adam_moments_match"] and resume["continued_from_step"] > 0
     assert any("--quick" in s for s in parts["checkpoint"]["skipped"])
     assert parts["fit"]["syncs"]["ours"] == {} and parts["fit"]["timer_ok"] and parts["fit"]["finite"]
+    repeat = parts["repeat"]  # the same fit twice, bitwise: on a CPU it must match
+    assert repeat["repeats"] and repeat["differing"] == {} and repeat["tensors"] >= 4 and repeat["hash_grid"] == "torch"
+    assert repeat["deterministic_kernels"] and "bit-identical" in proc.stdout
     assert all(r["syncs"]["ours"] == {} for r in runs.values())  # counted along the GPU's branches
     assert any(site.startswith("nerfstudio/") for site in runs["nerfacto"]["syncs"]["host"])  # the host's are reported
     assert report["seconds"] < report["deadline_s"]
