@@ -9,8 +9,9 @@ thread order. ``torch.use_deterministic_algorithms(True)`` gives it an ordered k
 
 ``SP_DETERMINISTIC`` decides, read when the scope opens:
 
-- ``auto`` (the default): deterministic kernels when torch sees no GPU, except for a model with
-  nerfstudio's torch ``HashEncoding`` on several threads, where they cost more than 5% of a step
+- ``auto`` (the default): deterministic kernels when torch sees no GPU and runs several threads
+  (on one thread every sum has one order already), except for a model with nerfstudio's torch
+  ``HashEncoding``, where they cost more than 5% of a step
   (:func:`sp_plugins.nerfstudio.model.hold_deterministic_kernels` says so once); on a GPU nothing changes;
 - ``1``: deterministic kernels on every device: also ``cudnn.deterministic``, no cudnn autotuning
   and ``CUBLAS_WORKSPACE_CONFIG=:4096:8`` where unset (needed by cuBLAS before its first call);

@@ -59,17 +59,20 @@ def uses_torch_hash_encoding(model: torch.nn.Module) -> bool:
 
 def hold_deterministic_kernels(model: torch.nn.Module) -> bool:
     """Under ``ns-*`` or ``sp-train`` on a run of ours: torch's deterministic kernels while ``model`` exists
-    (``patches/torch_deterministic.py``), where they cost nothing measurable. ``SP_DETERMINISTIC=auto`` (the
-    default) leaves them off for a model with nerfstudio's torch ``HashEncoding`` on several threads, where they
-    cost about 8% per step, and says so once; ``SP_DETERMINISTIC=1`` turns them on there too. Returns whether held."""
+    (``patches/torch_deterministic.py``), where they are needed and cost nothing measurable. ``SP_DETERMINISTIC=auto``
+    (the default) leaves them off on one thread (every sum has one order there) and for a model with nerfstudio's
+    torch ``HashEncoding`` on several threads, where they cost about 8% per step (it says so once);
+    ``SP_DETERMINISTIC=1`` turns them on everywhere. Returns whether held."""
     import os
 
     from sp_plugins.patches import registry
 
     if not (host_command() or registry.our_console_command() == "sp-train"):
         return False
-    if (os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() in ("", "auto") and torch.get_num_threads() > 1
-            and uses_torch_hash_encoding(model)):
+    auto = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() in ("", "auto")
+    if auto and torch.get_num_threads() == 1:
+        return False  # one thread: every sum has one order already
+    if auto and uses_torch_hash_encoding(model):
         logging.getLogger(__name__).warning(
             "nerfstudio's torch hash encoding on %d threads: runs are not bit-repeatable (its backward sums colliding "
             "rows in thread order); SP_DETERMINISTIC=1 makes them repeatable at %s, or train on one thread "

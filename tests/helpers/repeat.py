@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 from pathlib import Path
-from typing import Callable, Dict, List, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
@@ -20,13 +20,17 @@ def env(threads: int) -> dict:
                 WANDB_MODE="disabled")
 
 
-def run_side_by_side(commands: Sequence[Sequence[str]], threads: int, cwd: Path, timeout: int = 600) -> None:
-    """Start every command at once (each its own process), wait for all; fail with the tail of any that failed."""
-    procs = [subprocess.Popen(list(map(str, c)), env=env(threads), cwd=cwd, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True) for c in commands]
+def run_side_by_side(commands: Sequence[Sequence[str]], threads: int, cwd: Path, timeout: int = 600,
+                     extra_env: Optional[Sequence[dict]] = None) -> List[str]:
+    """Start every command at once (each its own process, ``extra_env[i]`` added to its environment), wait for
+    all; fail with the tail of any that failed. Returns each one's output (stdout and stderr)."""
+    extra = list(extra_env or [{}] * len(commands))
+    procs = [subprocess.Popen(list(map(str, c)), env={**env(threads), **e}, cwd=cwd, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for c, e in zip(commands, extra)]
     outputs = [p.communicate(timeout=timeout)[0] for p in procs]
     for command, proc, output in zip(commands, procs, outputs):
         assert proc.returncode == 0, f"{' '.join(map(str, command))} exited {proc.returncode}:\n{output[-3000:]}"
+    return outputs
 
 
 def train_twice(command: Command, root: Path, threads: int = 1, timeout: int = 600) -> Tuple[Path, Path]:

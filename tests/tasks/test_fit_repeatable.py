@@ -26,10 +26,10 @@ def photo(tmp_path):
 def test_sp_fit_twice_gives_the_same_checkpoint(task, photo, tmp_path):
     from sp_plugins.data.mesh import BUNDLED
 
-    source = {"pointcloud": [BUNDLED["spot"], "--mesh-resolution", "32", "--n-points", "4000"], "image": [photo]}[task]
+    source = {"pointcloud": [BUNDLED["spot"], "--mesh-resolution", "24", "--n-points", "2000"], "image": [photo]}[task]
 
     def fit(out):
-        return [command("sp-fit"), task, *source, "--steps", "30", "--checkpoint-every", "30", "--quiet", "--out", out]
+        return [command("sp-fit"), task, *source, "--steps", "20", "--checkpoint-every", "20", "--quiet", "--out", out]
 
     a, b = train_twice(fit, tmp_path, threads=2)
     first, second = checkpoint(a, "checkpoint.pt"), checkpoint(b, "checkpoint.pt")
