@@ -112,6 +112,13 @@ def jobs(study: str):
     return [(SWEEP_PHOTO, v, t, 0) for t in SWEEP_LOG2 for v in VARIANTS]
 
 
+def late_gain(curve: list) -> float:
+    """PSNR gained over the last quarter of a run's steps (how far from converged it stopped)."""
+    last_step = curve[-1][0]
+    at = min(curve, key=lambda point: abs(point[0] - 0.75 * last_step))
+    return curve[-1][1] - at[1]
+
+
 def records() -> list:
     return [json.loads(p.read_text()) for p in sorted(OUT.glob("*.json")) if not p.name.startswith("summary")]
 
@@ -123,8 +130,9 @@ def report() -> None:
     find = {(r["image"], r["variant"], r["log2_table_size"], r["seed"]): r for r in rows}
     lines = [f"Main table: {len(PHOTOS)} photos, 2^{TABLE_LOG2} rows per level, {STEPS} steps of {BATCH} pixels; "
              "PSNR mean ± sd over seeds; differences paired by seed with a 95% t interval.", "",
-             "| photo | pixels | params / pixel | Instant-NGP | + SP | + SP + adaptive | SP - NGP | adaptive - NGP | adaptive - SP |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| photo | pixels | params / pixel | Instant-NGP | + SP | + SP + adaptive | SP - NGP | adaptive - NGP | adaptive - SP "
+             "| NGP's gain over its last quarter of steps |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     summary: dict = {"table": {}, "sweep": {}}
     for photo in PHOTOS:
         seeds = [s for s in (0, 1, 2) if all((photo, v, TABLE_LOG2, s) in find for v in VARIANTS)]
@@ -143,8 +151,10 @@ def report() -> None:
                     else f"{d.mean:+.2f} (one seed)"), d.as_dict()
 
         cells = {k: diff(*k) for k in (("baseline", "sp"), ("baseline", "adaptive"), ("sp", "adaptive"))}
+        late = [late_gain(find[(photo, "baseline", TABLE_LOG2, s)]["curve"]) for s in seeds]
         lines.append(f"| {photo} | {first['width']}x{first['height']} | {first['params_per_pixel']:.2f} | "
-                     + " | ".join(cell(v) for v in VARIANTS) + " | " + " | ".join(c[0] for c in cells.values()) + " |")
+                     + " | ".join(cell(v) for v in VARIANTS) + " | " + " | ".join(c[0] for c in cells.values())
+                     + f" | {sum(late) / len(late):+.2f} dB |")
         summary["table"][photo] = {"seeds": seeds, "psnr": vals, "differences": {f"{b} - {a}": c[1] for (a, b), c in cells.items()}}
     sweep = sorted({r["log2_table_size"] for r in rows if r["image"] == SWEEP_PHOTO and r["seed"] == 0})
     if sweep:
