@@ -9,10 +9,10 @@ thread order. ``torch.use_deterministic_algorithms(True)`` gives it an ordered k
 
 ``SP_DETERMINISTIC`` decides, read when the scope opens:
 
-- ``auto`` (the default): deterministic kernels when torch sees no GPU and runs several threads
-  (on one thread every sum has one order already), except for a model with nerfstudio's torch
-  ``HashEncoding``, where they cost more than 5% of a step
-  (:func:`sp_plugins.nerfstudio.model.hold_deterministic_kernels` says so once); on a GPU nothing changes;
+- ``auto`` (the default): deterministic kernels when torch sees no GPU. Our model's hold
+  (:func:`sp_plugins.nerfstudio.model.hold_deterministic_kernels`) asks for the scope only on several
+  threads (on one every sum has one order already) and not for a model with nerfstudio's torch
+  ``HashEncoding``, where the kernels cost more than 5% of a step (it says so once); on a GPU nothing changes;
 - ``1``: deterministic kernels on every device: also ``cudnn.deterministic``, no cudnn autotuning
   and ``CUBLAS_WORKSPACE_CONFIG=:4096:8`` where unset (needed by cuBLAS before its first call);
   an op with no deterministic kernel warns once instead of stopping the run (``warn_only``);
@@ -20,8 +20,9 @@ thread order. ``torch.use_deterministic_algorithms(True)`` gives it an ordered k
 
 Scope: while our model exists under ``sp-train`` or the host's ``ns-*`` commands, and under
 nerfbaselines while our method wrapper exists with ``SP_DETERMINISTIC=1`` (``registry.hold``).
-``sp-fit``'s own fields repeat without it. Building our model
-in a Python session changes nothing: call :func:`deterministic_kernels` there. After the scope the
+``sp-fit``'s own fields repeat without it; ``sp_plugins.nerfstudio.runs.train`` (the benchmarks' trainer) and
+``sp-gpu-check``'s repeat part enter the scope themselves. Building our model in a Python session changes
+nothing: call :func:`deterministic_kernels` there. After the scope the
 three settings are what they were.
 """
 
