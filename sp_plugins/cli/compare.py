@@ -358,10 +358,8 @@ def compare(args) -> int:
     except InputError as err:
         raise Refused(str(err)) from None
     if args.baseline is None:
-        payload = compare_pair(paths, configs, args.names or default_labels(*configs), args.output_dir, args)
+        compare_pair(paths, configs, args.names or default_labels(*configs), args.output_dir, args, extra={"noise": ONE_PAIR_NOTE})
         print(ONE_PAIR_NOTE)
-        payload["noise"] = ONE_PAIR_NOTE
-        (args.output_dir / "compare.json").write_text(json.dumps(payload, indent=1))
         return 0
     pairs = []
     for seed, pair_paths, pair_configs in zip(seeds, paths, configs):
@@ -406,8 +404,10 @@ def pair_by_seed(baseline: Sequence[Path], sp: Sequence[Path]):
     return [[paths[a], paths[b]] for a, b in pairs], [[configs[a], configs[b]] for a, b in pairs], seeds
 
 
-def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str], out: Path, args) -> dict:
-    """One pair's report in ``out`` (views, curves, meshes, table, page, JSON); returns the JSON's content."""
+def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str], out: Path, args,
+                 extra: Optional[dict] = None) -> dict:
+    """One pair's report in ``out`` (views, curves, meshes, table, page, JSON, ``extra`` added to the JSON); returns
+    the JSON's content."""
     from sp_plugins.cli.run_folder import setup_pipeline
 
     data = [data_of(c) for c in configs]
@@ -466,6 +466,7 @@ def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str]
         "held_out_views": [Path(v).name for v in views[0]],
         "scored_views": kind,
         "table": rows,
+        **(extra or {}),
     }
     (out / "compare.json").write_text(json.dumps(payload, indent=1))
     write_html(runs, rows, figures, notes, out / "compare.html", kind)

@@ -19,6 +19,7 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -63,13 +64,15 @@ def hold_deterministic_kernels(model: torch.nn.Module) -> bool:
     (the default) leaves them off on one thread (every sum has one order there) and for a model with nerfstudio's
     torch ``HashEncoding`` on several threads, where they cost about 8% per step (it says so once);
     ``SP_DETERMINISTIC=1`` turns them on everywhere. Returns whether held."""
-    import os
-
     from sp_plugins.patches import registry
+    from sp_plugins.patches.torch_deterministic import MODES
 
     if not (host_command() or registry.our_console_command() == "sp-train"):
         return False
-    auto = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() in ("", "auto")
+    mode = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() or "auto"
+    if mode not in MODES:
+        raise InputError(f"SP_DETERMINISTIC={mode!r}: use auto (the default), 1 or 0")
+    auto = mode == "auto"
     if auto and torch.get_num_threads() == 1:
         return False  # one thread: every sum has one order already
     if auto and uses_torch_hash_encoding(model):
