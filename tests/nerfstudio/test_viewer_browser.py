@@ -31,6 +31,7 @@ except ImportError:  # the tests skip (or fail under CI=true) in their fixture, 
 from tests.helpers.browser import CHROMIUM, CHROMIUM_ARGS, browser_or_skip
 
 STEPS = 200
+PAUSE_AFTER = 30  # trainer's logged step; the run is 200 steps, about 10 a second on an idle core
 SP_END = 1.0  # SP on for every step but the last (sp_plugins.core.AlphaSchedule.resolve)
 TINY = [
     "--machine.device-type", "cpu", "--max-num-iterations", str(STEPS), "--pipeline.model.resolution", "33",
@@ -268,9 +269,21 @@ def test_the_viewer_of_a_training_sp_run(training, browser, spot, tmp_path):
         readings[key] = (value, f"{time.monotonic() - t0:.1f} s")
         return value
 
-    # pause first, from the page: the run cannot end while the view is set up, and the trainer stops
+    # pause first, from the page: the run cannot end while the view is set up, and the trainer stops.
+    # Not before the field has a shape: a frame of a field a few steps old is nearly all background, and
+    # SP's change to it can stay under the threshold below (on a loaded machine the page is ready earlier
+    # in the run than on an idle one).
+    wait_for(lambda: (logged_steps(training) or [0])[-1] >= PAUSE_AFTER, 120, f"step {PAUSE_AFTER} in the trainer's log", why)
     before = at("trainer's log before pausing", logged_steps(training)[-1:])
     click(page, "Pause Training")
+    try:
+        _while_paused(page, training, spot, tmp_path, why, at, before, readings)
+    finally:  # a failure while paused must not leave the run paused for the tests after this one
+        if not page.is_closed() and page.get_by_role("button", name="Resume Training").count():
+            page.get_by_role("button", name="Resume Training").click()
+
+
+def _while_paused(page, training, spot, tmp_path, why, at, before, readings):
     # the step in flight when the button was pressed finishes: the trainer's log then holds still
     wait_for(lambda: steady(training, 2.0), 60, "the trainer's log to hold still after pausing", why)
     paused = at("paused (page, trainer's log)", ((readout(page) or (0,))[0], logged_steps(training)[-1]))
