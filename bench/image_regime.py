@@ -18,6 +18,7 @@ Two studies (resumable: one JSON per run in ``bench/out/image_regime/``)::
     OMP_NUM_THREADS=1 python -m bench.image_regime table    # 2 photos x 3 variants x 3 seeds at T=13 (1 param/pixel)
     OMP_NUM_THREADS=1 python -m bench.image_regime sweep    # hubble: T = 11, 13, 15, 17, 3 variants, seed 0
     OMP_NUM_THREADS=1 python -m bench.image_regime report   # summary.md / summary.json, the two figures
+    OMP_NUM_THREADS=1 python -m bench.image_regime table --steps 6000   # the same, longer: in steps-6000/, figures *_6000.png
 
 Figures: ``docs/image_regime_maps.png`` (each photo, its learned alpha map, the error maps of the
 baseline and the adaptive run) and ``docs/image_regime_sweep.png`` (PSNR against parameters per pixel).
@@ -76,6 +77,11 @@ def params_per_pixel(log2: int, img: np.ndarray, levels: int = 16, features: int
     return levels * 2**log2 * features / (img.shape[0] * img.shape[1])
 
 
+def out_dir(steps: int) -> Path:
+    """Where a study of ``steps`` steps keeps its runs: ``OUT`` at the default length, ``OUT/steps-N`` otherwise."""
+    return OUT if steps == STEPS else OUT / f"steps-{steps}"
+
+
 def run(name: str, variant: str, log2: int, seed: int, steps: int) -> dict:
     import torch
 
@@ -95,13 +101,13 @@ def run(name: str, variant: str, log2: int, seed: int, steps: int) -> dict:
             curve.append([trainer.step_index, psnr(trainer.render(), img)])
     seconds = time.perf_counter() - start
     fitted = trainer.render()
-    stem = f"{name}_{variant}_T{log2}_s{seed}"
+    stem, out = f"{name}_{variant}_T{log2}_s{seed}", out_dir(steps)
     record = dict(image=name, variant=variant, log2_table_size=log2, seed=seed, steps=steps, batch=BATCH,
                   height=img.shape[0], width=img.shape[1], params_per_pixel=params_per_pixel(log2, img),
                   psnr=psnr(fitted, img), curve=curve, seconds=seconds, machine=machine_info())
-    save_image(fitted, OUT / f"{stem}.png")
+    save_image(fitted, out / f"{stem}.png")
     if variant == "adaptive" and trainer.sp.alpha_grid is not None:
-        np.save(OUT / f"{stem}_alpha.npy", trainer.pixel_alpha().reshape(trainer.height, trainer.width).cpu().numpy())
+        np.save(out / f"{stem}_alpha.npy", trainer.pixel_alpha().reshape(trainer.height, trainer.width).cpu().numpy())
         record.update(phase2_step=trainer.phase2_step, psnr_at_phase2_start=psnr(phase1, img) if phase1 is not None else None)
     return record
 
@@ -119,16 +125,17 @@ def late_gain(curve: list) -> float:
     return curve[-1][1] - at[1]
 
 
-def records() -> list:
-    return [json.loads(p.read_text()) for p in sorted(OUT.glob("*.json")) if not p.name.startswith("summary")]
+def records(out: Path) -> list:
+    return [json.loads(p.read_text()) for p in sorted(out.glob("*.json")) if not p.name.startswith("summary")]
 
 
-def report() -> None:
+def report(steps: int = STEPS) -> None:
     from sp_plugins.stats import paired_difference, spread
 
-    rows = records()
+    out = out_dir(steps)
+    rows = records(out)
     find = {(r["image"], r["variant"], r["log2_table_size"], r["seed"]): r for r in rows}
-    lines = [f"Main table: {len(PHOTOS)} photos, 2^{TABLE_LOG2} rows per level, {STEPS} steps of {BATCH} pixels; "
+    lines = [f"Main table: {len(PHOTOS)} photos, 2^{TABLE_LOG2} rows per level, {steps} steps of {BATCH} pixels; "
              "PSNR mean ± sd over seeds; differences paired by seed with a 95% t interval.", "",
              "| photo | pixels | params / pixel | Instant-NGP | + SP | + SP + adaptive | SP - NGP | adaptive - NGP | adaptive - SP "
              "| NGP's gain over its last quarter of steps |",
@@ -167,29 +174,29 @@ def report() -> None:
             lines.append(f"| 2^{t} | {got['baseline']['params_per_pixel']:.2f} | " + " | ".join(f"{got[v]['psnr']:.2f}" for v in VARIANTS)
                          + f" | {got['adaptive']['psnr'] - got['baseline']['psnr']:+.2f} |")
             summary["sweep"][t] = {v: got[v]["psnr"] for v in VARIANTS} | {"params_per_pixel": got["baseline"]["params_per_pixel"]}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "summary.md").write_text("\n".join(lines) + "\n")
-    (OUT / "summary.json").write_text(json.dumps(summary, indent=1))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(lines))
-    figures(find, summary)
+    figures(find, summary, out, suffix="" if steps == STEPS else f"_{steps}")
 
 
-def figures(find: dict, summary: dict) -> None:
+def figures(find: dict, summary: dict, out: Path, suffix: str = "") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
-    photos = [p for p in PHOTOS if (p, "adaptive", TABLE_LOG2, 0) in find and (OUT / f"{p}_adaptive_T{TABLE_LOG2}_s0_alpha.npy").exists()]
+    photos = [p for p in PHOTOS if (p, "adaptive", TABLE_LOG2, 0) in find and (out / f"{p}_adaptive_T{TABLE_LOG2}_s0_alpha.npy").exists()]
     if photos:
         import imageio.v2 as imageio
 
         fig, axes = plt.subplots(len(photos), 4, figsize=(13, 3.4 * len(photos)), squeeze=False)
         for row, photo in zip(axes, photos):
             img = load_crop(photo)
-            alpha = np.load(OUT / f"{photo}_adaptive_T{TABLE_LOG2}_s0_alpha.npy")
-            errs = [np.abs(imageio.imread(OUT / f"{photo}_{v}_T{TABLE_LOG2}_s0.png")[..., :3] / 255.0 - img).mean(-1)
+            alpha = np.load(out / f"{photo}_adaptive_T{TABLE_LOG2}_s0_alpha.npy")
+            errs = [np.abs(imageio.imread(out / f"{photo}_{v}_T{TABLE_LOG2}_s0.png")[..., :3] / 255.0 - img).mean(-1)
                     for v in ("baseline", "adaptive")]
             vmax = max(float(np.quantile(e, 0.99)) for e in errs)
             row[0].imshow(img)
@@ -206,7 +213,7 @@ def figures(find: dict, summary: dict) -> None:
         fig.suptitle(f"2^{TABLE_LOG2} rows per level ({find[(photos[0], 'baseline', TABLE_LOG2, 0)]['params_per_pixel']:.2f} "
                      "parameters per pixel), seed 0", fontsize=10)
         fig.tight_layout()
-        fig.savefig(DOCS / "image_regime_maps.png", dpi=90)
+        fig.savefig(DOCS / f"image_regime_maps{suffix}.png", dpi=90)
         plt.close(fig)
     if summary["sweep"]:
         fig, ax = plt.subplots(figsize=(5.5, 3.6))
@@ -221,7 +228,7 @@ def figures(find: dict, summary: dict) -> None:
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
         fig.tight_layout()
-        fig.savefig(DOCS / "image_regime_sweep.png", dpi=100)
+        fig.savefig(DOCS / f"image_regime_sweep{suffix}.png", dpi=100)
         plt.close(fig)
 
 
@@ -230,13 +237,14 @@ def main() -> None:
     parser.add_argument("study", choices=("table", "sweep", "both", "report"))
     parser.add_argument("--steps", type=int, default=STEPS)
     args = parser.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = out_dir(args.steps)
+    out.mkdir(parents=True, exist_ok=True)
     if args.study == "report":
-        report()
+        report(args.steps)
         return
     todo = jobs("table") + jobs("sweep") if args.study == "both" else jobs(args.study)
     for photo, variant, log2, seed in todo:
-        path = OUT / f"{photo}_{variant}_T{log2}_s{seed}.json"
+        path = out / f"{photo}_{variant}_T{log2}_s{seed}.json"
         if path.exists():
             continue
         record = run(photo, variant, log2, seed, args.steps)
