@@ -325,7 +325,7 @@ def summarise(results: List[dict], out: Path) -> str:
 def quick(mesh: str, out: Path) -> str:
     setting = dataclasses.replace(QUICK_RUN, mesh=mesh)
     logging.info("quick pair on %s: grid lr %g, %d steps, %d views of %dx%d (the smallest pair at which the baseline "
-                 "fails; bench/RESULTS.md)", mesh, setting.grid_lr, setting.steps, setting.views, *setting.resolution)
+                 "fails; docs/results/failure-search.md)", mesh, setting.grid_lr, setting.steps, setting.views, *setting.resolution)
     result = run_pair(setting, out, f"quick-{Path(mesh).stem}")
     (out / f"quick-{Path(mesh).stem}.json").write_text(json.dumps(result, indent=1))
     b, s = (result[name] for name in result["pair"])

@@ -121,7 +121,7 @@ PAPER_REGIME = dict(
     color_mode="rgb", density_units="world", density_scale=100 / 3, loss="l1", lr_schedule="staged",
     stage_gamma=0.9,
 )
-"""``relu --paper-regime``: thr3ed_atom's ratios at CPU size (see bench/RESULTS.md).
+"""``relu --paper-regime``: thr3ed_atom's ratios at CPU size (docs/results/radiance-methods.md).
 64^3 cells over [-1.5, 1.5]^3 (voxel 3/64), 24 views of 112^2 (0.87 voxels per pixel, a pixel 0.57
 voxel wide at the centre), 128 samples in the box (at most 0.87 voxel apart), 1024 rays x 6000 steps
 (about 3000 samples per voxel), 4 stages of 8 -> 64 cells."""

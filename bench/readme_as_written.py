@@ -24,7 +24,7 @@ text, as the shell traced it). A command that takes more than 1.5x its stated co
 Resumable: each block's record is kept in ``bench/out/readme_as_written/state.json`` under its document's name and
 a hash of its text (not its line: an edit above a block keeps its record),
 and a block that passed is not run again while its text is unchanged (``--fresh`` starts over). Writes
-``bench/results/readme_as_written.md`` and ``.json``.
+``docs/results/readme-as-written.md`` (the site's page of this study) and ``bench/results/readme_as_written.json``.
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from tests.helpers import readme_runner as rr  # noqa: E402  (the suite's block 
 
 OUT = Path(os.environ.get("SP_BENCH_OUT", REPO / "bench" / "out")) / "readme_as_written"
 RESULTS = REPO / "bench" / "results"
+PAGE = REPO / "docs" / "results" / "readme-as-written.md"
 STATED = re.compile(r"<!--\s*stated:\s*(?P<body>.+?)\s*-->")
 TRACE = re.compile(r"^\+ (?P<t>\d+[.,]\d+) (?P<cmd>.*)$")
 SLOW = 1.5
@@ -228,14 +229,24 @@ def main(argv=None) -> int:
 
 
 def write_results(records: List[Dict], skipped: List[Dict]) -> str:
-    """``bench/results/readme_as_written.md`` / ``.json`` from the records so far (after every block: a study
-    stopped midway keeps what it measured)."""
+    """``docs/results/readme-as-written.md`` and ``bench/results/readme_as_written.json`` from the records so far
+    (after every block: a study stopped midway keeps what it measured)."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "readme_as_written.json").write_text(json.dumps({"records": records, "skipped": skipped}, indent=1))
     text = report(records, skipped)
-    (RESULTS / "readme_as_written.md").write_text(
-        "# The README and docs as written (`python -m bench.readme_as_written`)\n\n" + text + "\n")
+    PAGE.write_text(f"# The README and docs as written (`bench/readme_as_written.py`)\n\n{page_header()}\n\n{text}\n")
     return text
+
+
+def page_header() -> str:
+    """The page's command, machine and date."""
+    import platform
+
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
+    return (f"Command: `python -m bench.readme_as_written` (every block of the README and the docs at the budget it writes, "
+            f"to the end, one torch thread per command). Machine: {cpu}, {os.cpu_count()} cores, {platform.system()}. "
+            f"Written {time.strftime('%Y-%m-%d')}; each row keeps the time of the run that measured it.")
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ settings of the same command:
     python -m bench.readme_examples --settings object --seeds 0 --steps 300
 
 Resumable: a run whose ``eval.json`` exists is read, not run again. Writes
-``bench/out/readme_examples/<example>/results.json`` and ``results.md`` (the table ``bench/RESULTS.md`` quotes).
+``bench/out/readme_examples/<example>/results.json`` and ``results.md`` (the table ``docs/results/readme-examples-seeds.md`` quotes).
 """
 
 from __future__ import annotations
@@ -136,6 +136,27 @@ def table(example: str, records: List[Dict]) -> str:
                 cells.append(f"{statistics.mean(values):.{digits}f} ± {sd:.{digits}f} | {', '.join(f'{v:.{digits}f}' for v in values)}")
             lines.append(f"| {setting} | {'on' if sp else 'off'} | {len(rows)} | {' | '.join(cells)} | "
                          f"{statistics.mean(r['train_s'] for r in rows):.0f} s |")
+    return "\n".join(lines + ["", differences(example, records)])
+
+
+def differences(example: str, records: List[Dict]) -> str:
+    """SP - baseline per metric, paired by seed, with its 95% t interval (what ``sp-compare`` reports)."""
+    from sp_plugins.stats import paired_difference
+
+    metrics = METRICS[example]
+    lines = [f"| setting | pairs | {' | '.join(f'{label}: SP - baseline [95% t]' for _, label, _ in metrics)} |",
+             "|---|---:|" + "---|" * len(metrics)]
+    for setting in SETTINGS[example]:
+        by_seed = {(r["seed"], r["sp"]): r for r in records if r["setting"] == setting}
+        seeds = sorted(s for s, sp in by_seed if sp is False and (s, True) in by_seed)
+        if not seeds:
+            continue
+        cells = []
+        for key, _, digits in metrics:
+            d = paired_difference([by_seed[(s, False)][key] for s in seeds], [by_seed[(s, True)][key] for s in seeds])
+            interval = f" [{d.low:+.{digits}f}, {d.high:+.{digits}f}]: {d.verdict}" if d.low is not None else " (one pair)"
+            cells.append(f"{d.mean:+.{digits}f}{interval}")
+        lines.append(f"| {setting} | {len(seeds)} | {' | '.join(cells)} |")
     return "\n".join(lines)
 
 

@@ -48,7 +48,7 @@ class Budget(NeuSBudget):
     """NeuS samples per ray"""
     inside_outside: bool = False
     """An object seen from outside (neus-facto's default, True, is its indoor setting; the 150-step
-    run in RESULTS.md kept True and found no surface)."""
+    run in docs/results/sdfstudio-neus-facto.md kept True and found no surface)."""
 
 
 def make_config(name: str, data: Path, out: Path, budget: Budget, seed: int):

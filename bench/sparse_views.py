@@ -21,7 +21,7 @@ weights that are not downloaded here (no network): it is reported only where the
 ``--white`` trains on the white-background Blender-like scene of the earlier 6-view study instead
 (24 views of 64x64, 8 test views, whole-image metrics).
 
-Usage (one thread each; see bench/RESULTS.md "Sparse views against FreeNeRF-lite")::
+Usage (one thread each; see docs/results/sparse-views.md)::
 
     # the SP screen at the cheapest size that fails (3 views, 2000 steps, lr 2e-3)
     python -m bench.sparse_views --scenes spot --views 3 --seeds 0 --tag screen \\
@@ -62,7 +62,7 @@ SPARSE = "1.0@0.333"
 """The sparse-view setting this study recommends: alpha0 about the object's radius (0.85 for the
 DTU-like scenes' normalised meshes, in the units of their cameras), to 0 at a third of training. On 3 views it lifts
 MipNeRF's whole-image SSIM beyond the seed spread on every seed measured where the preset does
-nothing (``bench/RESULTS.md``)."""
+nothing (``docs/results/sparse-views.md``)."""
 
 
 def out_dir() -> Path:
@@ -269,12 +269,21 @@ def summary(results: Sequence[dict]) -> str:
         spread_ssim = [b["ssim"] for (s, v, _), b in base.items() if (s, v) == (scene, views)]
         margin_ssim = statistics.stdev(spread_ssim) if len(spread_ssim) > 1 else 0.0
         ahead_ssim = "" if run == BASELINE else f"{sum(d > margin_ssim for d in paired_ssim)} / {len(paired_ssim)}"
-        diff = "" if run == BASELINE or not paired else (f"{statistics.mean(paired):+.2f}" + (f" ± {statistics.stdev(paired):.2f}" if len(paired) > 1 else ""))
+        diff = "" if run == BASELINE or not paired else _interval(paired, 2)
+        diff_ssim = "" if run == BASELINE or not paired_ssim else _interval(paired_ssim, 2)
         rows.append((scene, views, run, len(rs), _mean_spread([r["psnr"] for r in rs]), _mean_spread(obj), diff, ahead,
-                     _mean_spread([r["ssim"] for r in rs]), ahead_ssim, _mean_spread([r.get("ssim_object") for r in rs]),
+                     _mean_spread([r["ssim"] for r in rs]), diff_ssim, ahead_ssim, _mean_spread([r.get("ssim_object") for r in rs]),
                      f"{statistics.mean(r['median_step_s'] for r in rs):.3f}"))
-    return table(["scene", "views", "run", "seeds", "PSNR", "PSNR object", "vs baseline (object)", "ahead / seeds", "SSIM",
-                  "SSIM ahead / seeds", "SSIM object", "s/step"], rows)
+    return table(["scene", "views", "run", "seeds", "PSNR", "PSNR object", "vs baseline (object) [95% t]", "ahead / seeds",
+                  "SSIM", "SSIM vs baseline [95% t]", "SSIM ahead / seeds", "SSIM object", "s/step"], rows)
+
+
+def _interval(differences: Sequence[float], digits: int) -> str:
+    """A paired difference over seeds with its 95% Student-t interval (``sp_plugins.stats``, as ``sp-compare``)."""
+    from sp_plugins.stats import paired_difference
+
+    d = paired_difference([0.0] * len(differences), list(differences))
+    return f"{d.mean:+.{digits}f}" + (f" [{d.low:+.{digits}f}, {d.high:+.{digits}f}]" if d.low is not None else "")
 
 
 def quick_line(results: Dict[str, dict], sp_name: str) -> str:

@@ -18,7 +18,7 @@ NEURALANGELO = SPConfig(alpha0=0.03, end=0.3, schedule="exponential", alpha_grid
 grid initialised to 0.03, Adam lr 1e-3, *in place of* the annealed scalar for the same first 30%
 (the grid alone, not times the schedule), then SP off. The grid stores log-alpha, so lr 1e-3 is a
 0.1% relative step (the paper's alpha-stored grid moves 0.001 in scene units per step): see
-``AlphaGrid`` and bench/RESULTS.md, "Alpha grid parameterisation"."""
+``AlphaGrid`` and docs/results/alpha-grid.md."""
 
 MIPNERF = SPConfig(alpha0=0.04, end=1 / 3, schedule="exponential", boundary="none")
 """Sparse-view MipNeRF: alpha0 0.04, exponential to 0 by step 2500, a third of the sp-mipnerf preset's

@@ -3,7 +3,7 @@
 With no arguments it renders the bundled Spot mesh into a small multi-view scene (both dataset
 layouts, for the nerfstudio methods), then fits a hash-grid SDF to the mesh's oriented point
 cloud twice in one process, step for step: once plain, once with stochastic preconditioning.
-That task is where SP's benefit shows at a CPU budget (see ``bench/RESULTS.md``). It ends with a
+That task is where SP's benefit shows at a CPU budget (``docs/results/pointcloud-sdf.md``). It ends with a
 results table and the paths of the meshes, renders and convergence plot.
 """
 

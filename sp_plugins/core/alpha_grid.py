@@ -61,7 +61,7 @@ class AlphaGrid(nn.Module):
     ``x + alpha(x) * eps`` and the task loss back-propagates into the grid. Where blurring hurts
     (fine detail) the loss pushes alpha down; where the target is smooth it barely moves.
 
-    Parameterisation (what Adam moves; compared in ``bench/RESULTS.md``, "Alpha grid
+    Parameterisation (what Adam moves; compared in ``docs/results/alpha-grid.md``, "Alpha grid
     parameterisation"): ``log`` (default) stores log-alpha: (1) a step of lr changes alpha by a
     factor of about ``e^lr`` whatever its scale, so one learning rate serves a scene in metres and
     an image in [0, 1]; (2) alpha never reaches 0, so no cell stops learning (a clamped cell gets no

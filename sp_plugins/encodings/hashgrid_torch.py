@@ -19,7 +19,7 @@ eikonal loss needs the second):
 - ``dot(table, g)[l, c, n] = <table[row(l, c, n)], g[n, l]>``           (d interp / d w).
 
 Why it is fast on a CPU (measured in ``bench/speed/hashgrid_speed.py``; what was tried and dropped is
-listed in ``bench/RESULTS.md``):
+listed in ``docs/results/hashgrid-speed.md``):
 
 - all levels go through a handful of large ops: on a shared CPU every op pays a thread barrier,
   so op count matters as much as memory traffic;

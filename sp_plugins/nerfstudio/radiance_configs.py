@@ -8,7 +8,7 @@
   a third of training when a run is shortened). With sparse views that preset changes nothing;
   alpha0 about the object's radius (``--pipeline.model.sp.alpha0 1.0`` on the DTU-like scenes)
   helps only where MipNeRF fails (held-out views of fog) and harms where it does not (a white
-  background): the figures are in ``bench/RESULTS.md`` ("Sparse views against FreeNeRF-lite"),
+  background): the figures are in ``docs/results/sparse-views.md``,
   guarded by the opt-in ``tests/bench/test_sparse_views_gap.py`` (``SP_SLOW_TESTS=1``).
 - ``sp-vanilla-nerf``, ``sp-nerfacto``, ``sp-tensorf``: nerfstudio's settings for each host, made
   SP methods by the generic route (``with_sp``) with their presets (``sp-nerfacto`` on

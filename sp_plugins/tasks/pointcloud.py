@@ -34,7 +34,7 @@ from sp_plugins.tasks.settings import MeshedFitSettings
 
 def _pointcloud_sp() -> SPConfig:
     # alpha 0.03 (1.6% of the object's diagonal of 1.9; the paper uses about 1%) for the first 20% of
-    # training, then exactly 0: the setting of bench/RESULTS.md's point-cloud table.
+    # training, then exactly 0: the setting of the point-cloud table (docs/results/pointcloud-sdf.md).
     return SPConfig(alpha0=0.03, schedule="step", end=0.2)
 
 
@@ -64,7 +64,7 @@ class PointCloudSDFConfig(MeshedFitSettings):
     """Start the MLP's output bias at this value (None: PyTorch's default, uniform in
     +-1/sqrt(width)); ignored with geometric_init, which sets it to -init_radius. Without
     geometric initialisation the sign of the initial output tends to become the sign of the far
-    field (see bench/RESULTS.md); 0 leaves that choice to training."""
+    field (docs/results/pointcloud-sdf.md); 0 leaves that choice to training."""
     w_surface: float = 3e3
     w_normal: float = 1e2
     w_eikonal: float = 5e1

@@ -7,7 +7,7 @@ is the study's own (2000 steps of 256 rays, 32 + 32 samples, a 4 x 128 MLP, 49 +
 because it is the smallest size at which the gap showed on every seed measured (whole-image SSIM
 +0.18 / +0.18 / +0.04 on seeds 0-2). Smaller sizes that fit the suite do not hold it: at 800 steps of
 128 rays on 48x36 images, seed 0 gains +0.61 dB inside the object and seed 1 loses 0.79 dB; at 500
-steps, or with a 4 x 64 MLP, the pair ends within 0.1 dB (``bench/RESULTS.md``). A test pinned to one
+steps, or with a 4 x 64 MLP, the pair ends within 0.1 dB (``docs/results/sparse-views.md``). A test pinned to one
 such seed would fail on any change to the random stream, not only when SP breaks.
 
 Since the pair starts alike and sees the same rays, SP that no longer moves the Gaussian means (the

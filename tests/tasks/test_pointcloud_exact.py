@@ -77,7 +77,7 @@ def tiny(grid, **kw) -> PointCloudSDFConfig:
 
 
 def test_the_defaults_are_the_point_cloud_tables_setting():
-    """README: the ``pointcloud`` defaults are the setting of bench/RESULTS.md's point-cloud table (2000 steps,
+    """README: the ``pointcloud`` defaults are the setting of the point-cloud table (docs/results/pointcloud-sdf.md) (2000 steps,
     2500 + 2500 points, 200k samples, SIREN weights 3e3 / 1e2 / 5e1 squared / 1e2, lr 1e-3, 2x64 MLP, output
     bias 0, 192^3 meshing with 4 bisections, 200k metric points, SP 0.03 step to 0 at 20%); the rest as
     their docs say."""

@@ -1,5 +1,5 @@
 """The settings every ``sp-fit`` task shares (sp_plugins.tasks.settings), exactly: each default is the one
-README and bench/RESULTS.md describe (2000 Adam steps at lr 1e-3, seed 0, a 64 x 64 MLP; objects of
+README and docs/results/pointcloud-sdf.md describe (2000 Adam steps at lr 1e-3, seed 0, a 64 x 64 MLP; objects of
 diagonal 1.9 in [-1, 1]^3, meshed on 192^3 with 4 bisections, measured on 200k points at F-score 1%), and
 the task configs inherit them. The mutants each test kills are listed in
 ``bench/results/mutation_study/kills.json``."""
@@ -28,7 +28,7 @@ def test_a_meshed_fit_adds_the_frame_the_meshing_and_the_metrics():
 
 
 def test_the_task_configs_keep_the_shared_defaults():
-    """The three tasks' configs extend these settings without changing the shared defaults (bench/RESULTS.md's
+    """The three tasks' configs extend these settings without changing the shared defaults (docs/results/pointcloud-sdf.md's
     tables run them at 2000 steps, lr 1e-3, seed 0)."""
     from sp_plugins.tasks.image import ImageFitConfig
     from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
