@@ -338,11 +338,12 @@ def summary(outcomes: List[Outcome]) -> str:
 
 
 def documents() -> List[Path]:
-    """README.md, then the docs pages in the order of ``docs/index.md``'s tables of contents (a page is
-    read after the pages before it, as a reader goes through the site), then any page no table lists."""
+    """README.md, then the docs pages in the order of ``docs/index.md``'s tables of contents (``<!-- toctree``
+    comments, docs/conf.py; a page is read after the pages before it, as a reader goes through the site), then
+    any page no table lists."""
     docs = REPO / "docs"
     listed: List[Path] = []
-    for body in re.findall(r"^:::\{toctree\}\n(.*?)^:::$", (docs / "index.md").read_text(), flags=re.M | re.S):
+    for body in re.findall(r"^<!-- toctree\n(.*?)^-->$", (docs / "index.md").read_text(), flags=re.M | re.S):
         listed += [docs / f"{line.strip()}.md" for line in body.splitlines() if line.strip() and not line.startswith(":")]
     rest = sorted(p for p in docs.rglob("*.md") if p not in listed and p.name != "index.md" and "_build" not in p.parts)
     return [REPO / "README.md", docs / "index.md", *listed, *rest]
