@@ -21,7 +21,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 PAGES = [REPO / "README.md", *sorted(p for p in (REPO / "docs").rglob("*.md") if "_build" not in p.parts)]
-MYST = re.compile(r":::\{|\{doc\}|\{ref\}|\{include\}|^:(?:caption|maxdepth|hidden|start-after|end-before):", re.M)
+MYST = re.compile(r":::\{|\{doc\}|\{ref\}|\{include\}|^:(?:caption|maxdepth|hidden|start-after|end-before):|\]\([^)\s]+\)", re.M)
+"""MyST's directives, roles and options, and a Markdown link left unrendered (inside an HTML block)."""
 
 
 def render(text: str) -> str:
@@ -59,4 +60,5 @@ def test_relative_links_resolve_on_github(page):
 def test_the_checks_see_what_github_shows():
     assert MYST.search(visible(render(":::{include} ../README.md\n:::\n")))
     assert MYST.search(visible(render("Start with {doc}`getting-started`.")))
+    assert MYST.search(visible(render("<!-- github-only -->*see [the README](README.md)*<!-- /github-only -->")))
     assert not MYST.search(visible(render("<!-- site-include: ../README.md#x -->\n\n```\n:::{toctree}\n```\n")))
