@@ -47,6 +47,19 @@ system_browser() {
   fi
 }
 
+# torch and its CUDA wheels (about 3 GB) are installed by one environment at a time: on a machine whose package
+# cache is empty the first install downloads them into pip's cache and the second installs from it, instead of
+# both downloading them at once beside each other. Held on file descriptor 9 for the one pip command.
+torch_lock="${TMPDIR:-/tmp}/sp-plugins-torch-install.lock"
+install_torch() {
+  # shellcheck disable=SC2086
+  if command -v flock >/dev/null; then
+    ( flock 9 && "$1" -m pip install -q $torch_spec ) 9>"$torch_lock"
+  else  # no flock (not util-linux): both may download at once, as before
+    "$1" -m pip install -q $torch_spec
+  fi
+}
+
 setup() {
   system_libs
   if [ ! -x "$venv/bin/python" ]; then
@@ -62,8 +75,7 @@ setup() {
     "$venv/bin/python" -m pip install -q --upgrade pip
     # not --no-compile: where PYTHONDONTWRITEBYTECODE is set (this CI machine), the byte code pip writes is the
     # only byte code there is; without it every process compiled nerfstudio and torch again (a run 2x slower)
-    # shellcheck disable=SC2086
-    "$venv/bin/python" -m pip install -q $torch_spec
+    install_torch "$venv/bin/python"
     "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev,docs]"
     echo "$want" > "$stamp"
   fi
@@ -100,8 +112,7 @@ setup_sdfstudio() {
   local log="$sdf_venv/setup.log"
   if ! {
     "$sdf_venv/bin/python" -m pip install -q --upgrade pip &&
-    # shellcheck disable=SC2086
-    "$sdf_venv/bin/python" -m pip install -q $torch_spec &&
+    install_torch "$sdf_venv/bin/python" &&
     "$sdf_venv/bin/python" -m pip install -q --no-deps "$sdf_src" &&
     "$sdf_venv/bin/python" -m pip install -q -e "$here[sdfstudio,dev]" &&
     "$sdf_venv/bin/python" -c "import sp_plugins.sdfstudio.detect as h; h.require_sdfstudio()" &&
