@@ -47,16 +47,28 @@ system_browser() {
   fi
 }
 
-# torch and its CUDA wheels (about 3 GB) are installed by one environment at a time: on a machine whose package
-# cache is empty the first install downloads them into pip's cache and the second installs from it, instead of
-# both downloading them at once beside each other. Held on file descriptor 9 for the one pip command.
+# torch and its CUDA wheels (about 3 GB) are installed by one environment at a time: where pip keeps its downloads
+# (its http cache), the first install downloads them and the second installs from the cache, instead of both
+# downloading them at once. The main environment goes first (the main suite is the longer one): `./run.sh test`
+# takes the lock before it starts the sdfstudio set-up beside it (hold_torch_lock) and lets go once the main
+# environment has torch (release_torch_lock). The lock is a file on descriptor 9; without flock, no lock.
 torch_lock="${TMPDIR:-/tmp}/sp-plugins-torch-install.lock"
+torch_lock_held=0
+hold_torch_lock() {
+  command -v flock >/dev/null || return 0
+  exec 9>"$torch_lock"
+  flock 9
+  torch_lock_held=1
+}
+release_torch_lock() {
+  if [ "$torch_lock_held" = 1 ]; then flock -u 9; exec 9>&-; torch_lock_held=0; fi
+}
 install_torch() {
   # shellcheck disable=SC2086
-  if command -v flock >/dev/null; then
-    ( flock 9 && "$1" -m pip install -q $torch_spec ) 9>"$torch_lock"
-  else  # no flock (not util-linux): both may download at once, as before
+  if [ "$torch_lock_held" = 1 ] || ! command -v flock >/dev/null; then
     "$1" -m pip install -q $torch_spec
+  else
+    ( flock 9 && "$1" -m pip install -q $torch_spec ) 9>"$torch_lock"
   fi
 }
 
@@ -76,6 +88,7 @@ setup() {
     # not --no-compile: where PYTHONDONTWRITEBYTECODE is set (this CI machine), the byte code pip writes is the
     # only byte code there is; without it every process compiled nerfstudio and torch again (a run 2x slower)
     install_torch "$venv/bin/python"
+    release_torch_lock
     "$venv/bin/python" -m pip install -q -e "$here[nerfstudio,nerfbaselines,sweeps,dev,docs]"
     echo "$want" > "$stamp"
   fi
@@ -181,7 +194,8 @@ run_tests() {
     sdf_log="$(mktemp "${TMPDIR:-/tmp}/sp-sdfstudio-tests.XXXXXX")"
     if [ "$sdf_beside" = 1 ]; then
       echo "[sp-plugins] sdfstudio: setting up its environment and running its tests in the background (reported after the main suite)"
-      ( setup_sdfstudio && exec "$sdf_venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} "${sdf_paths[@]}" ) >"$sdf_log" 2>&1 &
+      [ "$run_main" = 1 ] && hold_torch_lock  # the main environment installs torch first
+      ( exec 9>&-; torch_lock_held=0; setup_sdfstudio && exec "$sdf_venv/bin/python" -m pytest -q ${opts[@]+"${opts[@]}"} "${sdf_paths[@]}" ) >"$sdf_log" 2>&1 &
       sdf_pid=$!
     else
       echo "[sp-plugins] sdfstudio tests, in $sdf_venv"
@@ -193,6 +207,7 @@ run_tests() {
     # a failed install ends this script (set -e): the sdfstudio run beside it ends with it
     [ -n "$sdf_pid" ] && trap "pkill -P $sdf_pid 2>/dev/null; kill $sdf_pid 2>/dev/null || true" EXIT
     setup
+    release_torch_lock  # (setup lets go once torch is in; here when it had nothing to install)
     system_browser
     trap - EXIT
     # the main suite is spread over SP_TEST_WORKERS processes (default: the cores, at most 8; 1 = one

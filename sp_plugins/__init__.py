@@ -2,7 +2,7 @@
 
 The public API is deliberately small::
 
-    from sp_plugins import perturb, AlphaSchedule, AlphaGrid, StochasticPreconditioner, SPConfig, SPRun
+    from sp_plugins import perturb, AlphaSchedule, AlphaGrid, StochasticPreconditioner, SPConfig, SPRun, SPNotReached
 
 The names are loaded on first use (PEP 562), so that ``import sp_plugins.<module>`` of a module
 that does not need torch (the sweep's trial runner in each Ray worker, the spec, the report) does
@@ -12,7 +12,8 @@ not import torch: 2-5 s and some hundred MB per process.
 from importlib import import_module
 
 __version__ = "0.2.0"
-__all__ = ["AlphaGrid", "AlphaSchedule", "SPConfig", "SPRun", "StochasticPreconditioner", "perturb", "__version__"]
+__all__ = ["AlphaGrid", "AlphaSchedule", "SPConfig", "SPNotReached", "SPRun", "StochasticPreconditioner", "perturb",
+           "__version__"]
 
 
 def __getattr__(name: str):

@@ -12,10 +12,10 @@ def test_the_documented_defaults_are_the_registered_configs():
 
 
 def test_the_settings_page_shows_the_generated_table_and_no_copy_can_drift():
-    """docs/choosing-settings.md includes docs/sp_defaults.md itself (no pasted copy); a copy between the
-    markers in the README or a page would have to be today's table."""
+    """docs/choosing-settings.md includes docs/sp_defaults.md itself (no pasted copy; the site expands the
+    comment, docs/conf.py); a copy between the markers in the README or a page would have to be today's table."""
     docs = defaults_table.DOC.parent
-    assert ":::{include} sp_defaults.md" in (docs / "choosing-settings.md").read_text()
+    assert "<!-- site-include: sp_defaults.md offset=1 -->" in (docs / "choosing-settings.md").read_text()
     for path in [docs.parent / "README.md", *sorted(docs.rglob("*.md"))]:
         text = path.read_text()
         if defaults_table.BEGIN in text:

@@ -37,6 +37,9 @@ class SPRun:
         bounds: the scene's box (needed by the ``reflect`` / ``clamp`` boundaries and the alpha grid).
         scene_diagonal: needed when ``config.relative_to_diagonal``.
         dim: dimension of the positions (2 for images).
+        alpha_grid_optimizer: with a learnable alpha grid, whether :meth:`step_post` steps it with an Adam of
+            its own (``config.alpha_grid_lr``). ``False``: the loop's optimizer steps it (add
+            :meth:`parameters` to it as a group of its own; ``sp-fit`` does, so its checkpoints keep one optimizer).
 
     Examples:
         >>> import torch
@@ -61,7 +64,7 @@ class SPRun:
     """
 
     def __init__(self, config: SPSettings, *, total_steps: int, bounds: Optional[BoundsLike] = None,
-                 scene_diagonal: Optional[float] = None, dim: int = 3) -> None:
+                 scene_diagonal: Optional[float] = None, dim: int = 3, alpha_grid_optimizer: bool = True) -> None:
         if int(total_steps) < 1:
             raise ValueError(f"total_steps={total_steps}: a run has at least one step")
         self.preconditioner = StochasticPreconditioner(config, total_steps=int(total_steps), bounds=bounds,
@@ -69,7 +72,7 @@ class SPRun:
         self.preconditioner.train()
         self.optimizer: Optional[torch.optim.Optimizer] = None
         """The alpha grid's own Adam (``config.alpha_grid_lr``), stepped by :meth:`step_post`; None without a grid."""
-        if self.preconditioner.alpha_grid is not None:
+        if self.preconditioner.alpha_grid is not None and alpha_grid_optimizer:
             self.optimizer = torch.optim.Adam(self.preconditioner.alpha_grid.parameters(), lr=config.alpha_grid_lr)
         self._moved = 0  # positions moved in the current step
         self._reach_checked = False
@@ -127,6 +130,21 @@ class SPRun:
     @property
     def config(self) -> SPSettings:
         return self.preconditioner.config
+
+    @property
+    def training(self) -> bool:
+        return self.preconditioner.training
+
+    @property
+    def alpha_grid(self) -> Optional[torch.nn.Module]:
+        """The learnable alpha grid (``config.alpha_grid``), or None."""
+        return self.preconditioner.alpha_grid
+
+    @property
+    def end_step(self) -> Optional[int]:
+        """The first step at which the schedule's alpha is 0 (None: it never reaches 0)."""
+        schedule = self.preconditioner.schedule
+        return None if schedule is None else schedule.end_step
 
     @property
     def alpha(self) -> float:

@@ -273,10 +273,10 @@ class ImageFitTrainer(ResumableTrainer):
             res = (max(2, self.width // config.alpha_map_downscale), max(2, self.height // config.alpha_map_downscale))
             # The map alone is alpha while the SP schedule runs (sp.alpha_grid_mode "replace", the
             # paper's variant), then SP is off, so the fit ends as a plain field.
-            self.sp.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0),
+            self.sp.preconditioner.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0),
                                            parameterization=sp_config.alpha_grid_parameterization).to(self.device)
             groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": config.alpha_map_lr})
-            end = self.sp.schedule.end_step
+            end = self.sp.end_step
             # an end at the last step (end 1.0: SP off for that step only) leaves phase 2 no room either
             if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps - 1):
                 raise ValueError(
@@ -329,7 +329,7 @@ class ImageFitTrainer(ResumableTrainer):
     def step(self) -> Mapping[str, float]:
         c = self.config
         with self.timer:
-            alpha = self.sp.set_step(self.step_index, c.steps)
+            alpha = self.sp.step_pre(self.step_index)
             if self.step_index == round(c.lr_decay_at * c.steps) and c.lr_decay != 1.0:
                 self.optimizer.param_groups[0]["lr"] *= c.lr_decay
             if c.adaptive_alpha and self.phase2_step is None and alpha == 0.0 and self.step_index > 0:
@@ -346,6 +346,7 @@ class ImageFitTrainer(ResumableTrainer):
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
+            self.sp.step_post(self.step_index)
         record = {"loss": loss, "alpha": alpha}
         if self.sp.alpha_grid is not None:
             with torch.no_grad():

@@ -154,7 +154,7 @@ class PointCloudSDFTrainer(SDFTrainer):
         the device when looked at: see :class:`~sp_plugins.tasks.trainer.ResumableTrainer`)."""
         c = self.config
         with self.timer:
-            alpha = self.sp.set_step(self.step_index, c.steps)
+            alpha = self.sp.step_pre(self.step_index)
             self.field.train()
             idx = torch.randint(len(self.points), (c.surface_batch,), generator=self.generator, device=self.device)
             xo = torch.rand(c.space_batch, 3, generator=self.generator, device=self.device) * 2.0 - 1.0
@@ -175,6 +175,7 @@ class PointCloudSDFTrainer(SDFTrainer):
                 torch.nn.utils.clip_grad_norm_(self.field.parameters(), c.grad_clip)
             self.optimizer.step()
             self.scheduler.step()
+            self.sp.step_post(self.step_index)
         # read later, with the non-finite check (no host-device sync per step)
         return self._finish_step({"loss": loss, "alpha": alpha, **terms})
 

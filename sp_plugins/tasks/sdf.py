@@ -111,7 +111,7 @@ class SDFFitTrainer(SDFTrainer):
     def step(self) -> Mapping[str, float]:
         c = self.config
         with self.timer:
-            alpha = self.sp.set_step(self.step_index, c.steps)
+            alpha = self.sp.step_pre(self.step_index)
             sizes = (c.batch // 2, c.batch // 4, c.batch - c.batch // 2 - c.batch // 4)
             xs, ds = [], []
             for (pts, dist), k in zip(self.groups, sizes):
@@ -124,6 +124,7 @@ class SDFFitTrainer(SDFTrainer):
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
+            self.sp.step_post(self.step_index)
         return self._finish_step({"loss": loss, "alpha": alpha})  # read later, with the non-finite check
 
     def evaluate(self, gt_mesh: Optional[trimesh.Trimesh] = None, *, resolution: Optional[int] = None,

@@ -12,6 +12,7 @@ from typing import Any, Mapping, Optional, Sequence
 import torch
 from tqdm.auto import tqdm
 
+from sp_plugins.core.run import SPRun
 from sp_plugins.geometry import evaluate_grid, largest_component, mesh_from_grid, mesh_metrics
 from sp_plugins.tasks.common import StepTimer, counting_bar, stage
 from sp_plugins.tasks.fields import NeuralField
@@ -80,6 +81,7 @@ class ResumableTrainer:
     config: Any  # the task's own config dataclass
     device: torch.device
     field: NeuralField
+    sp: SPRun
     optimizer: torch.optim.Optimizer
     scheduler: torch.optim.lr_scheduler.LRScheduler  # only where the task has one (checked with getattr)
 
@@ -128,7 +130,8 @@ class ResumableTrainer:
         state = {
             "step": self.step_index,
             "field": self.field.state_dict(),
-            "sp": self.sp.state_dict(),  # schedule position, alpha grid, noise generator state
+            # schedule position, alpha grid, noise generator state (the preconditioner's, as checkpoints always held)
+            "sp": self.sp.state_dict()["preconditioner"],
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "history": {k: list(v) for k, v in self.history.items()},
@@ -141,7 +144,7 @@ class ResumableTrainer:
 
     def load_state_dict(self, state: dict) -> None:
         self.field.load_state_dict(state["field"])
-        self.sp.load_state_dict(state["sp"])
+        self.sp.load_state_dict({"preconditioner": state["sp"]})
         self.optimizer.load_state_dict(state["optimizer"])
         if getattr(self, "scheduler", None) is not None:
             self.scheduler.load_state_dict(state["scheduler"])
@@ -171,13 +174,14 @@ class ResumableTrainer:
             return NeuralField(self.config.encoding, **kwargs).to(self.device)
 
     def _setup_sp(self, bounds: tuple[float, float], dim: int):
-        """``self.sp`` from ``config.sp``, in training mode, on the trainer's device; returns the
-        config it was built from. Unless ``sp.seed`` is set, the noise is seeded with ``seed + 1``:
-        a stream of its own, not the batches' (``seed``), and the same for every run of one seed."""
+        """``self.sp``, an :class:`~sp_plugins.SPRun` over ``config.steps`` from ``config.sp`` on the trainer's
+        device (a task's step is a plain loop: ``sp.step_pre``, ``sp.blurred``, ``sp.step_post``); returns the
+        config it was built from. Unless ``sp.seed`` is set, the noise is seeded with ``seed + 1``: a stream
+        of its own, not the batches' (``seed``), and the same for every run of one seed. The task's optimizer
+        steps an alpha grid (:meth:`_param_groups`), so a checkpoint keeps one optimizer."""
         config = self.config
         sp_config = config.sp if config.sp.seed is not None else dataclasses.replace(config.sp, seed=config.seed + 1)
-        self.sp = sp_config.setup(total_steps=config.steps, bounds=bounds, dim=dim).to(self.device)
-        self.sp.train()
+        self.sp = SPRun(sp_config, total_steps=config.steps, bounds=bounds, dim=dim, alpha_grid_optimizer=False).to(self.device)
         return sp_config
 
     def _param_groups(self, sp_config) -> list[dict]:

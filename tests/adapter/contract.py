@@ -34,6 +34,14 @@ class Driver(abc.ABC):
 
     host: str
     """The host's registry name."""
+    reach_error: type = InputError
+    """What the host raises when SP reached no field (an adapter's one-line ``InputError``; a plain loop on
+    :class:`~sp_plugins.SPRun`: ``SPNotReached``)."""
+
+    def sp_readers(self, model: nn.Module) -> List[nn.Module]:
+        """The modules SP's moved positions are handed to: a host adapter's fields holding the model's
+        preconditioner (a plain loop says which field its loop hands ``sp(x)`` to)."""
+        return [m for m in model.modules() if isinstance(m, SPFieldMixin) and m.sp is model.sp]
 
     @abc.abstractmethod
     def model_class(self) -> type:
@@ -81,8 +89,7 @@ def sp_attached(d: Driver) -> None:
     """The built model owns one preconditioner (a submodule: checkpointed) and hands it to a field."""
     model = d.build(**SETTINGS)
     assert isinstance(model.sp, StochasticPreconditioner) and dict(model.named_children()).get("sp") is model.sp
-    fields = [m for m in model.modules() if isinstance(m, SPFieldMixin) and m.sp is model.sp]
-    assert fields, "no field holds the model's preconditioner"
+    assert d.sp_readers(model), "no field is handed the model's preconditioner"
 
 
 def reach_check_fires(d: Driver) -> None:
@@ -94,7 +101,7 @@ def reach_check_fires(d: Driver) -> None:
     d.silence(silent)
     try:
         d.train(silent, 1, 10)
-    except InputError as err:
+    except d.reach_error as err:
         assert "\n" not in str(err), str(err)
         return
     raise AssertionError("a field that never read what SP moved trained on without the reach check firing")

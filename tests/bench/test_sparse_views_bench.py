@@ -125,10 +125,11 @@ def test_summary_pairs_seeds_and_counts_those_ahead_beyond_the_baseline_spread()
     rows = sv.summary([result(sv.BASELINE, 0, 10.0), result(sv.BASELINE, 1, 11.0), result("sp[1@0.3]", 0, 12.0),
                        result("sp[1@0.3]", 1, 11.2)]).splitlines()
     assert rows[2].startswith(f"| spot | 3 | {sv.BASELINE} | 2 | 14.50 ± 0.71 | 10.50 ± 0.71 |  |  |")
-    # paired differences +2.0 and +0.2; the baseline's seed spread is 0.71: one seed ahead beyond it
-    assert rows[3].startswith("| spot | 3 | sp[1@0.3] | 2 | 15.60 ± 0.57 | 11.60 ± 0.57 | +1.10 ± 1.27 | 1 / 2 |")
-    # whole-image SSIM: the same on every run here, so no seed is ahead beyond the spread (0)
-    assert rows[3].split(" | ")[8:10] == ["0.50 ± 0.00", "0 / 2"]
+    # paired differences +2.0 and +0.2: mean 1.10, sd 1.273, 95% t interval with 1 degree of freedom
+    # 1.10 -+ 12.706 * 1.273 / sqrt(2) = [-10.34, +12.54]; the baseline's seed spread is 0.71: one seed ahead beyond it
+    assert rows[3].startswith("| spot | 3 | sp[1@0.3] | 2 | 15.60 ± 0.57 | 11.60 ± 0.57 | +1.10 [-10.34, +12.54] | 1 / 2 |")
+    # whole-image SSIM: the same on every run here: a zero difference, and no seed ahead beyond the spread (0)
+    assert rows[3].split(" | ")[8:11] == ["0.50 ± 0.00", "+0.00 [+0.00, +0.00]", "0 / 2"]
 
 
 @pytest.mark.parametrize("text", ["0.4", "0.4@0", "0.4@1.5", "-1@0.3", "0.4@0.3:mesh"])

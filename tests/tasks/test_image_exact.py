@@ -337,7 +337,7 @@ def test_phase_2_needs_sp_to_end_before_the_last_step(technique):
         masking = dict(level_mask_min_levels=2.0) if technique == "level_masking" else {}
         return tiny(steps=steps, adaptive_alpha=True, **{technique: True}, **masking, sp=sp)
 
-    assert config(SPConfig(alpha0=0.05, schedule="step", end=0.8)).setup(picture()).sp.schedule.end_step == 8
+    assert config(SPConfig(alpha0=0.05, schedule="step", end=0.8)).setup(picture()).sp.end_step == 8
     for sp, described in ((SPConfig(alpha0=0.05, schedule="step", end=0.9), "step, end=0.9"),
                           (SPConfig(alpha0=0.05, schedule="constant"), "constant, end=0.2")):
         with pytest.raises(ValueError) as refused:

@@ -203,7 +203,7 @@ class Tiny(tr.SDFTrainer):
 
     def step(self):
         with self.timer:
-            alpha = self.sp.set_step(self.step_index, self.config.steps)
+            alpha = self.sp.step_pre(self.step_index)
             x = torch.rand(4, 2, generator=self.generator) * 2.0 - 1.0
             loss = self.sp.blurred(self.field, x).square().mean()
             self.optimizer.zero_grad(set_to_none=True)
