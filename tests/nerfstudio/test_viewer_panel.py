@@ -158,3 +158,43 @@ def test_the_alpha_grid_output_of_an_sdf_method_uses_its_neus_weights():
     outputs = model.get_outputs_for_camera(camera())
     torch.testing.assert_close(outputs["sp_alpha_grid"], 0.05 * outputs["accumulation"], rtol=1e-4, atol=1e-7)
     assert outputs["sp_alpha_grid"].max() > 0.01
+
+
+# -- the readouts' text, exactly (no host needed: they read the preconditioner) ----------------------
+def sp_at(step=None, total=None, **settings):
+    from sp_plugins.core import SPConfig
+
+    sp = SPConfig(**{"alpha0": 0.2, "schedule": "linear", "end": 0.5, **settings}).setup(total_steps=total, bounds=(-1.0, 1.0))
+    if step is not None:
+        sp.set_step(step, total)
+    return sp
+
+
+def test_the_schedule_readout_in_each_state():
+    assert vp.schedule_text(sp_at()) == "linear from alpha0 0.2; the run's length is not known yet"
+    assert vp.schedule_text(sp_at(0, 10)) == "step 0 of 10; alpha reaches 0 at step 5 (0% of the way)"
+    assert vp.schedule_text(sp_at(2, 10)) == "step 2 of 10; alpha reaches 0 at step 5 (40% of the way)"
+    assert vp.schedule_text(sp_at(4, 10)) == "step 4 of 10; alpha reaches 0 at step 5 (80% of the way)"
+    assert vp.schedule_text(sp_at(5, 10)) == "step 5 of 10; alpha reaches 0 at step 5 (done: SP is off)"
+    assert vp.schedule_text(sp_at(9, 10)) == "step 9 of 10; alpha reaches 0 at step 5 (done: SP is off)"
+    constant = sp_at(3, 10, schedule="constant", alpha0=0.05)
+    assert vp.schedule_text(constant) == "constant: alpha 0.05 at step 3 (constant: on for the whole run)"
+
+
+def test_the_alpha_and_settings_readouts():
+    assert [vp.alpha_text(sp_at(s, 10)) for s in (0, 1, 4, 5)] == ["0.2", "0.16", "0.04", "0"]
+    assert vp.alpha_text(sp_at(0, 10, alpha0=0.0012345678)) == "0.001235"  # 4 significant digits
+    assert vp.settings_text(sp_at(0, 10)) == "gaussian noise, boundary reflect, 1 draw per query, global alpha"
+    assert vp.settings_text(sp_at(0, 10, num_samples=4, boundary="none")) == "gaussian noise, boundary none, 4 draws per query, global alpha"
+    grid = sp_at(0, 10, alpha_grid=True, alpha_grid_resolution=8)
+    assert vp.settings_text(grid) == "gaussian noise, boundary reflect, 1 draw per query, alpha grid 8^3 (replace)"
+
+
+def test_the_panel_refreshes_every_ten_steps_and_once_when_alpha_reaches_zero():
+    sp = sp_at(0, 40, end=0.3)  # linear to 0 at step 12
+    refreshed = []
+    update = vp.update_callback(type("Panel", (), {"sp": sp, "refresh": lambda self: refreshed.append(sp.progress[0])})())
+    for step in range(40):
+        sp.set_step(step, 40)
+        update(step)
+    assert refreshed == [0, 10, 12, 20, 30], refreshed
