@@ -103,3 +103,25 @@ def test_a_surface_model_on_nerfstudio_s_collider_names_it_when_its_loss_goes_na
     with pytest.raises(InputError, match=r"^training step 7: .*: likely cause: this surface model keeps nerfstudio's box "
                                          r"collider.*; otherwise lower the learning rate \(--optimizers\.fields"):
         watch.raise_if_diverged(7, model._lr_groups, model._divergence_hint)
+
+
+def test_closest_approach_exactly():
+    """``t`` of the point nearest the centre: the projection of centre - origin on the direction over its squared length."""
+    origins = torch.tensor([[-5.0, 0.0, 0.0], [-5.0, 0.0, 0.0], [0.0, 3.0, 0.0], [1.0, 1.0, 1.0], [4.0, 0.0, 0.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    t = closest_approach(origins, directions, torch.tensor([0.0, 0.0, 1.0]))
+    assert t.shape == (5, 1)
+    assert t.squeeze(-1).tolist() == [5.0, 2.5, 0.0, 0.0, -4.0]  # a longer direction halves t; behind the origin: negative
+
+
+@pytest.mark.parametrize("training, start", [(True, 0.05), (False, 3e-4)])
+def test_the_grazing_ray_starts_at_the_near_plane_in_training_and_at_0_in_evaluation(training, start):
+    """The closest approach (3e-4 along this ray) is clamped to ``[near_plane, far_plane_bg]`` while training and
+    to ``[0, far_plane_bg]`` in evaluation (nerfstudio's colliders use near 0 there), the interval 1e-6 long; a ray whose closest approach
+    lies beyond the background's far plane starts at that far plane."""
+    collider = SurfaceBoxCollider(BOX, near_plane=0.05, far_plane_bg=FAR_BG)
+    collider.train(training)
+    behind = ([[0.0, 3.0, 0.0], [-2e5, 3.0, 0.0]], [[1.0, -1e-4, 0.0], [1.0, -1e-4, 0.0]])  # the second passes the box at t 2e5
+    bundle = collider(_bundle(*behind))
+    assert bundle.nears[0].item() == pytest.approx(start, rel=1e-6) and bundle.nears[1].item() == FAR_BG
+    assert torch.equal(bundle.fars, bundle.nears + 1e-6)
