@@ -110,3 +110,50 @@ def test_the_promise_is_read_from_the_id_not_the_spec_flags():
     sp_state.check("sp-nerfacto", True, {"enabled": True, "alpha0": 0.02, "fields": ["field"]})
     with pytest.raises(sp_state.SPStateError, match="promises SP on, but SP is attached to no field"):
         sp_state.check("nerfacto+sp", True, {"enabled": True, "alpha0": 0.02, "fields": []})
+
+
+# -- the run record, exactly (a model of our own: no nerfbaselines needed) ------------------------------
+def _model(enabled=True, alpha0=0.01, relative=True, attach=("a",)):
+    import torch
+
+    from sp_plugins.adapter.field import SPFieldMixin
+    from sp_plugins.core import SPConfig
+
+    class Field(SPFieldMixin, torch.nn.Module):
+        pass
+
+    model = torch.nn.Module()
+    model.sp = SPConfig(enabled=enabled, alpha0=alpha0, relative_to_diagonal=relative).setup(
+        scene_diagonal=4.0 if relative else None, bounds=(-1.0, 1.0))
+    for name in ("a", "b"):
+        field = Field()
+        if name in attach:
+            field.use_preconditioner(model.sp)
+        setattr(model, name, field)
+    return model
+
+
+def test_the_model_state_names_alpha0_in_scene_units_and_the_attached_fields():
+    assert sp_state.model_state(_model()) == {"enabled": True, "alpha0": 0.04, "fields": ["a"]}  # 0.01 of a diagonal of 4
+    assert sp_state.model_state(_model(relative=False, attach=("a", "b"))) == {"enabled": True, "alpha0": 0.01, "fields": ["a", "b"]}
+    assert sp_state.model_state(_model(enabled=False)) == {"enabled": False, "alpha0": None, "fields": ["a"]}
+    import torch
+
+    assert sp_state.model_state(torch.nn.Linear(2, 2)) == {"enabled": False, "alpha0": None, "fields": []}
+
+
+def test_the_run_record_as_hparams():
+    assert sp_state.as_hparams({"enabled": True, "alpha0": 0.04, "fields": ["a", "b"]}) == {
+        "sp_run.enabled": True, "sp_run.fields": "a,b", "sp_run.alpha0": 0.04}
+    assert sp_state.as_hparams({"enabled": False, "alpha0": None, "fields": []}) == {"sp_run.enabled": False, "sp_run.fields": ""}
+
+
+def test_a_broken_promise_is_one_line_naming_the_id_and_what_the_model_does():
+    with pytest.raises(sp_state.SPStateError) as on:
+        sp_state.check("nerfacto+sp", True, {"enabled": False, "alpha0": None, "fields": []})
+    assert str(on.value) == ("nerfacto+sp promises SP on, but the model it built has SP off: its spec "
+                             "(sp_plugins.nerfbaselines.specs.ENTRIES) builds another run than its id names; its results would "
+                             "fill the wrong table row")
+    with pytest.raises(sp_state.SPStateError, match=r"^mipnerf\+sp-off promises SP off, but the model it built has SP on: "):
+        sp_state.check("mipnerf+sp-off", False, {"enabled": True, "alpha0": 0.04, "fields": ["a"]})
+    sp_state.check("mipnerf+sp-off", False, {"enabled": False, "alpha0": None, "fields": ["a"]})  # off: the inert seam may stay
