@@ -215,7 +215,7 @@ def figures(find: dict, summary: dict, out: Path, suffix: str = "") -> None:
         fig.tight_layout()
         fig.savefig(DOCS / f"image_regime_maps{suffix}.png", dpi=90)
         plt.close(fig)
-    if summary["sweep"]:
+    if len(summary["sweep"]) > 1:  # a sweep of one table size is no curve
         fig, ax = plt.subplots(figsize=(5.5, 3.6))
         ts = sorted(summary["sweep"])
         x = [summary["sweep"][t]["params_per_pixel"] for t in ts]
