@@ -35,6 +35,14 @@ def runs(root: Path, sp: bool, seeds) -> list:
     return found
 
 
+def relative_paths(folder: Path) -> None:
+    """The reports name files from the repository root, not this machine's checkout (the true mesh's path comes
+    from the run's config.yml, which holds the absolute ``--data``)."""
+    for path in folder.rglob("*"):
+        if path.suffix in (".html", ".json", ".md"):
+            path.write_text(path.read_text().replace(f"{ROOT}/", ""))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -50,6 +58,7 @@ def main() -> None:
     if RESULTS.exists():
         shutil.rmtree(RESULTS)
     shutil.copytree(out, RESULTS, ignore=shutil.ignore_patterns("*.ply"))
+    relative_paths(RESULTS)
     shutil.copy(out / "page.png", DOCS_FIGURE)
     print((RESULTS / "compare.json").read_text()[:3000])
 

@@ -39,6 +39,9 @@ from typing import Dict, List
 
 from bench.harness.common import OUT_DIR, machine_info
 
+REPO = Path(__file__).resolve().parents[1]
+"""Commands are recorded with paths from the repository root."""
+
 BASE = ("--machine.device-type cpu --vis tensorboard --pipeline.datamanager.train-num-rays-per-batch 256 "
         "--pipeline.model.log2-hashmap-size 17 --pipeline.model.num-nerf-samples-per-ray 32 "
         "--pipeline.model.num-proposal-samples-per-ray 64 32")
@@ -111,7 +114,7 @@ def run_one(example: str, setting: str, sp: bool, seed: int, steps: int, root: P
     train_s = _run(argv, name)
     (config,) = out.glob("**/config.yml")
     record = {"name": name, "example": example, "setting": setting, "sp": sp, "seed": seed, "steps": steps,
-              "command": shlex.join(argv), "train_s": round(train_s, 1), **evaluate(example, config, out, scene, name)}
+              "command": shlex.join(argv).replace(f"{REPO}/", ""), "train_s": round(train_s, 1), **evaluate(example, config, out, scene, name)}
     result.write_text(json.dumps(record, indent=1))
     return record
 
