@@ -15,6 +15,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from sp_plugins.core.alpha_grid import AlphaGrid
 from sp_plugins.core.boundary import BoundsLike
 from sp_plugins.core.preconditioner import StochasticPreconditioner
 from sp_plugins.core.settings import SPSettings
@@ -136,7 +137,7 @@ class SPRun:
         return self.preconditioner.training
 
     @property
-    def alpha_grid(self) -> Optional[torch.nn.Module]:
+    def alpha_grid(self) -> Optional[AlphaGrid]:
         """The learnable alpha grid (``config.alpha_grid``), or None."""
         return self.preconditioner.alpha_grid
 

@@ -273,9 +273,10 @@ class ImageFitTrainer(ResumableTrainer):
             res = (max(2, self.width // config.alpha_map_downscale), max(2, self.height // config.alpha_map_downscale))
             # The map alone is alpha while the SP schedule runs (sp.alpha_grid_mode "replace", the
             # paper's variant), then SP is off, so the fit ends as a plain field.
-            self.sp.preconditioner.alpha_grid = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0),
-                                           parameterization=sp_config.alpha_grid_parameterization).to(self.device)
-            groups.append({"params": list(self.sp.alpha_grid.parameters()), "lr": config.alpha_map_lr})
+            alpha_map = AlphaGrid(dim=2, resolution=res, init=sp_config.alpha0, bounds=(0.0, 1.0),
+                                  parameterization=sp_config.alpha_grid_parameterization).to(self.device)
+            self.sp.preconditioner.alpha_grid = alpha_map
+            groups.append({"params": list(alpha_map.parameters()), "lr": config.alpha_map_lr})
             end = self.sp.end_step
             # an end at the last step (end 1.0: SP off for that step only) leaves phase 2 no room either
             if (config.importance_sampling or config.level_masking) and (end is None or end >= config.steps - 1):
@@ -293,10 +294,15 @@ class ImageFitTrainer(ResumableTrainer):
         self.level_mask_alpha_range: Optional[Tuple[float, float]] = None
 
     # -- phase 2 ----------------------------------------------------------------------------
+    @property
+    def alpha_map(self) -> AlphaGrid:
+        """The learned alpha map (``adaptive_alpha``: set up in ``__init__``; phase 2 runs only with one)."""
+        return cast(AlphaGrid, self.sp.alpha_grid)
+
     @torch.no_grad()
     def pixel_alpha(self) -> Float[Tensor, " hw"]:
         """The learned (unscaled) alpha map at every pixel centre."""
-        return self.sp.alpha_grid(self.positions)[:, 0]
+        return self.alpha_map(self.positions)[:, 0]
 
     def levels_at(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, " n"]:
         """Usable hash-grid levels at ``x`` in phase 2 (inverse to the map's alpha there)."""
@@ -304,7 +310,7 @@ class ImageFitTrainer(ResumableTrainer):
 
         lo, hi = cast(Tuple[float, float], self.level_mask_alpha_range)  # set by start_phase2, which installs this
         c = self.config
-        return levels_from_alpha(self.sp.alpha_grid(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
+        return levels_from_alpha(self.alpha_map(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
 
     @torch.no_grad()
     def start_phase2(self, step: Optional[int] = None) -> None:
@@ -312,12 +318,12 @@ class ImageFitTrainer(ResumableTrainer):
         current one; a resumed fit calls it again with the saved step, on the frozen map)."""
         c = self.config
         self.phase2_step = self.step_index if step is None else int(step)
-        self.sp.alpha_grid.requires_grad_(False)
+        self.alpha_map.requires_grad_(False)
         if c.importance_sampling:
             self._pixel_cdf = torch.cumsum(importance_weights(self.pixel_alpha(), c.importance_uniform).double(), 0)
         if c.level_masking:
             q = torch.tensor(c.level_mask_quantiles, dtype=torch.float32, device=self.device)
-            lo, hi = torch.quantile(self.sp.alpha_grid.values().reshape(-1), q).tolist()
+            lo, hi = torch.quantile(self.alpha_map.values().reshape(-1), q).tolist()
             self.level_mask_alpha_range = (lo, max(hi, lo * (1 + 1e-6)))
             from sp_plugins.encodings.level_mask import PerPointLevelMask  # (what __init__ put there)
 
@@ -350,7 +356,7 @@ class ImageFitTrainer(ResumableTrainer):
         record = {"loss": loss, "alpha": alpha}
         if self.sp.alpha_grid is not None:
             with torch.no_grad():
-                record["alpha_map_mean"] = self.sp.alpha_grid.values().mean()  # on the device, read with the loss
+                record["alpha_map_mean"] = self.alpha_map.values().mean()  # on the device, read with the loss
         return self._finish_step(record)
 
     def _diverged(self, step: int, loss: float) -> str:

@@ -11,11 +11,12 @@ included.
 from __future__ import annotations
 
 import abc
+import contextlib
 import copy
 import dataclasses
 import functools
 from types import SimpleNamespace
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
 import torch
 from torch import nn
@@ -27,6 +28,16 @@ from sp_plugins.adapter.model import unimplemented
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 
 Observe = Callable[[int], None]
+
+
+@contextlib.contextmanager
+def registered(host: hosts.Host) -> Iterator[None]:
+    """``host`` in the registry while the block runs (a test's host registers at run time)."""
+    hosts.register(host)
+    try:
+        yield
+    finally:
+        hosts.unregister(host.name)
 
 
 class Driver(abc.ABC):

@@ -15,9 +15,8 @@ DRIVERS = {"toy": contract.ToyDriver, "nerfstudio": contract.NerfstudioDriver}
 
 @pytest.fixture(autouse=True)
 def toy_registered():
-    hosts.register(TOY)
-    yield
-    hosts.unregister(TOY.name)
+    with contract.registered(TOY):
+        yield
 
 
 @pytest.mark.parametrize("item", list(contract.ITEMS))

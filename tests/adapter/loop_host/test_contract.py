@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 
-from sp_plugins.adapter import hosts
 from tests.adapter import contract
 from tests.adapter.loop_host.driver import LoopDriver
 from tests.adapter.loop_host.host import HOST
@@ -12,9 +11,8 @@ from tests.adapter.loop_host.host import HOST
 
 @pytest.fixture(autouse=True)
 def loop_registered():
-    hosts.register(HOST)
-    yield
-    hosts.unregister(HOST.name)
+    with contract.registered(HOST):
+        yield
 
 
 @pytest.mark.parametrize("item", list(contract.ITEMS))
