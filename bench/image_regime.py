@@ -154,8 +154,7 @@ def report(steps: int = STEPS) -> None:
 
         def diff(a, b):
             d = paired_difference(vals[a], vals[b])
-            return (f"{d.mean:+.2f} [{d.low:+.2f}, {d.high:+.2f}] ({d.verdict})" if d.low is not None
-                    else f"{d.mean:+.2f} (one seed)"), d.as_dict()
+            return d.text(2) + (f" ({d.verdict})" if d.low is not None else " (one seed)"), d.as_dict()
 
         cells = {k: diff(*k) for k in (("baseline", "sp"), ("baseline", "adaptive"), ("sp", "adaptive"))}
         late = [late_gain(find[(photo, "baseline", TABLE_LOG2, s)]["curve"]) for s in seeds]

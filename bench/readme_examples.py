@@ -157,8 +157,7 @@ def differences(example: str, records: List[Dict]) -> str:
         cells = []
         for key, _, digits in metrics:
             d = paired_difference([by_seed[(s, False)][key] for s in seeds], [by_seed[(s, True)][key] for s in seeds])
-            interval = f" [{d.low:+.{digits}f}, {d.high:+.{digits}f}]: {d.verdict}" if d.low is not None else " (one pair)"
-            cells.append(f"{d.mean:+.{digits}f}{interval}")
+            cells.append(d.text(digits) + (f": {d.verdict}" if d.low is not None else " (one pair)"))
         lines.append(f"| {setting} | {len(seeds)} | {' | '.join(cells)} |")
     return "\n".join(lines)
 

@@ -282,8 +282,7 @@ def _interval(differences: Sequence[float], digits: int) -> str:
     """A paired difference over seeds with its 95% Student-t interval (``sp_plugins.stats``, as ``sp-compare``)."""
     from sp_plugins.stats import paired_difference
 
-    d = paired_difference([0.0] * len(differences), list(differences))
-    return f"{d.mean:+.{digits}f}" + (f" [{d.low:+.{digits}f}, {d.high:+.{digits}f}]" if d.low is not None else "")
+    return paired_difference([0.0] * len(differences), list(differences)).text(digits)  # b - 0: the differences
 
 
 def quick_line(results: Dict[str, dict], sp_name: str) -> str:

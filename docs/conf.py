@@ -77,7 +77,7 @@ def included(docname: str, path: str, part: str | None, offset: int, start: int 
         if re.match(r"[a-z]+:|#|/", target):
             return m.group(0)
         return f"{m.group(1)}({os.path.relpath(source.parent / target, here)})"
-    return re.sub(r"(\]|\]\s*)\(([^)\s]+)\)", relink, text)
+    return re.sub(r"(\]\s*)\(([^)\s]+)\)", relink, text)
 
 
 def _site_includes(app, docname: str, source: list) -> None:

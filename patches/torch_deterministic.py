@@ -34,20 +34,26 @@ from typing import Iterator
 
 from sp_plugins.patches.registry import Patch
 
-__all__ = ["PATCH", "deterministic_kernels", "wanted"]
+__all__ = ["PATCH", "deterministic_kernels", "mode", "wanted"]
 
 MODES = ("auto", "1", "0")
 TESTED_TORCH_VERSIONS = ("2.14.1",)
+
+
+def mode() -> str:
+    """``SP_DETERMINISTIC`` (default ``auto``), one of :data:`MODES`; ``ValueError`` naming it otherwise."""
+    value = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() or "auto"
+    if value not in MODES:
+        raise ValueError(f"SP_DETERMINISTIC={value!r}: use auto (the default), 1 or 0")
+    return value
 
 
 def wanted() -> bool:
     """Whether ``SP_DETERMINISTIC`` (default ``auto``) asks for deterministic kernels here."""
     import torch
 
-    mode = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() or "auto"
-    if mode not in MODES:
-        raise ValueError(f"SP_DETERMINISTIC={mode!r}: use auto (the default), 1 or 0")
-    return mode == "1" or (mode == "auto" and not torch.cuda.is_available())
+    asked = mode()
+    return asked == "1" or (asked == "auto" and not torch.cuda.is_available())
 
 
 @contextlib.contextmanager

@@ -33,6 +33,11 @@ class PairedDifference:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    def text(self, digits: int) -> str:
+        """``+mean [+low, +high]`` at ``digits`` decimals (the mean alone for one pair), as tables quote it."""
+        mean = f"{self.mean:+.{digits}f}"
+        return mean if self.low is None or self.high is None else f"{mean} [{self.low:+.{digits}f}, {self.high:+.{digits}f}]"
+
 
 def spread(values: Sequence[float]) -> tuple:
     """``(mean, sample sd)`` of ``values`` (sd None for one value)."""

@@ -19,7 +19,6 @@ over the scene box, checkpointed, its alpha-grid optimizer group, the schedule c
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -65,14 +64,14 @@ def hold_deterministic_kernels(model: torch.nn.Module) -> bool:
     torch ``HashEncoding`` on several threads, where they cost about 8% per step (it says so once);
     ``SP_DETERMINISTIC=1`` turns them on everywhere. Returns whether held."""
     from sp_plugins.patches import registry
-    from sp_plugins.patches.torch_deterministic import MODES
+    from sp_plugins.patches.torch_deterministic import mode
 
     if not (host_command() or registry.our_console_command() == "sp-train"):
         return False
-    mode = os.environ.get("SP_DETERMINISTIC", "auto").strip().lower() or "auto"
-    if mode not in MODES:
-        raise InputError(f"SP_DETERMINISTIC={mode!r}: use auto (the default), 1 or 0")
-    auto = mode == "auto"
+    try:
+        auto = mode() == "auto"
+    except ValueError as err:
+        raise InputError(str(err)) from None
     if auto and torch.get_num_threads() == 1:
         return False  # one thread: every sum has one order already
     if auto and uses_torch_hash_encoding(model):

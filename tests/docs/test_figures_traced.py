@@ -3,8 +3,8 @@
 A *citing block* is a table row or a paragraph of the README or of a docs page (the results pages
 themselves left out) that links to a page of ``docs/results/``. Its *figures* are the decimal numbers
 in it (``0.0121``, ``+4.5``, ``1,213``, ``37.63``): each must occur in one of the pages the block cites,
-so a figure changed on one side only fails here. A number that is not a measurement (a setting, a
-version) and is not on the page either is listed in ``NOT_FIGURES`` with its reason.
+so a figure changed on one side only fails here. A version (``torch 2.14``) is not a figure; a setting
+quoted beside a measurement is found on the page that states it.
 
 ``python -m tests.docs.test_figures_traced`` prints every block and figure it checks.
 """
@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 import sys
 from pathlib import Path
-from typing import Dict, Iterator, List, Tuple
+from typing import Iterator, List, Tuple
 
 import pytest
 
@@ -25,9 +25,6 @@ FIGURE = re.compile(r"(?<![\w.\-^/])[+\-−]?(\d{1,3}(?:,\d{3})+|\d+\.\d+)(?![\w
 
 VERSION = re.compile(r"\b(?:torch|sp-plugins|nerfstudio|sdfstudio|nerfbaselines|Python|CUDA|Debian|version)\s+\d+(?:\.\d+)+")
 """A version number (``torch 2.14``) is not a measurement."""
-
-NOT_FIGURES: Dict[str, str] = {}
-"""figure -> why it is not looked for on the cited page (none today)."""
 
 
 def sources() -> List[Path]:
@@ -114,7 +111,7 @@ def test_every_quoted_figure_is_on_the_page_it_cites():
         numbers = set().union(*(page_numbers(s) for s in cited if (RESULTS / f"{s}.md").exists()))
         for figure in found:
             checked += 1
-            if not on_page(figure, numbers) and figure not in NOT_FIGURES:
+            if not on_page(figure, numbers):
                 drift.append(f"{where}: {figure} is not on {', '.join(cited)}")
     assert checked > 100, f"only {checked} figures found: the block or number pattern no longer matches the docs"
     assert not drift, "\n".join(drift)

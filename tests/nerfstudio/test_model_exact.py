@@ -201,3 +201,20 @@ def test_the_run_length_and_start_are_read_where_nerfstudio_keeps_them():
     assert SPModel.sp_run_length(None, SimpleNamespace(trainer=SimpleNamespace(config=SimpleNamespace(max_num_iterations=5), _start_step=0))) == (5, 0)
     assert SPModel.sp_run_length(None, SimpleNamespace(trainer=SimpleNamespace(config=SimpleNamespace()))) == (None, None)
     assert SPModel.sp_run_length(None, SimpleNamespace()) == (None, None)
+
+
+@pytest.mark.parametrize("value", ["yes", "2", "deterministic"])
+def test_a_bad_sp_deterministic_is_one_line_under_our_commands(monkeypatch, value):
+    """Under ``ns-*`` (the process's own name) a value of ``SP_DETERMINISTIC`` other than auto / 1 / 0 stops
+    the build in one line naming it, before anything is held; outside our commands nothing is read."""
+    from sp_plugins.nerfstudio.model import hold_deterministic_kernels
+    from sp_plugins.patches import registry
+
+    monkeypatch.setenv("SP_DETERMINISTIC", value)
+    monkeypatch.setattr("sys.argv", ["python"])
+    assert hold_deterministic_kernels(nn.Linear(2, 2)) is False
+    monkeypatch.setattr("sys.argv", ["/usr/bin/ns-train"])
+    with pytest.raises(InputError) as err:
+        hold_deterministic_kernels(nn.Linear(2, 2))
+    assert str(err.value) == f"SP_DETERMINISTIC={value!r}: use auto (the default), 1 or 0"
+    assert "torch_deterministic" not in registry.held()
