@@ -1,19 +1,25 @@
 """``sp-compare`` on one pair of the sparse-view study, where SP's effect is visible.
 
-    OMP_NUM_THREADS=1 python -m bench.sparse_compare      # about 30 minutes on one CPU core
+    OMP_NUM_THREADS=1 python -m bench.sparse_compare                    # about 30 minutes on one CPU core
+    OMP_NUM_THREADS=1 python -m bench.sparse_compare --seeds 0 1 2      # three pairs, about 90 minutes
 
 The pair of ``bench/sparse_views.py`` with the clearest effect: MipNeRF (``sp-mipnerf`` with SP off) and
 ``sp-mipnerf`` with the sparse-view setting (alpha0 1.0, about the object's radius, to 0 at a third of
-training) on the DTU-like Spot (``../shared/data/meshes/spot.ply``) from 9 of its 49 views, seed 0, the
-study's quick budget (2000 steps, lr 2e-3, a 4 x 128 MLP, 32 + 32 samples, 256 rays), the loss logged every
+training) on the DTU-like Spot (``../shared/data/meshes/spot.ply``) from 9 of its 49 views, the
+study's quick budget (``--machine.seed 0``, 2000 steps, lr 2e-3, a 4 x 128 MLP, 32 + 32 samples, 256 rays), the loss logged every
 25 steps for the curves. Both are trained with nerfstudio's trainer into run folders (``bench/out/sparse_compare/``;
 finished runs are kept), then ``sp-compare BASELINE SP`` writes its page, JSON and figures to ``bench/results/sparse_compare/``, and
 headless Chromium opens the page offline and screenshots it there (``page.png``); ``views.png``, made smaller, is
-the compare guide's figure (``docs/sp_compare_sparse.jpg``).
+the compare guide's figure (``docs/sp_compare_sparse.jpg``). With ``--seeds`` naming several seeds, each seed's
+pair is trained (``--machine.seed N``) and ``sp-compare --baseline A0 A1 A2 --sp B0 B1 B2`` writes the report over
+seeds to ``bench/results/sparse_compare/seeds/`` (each pair's report in ``seed-N/``) and ``page.png`` there; the
+single-pair report above is the first seed's.
 """
 
 from __future__ import annotations
 
+import argparse
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -31,12 +37,13 @@ SEED = 0
 LOG_EVERY = 25
 
 
-def trained(sp: bool, data: Path) -> Path:
-    """The run folder's ``config.yml`` of the baseline (``sp`` False) or the SP run, trained if missing."""
+def trained(sp: bool, data: Path, seed: int = SEED) -> Path:
+    """The run folder's ``config.yml`` of the baseline (``sp`` False) or the SP run at ``seed``, trained if missing."""
     from sp_plugins.nerfstudio.runs import train
 
     name = "sp-mipnerf-1.0" if sp else "mipnerf"
-    config = rd.mip_config(sp, data, BUDGET, SEED, OUT, name=name)
+    config = rd.mip_config(sp, data, BUDGET, seed, OUT if seed == SEED else OUT / f"seed{seed}", name=name)
+    config.machine.seed = seed  # the weights' and rays' seed (ns-train's --machine.seed), by which sp-compare pairs runs
     config.logging.steps_per_log = LOG_EVERY  # the training curves sp-compare plots (the study's runs log none)
     path = config.get_base_dir() / "config.yml"
     done = config.get_checkpoint_dir() / f"step-{BUDGET.steps - 1:09d}.ckpt"
@@ -68,15 +75,43 @@ def screenshot(page: Path, out: Path) -> None:
         browser.close()
 
 
+def relative(path: Path) -> str:
+    """A run's path as the report names it: from the repository root, so it reads the same on any machine."""
+    return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
+
+
+def over_seeds(pairs: list, data: Path) -> None:
+    """``sp-compare --baseline ... --sp ...`` over the seeds' pairs, into ``RESULTS / "seeds"`` (meshes left out)."""
+    out = OUT / "compare-seeds"
+    compare = Path(sys.executable).with_name("sp-compare")
+    subprocess.run([str(compare), "--baseline", *(relative(b) for b, _ in pairs), "--sp", *(relative(s) for _, s in pairs),
+                    "--output-dir", relative(out)], check=True, cwd=ROOT)
+    screenshot(out / "compare.html", out / "page.png")
+    target = RESULTS / "seeds"
+    if target.exists():
+        shutil.rmtree(target)
+    shutil.copytree(out, target, ignore=shutil.ignore_patterns("*.ply"))
+    for path in target.rglob("*"):
+        if path.suffix in (".html", ".json", ".md"):
+            path.write_text(path.read_text().replace(f"{ROOT}/", ""))
+    print((target / "compare.json").read_text()[:3000])
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[SEED], help="seeds to train and compare (default: 0)")
+    args = parser.parse_args()
     data = rd.dtu_scene_dir("spot")
-    baseline, sp = trained(False, data), trained(True, data)
+    pairs = [(trained(False, data, seed), trained(True, data, seed)) for seed in args.seeds]
+    baseline, sp = pairs[0]
     RESULTS.mkdir(parents=True, exist_ok=True)
     compare = Path(sys.executable).with_name("sp-compare")
-    subprocess.run([str(compare), str(baseline), str(sp), "--output-dir", str(RESULTS)], check=True, cwd=ROOT)
+    subprocess.run([str(compare), relative(baseline), relative(sp), "--output-dir", relative(RESULTS)], check=True, cwd=ROOT)
     screenshot(RESULTS / "compare.html", RESULTS / "page.png")
     docs_figure(RESULTS / "views.png", DOCS_FIGURE)
     print((RESULTS / "compare.json").read_text()[:2000])
+    if len(pairs) > 1:
+        over_seeds(pairs, data)
 
 
 if __name__ == "__main__":

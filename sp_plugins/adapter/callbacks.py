@@ -1,4 +1,4 @@
-"""Training callbacks that drive a :class:`StochasticPreconditioner` from a host's trainer.
+"""Training callbacks that drive an :class:`~sp_plugins.core.run.SPRun` from a host's trainer.
 
 Host-neutral: a host's callback object is made by the function the model passes
 (:meth:`sp_plugins.adapter.model.SPModelBase.sp_training_callback`, ``make(where, func)``), and the
@@ -15,6 +15,7 @@ from typing import Any, Callable, List, Literal, NamedTuple, Optional
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
+from sp_plugins.core.run import SPRun
 from sp_plugins.core.settings import SPSettings
 
 ALPHA_GRID_GROUP = "sp_alpha_grid"
@@ -22,7 +23,7 @@ ALPHA_GRID_GROUP = "sp_alpha_grid"
 
 Where = Literal["before", "after"]
 """When a training callback runs: before or after every training iteration."""
-MakeCallback = Callable[[Where, Callable[[int], None]], Any]
+MakeCallback = Callable[[Where, Callable[[int], Any]], Any]
 """``make(where, func)``: the host's training callback calling ``func(step)`` at ``where``."""
 
 
@@ -69,17 +70,6 @@ def sync_alpha_grid_lr(sp: StochasticPreconditioner, attributes: Any) -> None:
         group["initial_lr"] = sp.config.alpha_grid_lr
 
 
-def schedule_callback(sp: StochasticPreconditioner, total_steps: Optional[int], make: MakeCallback) -> Any:
-    """Before every iteration, move ``sp`` to the trainer's step (with ``total_steps`` None, the
-    total saved in ``sp``'s state is kept). A resumed run starts at the checkpoint's step + 1, so it
-    continues at the alpha it stopped at."""
-
-    def step_to(step: int) -> None:
-        sp.set_step(step, total_steps)
-
-    return make("before", step_to)
-
-
 def model_schedule_callback(at: Callable[[int, Optional[int]], Any], run: RunLength, make: MakeCallback) -> Any:
     """A schedule of a model's own (FreeNeRF's frequency mask, Neuralangelo's coarse-to-fine) as one
     callback: ``at(step, total)`` is applied now, at the step training starts (0, or a resumed
@@ -93,18 +83,20 @@ def model_schedule_callback(at: Callable[[int, Optional[int]], Any], run: RunLen
     return make("before", update)
 
 
-def sp_callbacks(sp: StochasticPreconditioner, run: RunLength, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
-    """Everything a model with SP registers: the schedule (checked against the run's length, one
-    line naming the flags when it does not fit), plus the alpha grid's learning rate (from the
-    ``optimizers`` of the host's callback ``attributes``)."""
+def sp_callbacks(sp_run: SPRun, run: RunLength, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
+    """Everything a model with SP registers: ``sp_run``'s fixed points as the host's callbacks (``step_pre`` before
+    every iteration, ``step_post``, with the reach check, after it), its length set from the trainer's (checked
+    against the schedule: one line naming the flags when it does not fit), and the alpha grid's learning rate (from
+    the ``optimizers`` of the host's callback ``attributes``). With no length from the trainer, the total saved in
+    the checkpoint is kept; a resumed run starts at the checkpoint's step + 1, so it continues at the alpha it
+    stopped at."""
     total = run.total
     if total is not None:
-        problem = schedule_problem(sp.config, total, steps_flag)
+        problem = schedule_problem(sp_run.config, total, steps_flag)
         if problem:
             raise InputError(problem)
-        start = run.start
         # without a start step (sdfstudio), stay at the step the checkpoint loaded (0 on a fresh run);
-        # the schedule callback moves to the trainer's step before every iteration either way
-        sp.set_step(int(sp.step) if start is None else start, total)
-    sync_alpha_grid_lr(sp, attributes)
-    return [schedule_callback(sp, total, make)]
+        # step_pre moves to the trainer's step before every iteration either way
+        sp_run.set_length(total, run.start)
+    sync_alpha_grid_lr(sp_run.preconditioner, attributes)
+    return [make("before", sp_run.step_pre), make("after", sp_run.step_post)]

@@ -19,8 +19,10 @@ The base then
   for relative alphas, and hands it to the host's fields (:meth:`SPModelBase.attach_sp`);
 - registers it as a submodule, so its step, total and alpha grid are in every checkpoint;
 - exposes a learnable alpha grid as the optimizer group ``sp_alpha_grid``;
-- drives the schedule from the trainer (step and ``max_num_iterations``);
-- runs the host's "reached" check once, after the first training step with alpha > 0;
+- wraps it in ``self.sp_run``, an :class:`~sp_plugins.core.run.SPRun` (what a plain training loop uses), whose
+  fixed points the host's trainer calls as callbacks: the schedule from the trainer's step and
+  ``max_num_iterations`` before every iteration, the host's "reached" check once, after the first training step
+  with alpha > 0;
 - logs ``sp_alpha`` with the training metrics.
 
 This module imports no host: what it needs of one comes through the declared methods.
@@ -37,6 +39,7 @@ import torch
 
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, RunLength, Where, sp_callbacks
 from sp_plugins.core import SPConfig, StochasticPreconditioner
+from sp_plugins.core.run import SPRun
 
 
 @dataclass
@@ -68,6 +71,7 @@ class SPModelBase:
     metaclass is torch's ``type``, and our variants are made with ``type(...)``.)"""
 
     sp: StochasticPreconditioner
+    sp_run: SPRun
     config: Any  # the host model's (its config holds an ``sp`` field)
     training: bool  # nn.Module's
     steps_flag: str
@@ -135,19 +139,16 @@ class SPModelBase:
 
     def populate_modules(self) -> None:
         self.sp = self.build_preconditioner()
+        # SP's lifecycle over the run (schedule, reach check, alpha): the same object a plain loop uses, around the
+        # preconditioner this model keeps as its submodule (its state stays in the host's checkpoint, ``sp.*``); the
+        # host's optimizer steps the alpha grid's group, and the host's train() / eval() own the mode
+        self.sp_run = SPRun.over(self.sp, reach=self.check_sp_reached, sets_mode=False, alpha_grid_optimizer=False)
         self.populate_host_modules()
         self.attach_sp()
 
     def populate_host_modules(self) -> None:
         """The host model's own ``populate_modules``."""
         super().populate_modules()  # type: ignore[misc]  # the host model's (next in the MRO)
-
-    def check_first_step(self, step: int) -> None:
-        """After every training step until the first with alpha > 0: then :meth:`check_sp_reached`, once."""
-        if getattr(self, "_sp_reach_checked", False) or not self.sp.active:
-            return
-        self._sp_reach_checked = True
-        self.check_sp_reached(step)
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
         groups = super().get_param_groups()  # type: ignore[misc]  # the host model's (next in the MRO)
@@ -158,11 +159,11 @@ class SPModelBase:
     def get_training_callbacks(self, training_callback_attributes) -> List[Any]:
         callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]  # the host model's (next in the MRO)
         run = self.sp_run_length(training_callback_attributes)
-        ours = sp_callbacks(self.sp, run, training_callback_attributes, self.sp_training_callback, self.steps_flag)
-        return list(callbacks) + ours + [self.sp_training_callback("after", self.check_first_step)]
+        return list(callbacks) + sp_callbacks(self.sp_run, run, training_callback_attributes, self.sp_training_callback,
+                                              self.steps_flag)
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
         metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]  # the host model's (next in the MRO)
         if self.training:
-            metrics["sp_alpha"] = self.sp.alpha
+            metrics["sp_alpha"] = self.sp_run.alpha
         return metrics

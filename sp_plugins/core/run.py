@@ -68,22 +68,56 @@ class SPRun:
                  scene_diagonal: Optional[float] = None, dim: int = 3, alpha_grid_optimizer: bool = True) -> None:
         if int(total_steps) < 1:
             raise ValueError(f"total_steps={total_steps}: a run has at least one step")
-        self.preconditioner = StochasticPreconditioner(config, total_steps=int(total_steps), bounds=bounds,
-                                                       scene_diagonal=scene_diagonal, dim=dim)
-        self.preconditioner.train()
+        preconditioner = StochasticPreconditioner(config, total_steps=int(total_steps), bounds=bounds,
+                                                  scene_diagonal=scene_diagonal, dim=dim)
+        preconditioner.train()
+        self._adopt(preconditioner, alpha_grid_optimizer=alpha_grid_optimizer, reach=None, sets_mode=True,
+                    length=int(total_steps))
+
+    @classmethod
+    def over(cls, preconditioner: StochasticPreconditioner, *, reach: Optional[Callable[[int], None]] = None,
+             sets_mode: bool = True, alpha_grid_optimizer: bool = True) -> "SPRun":
+        """An SPRun around a preconditioner someone else keeps (a host model registers it as its submodule
+        ``sp``, so its state stays in the host's checkpoints under ``sp.*``).
+
+        Args:
+            reach: the reach check to run once, after the first step with alpha > 0 (a host's, which knows
+                whether its fields read the moved positions); None counts calls of :meth:`__call__`.
+            sets_mode: whether :meth:`step_pre` puts the preconditioner in training mode (a host's
+                ``train()`` / ``eval()`` owns the mode: its viewer renders in evaluation mode between steps).
+        """
+        run = cls.__new__(cls)
+        run._adopt(preconditioner, alpha_grid_optimizer=alpha_grid_optimizer, reach=reach, sets_mode=sets_mode)
+        return run
+
+    def _adopt(self, preconditioner: StochasticPreconditioner, *, alpha_grid_optimizer: bool,
+               reach: Optional[Callable[[int], None]], sets_mode: bool, length: Optional[int] = None) -> None:
+        self.preconditioner = preconditioner
         self.optimizer: Optional[torch.optim.Optimizer] = None
         """The alpha grid's own Adam (``config.alpha_grid_lr``), stepped by :meth:`step_post`; None without a grid."""
-        if self.preconditioner.alpha_grid is not None and alpha_grid_optimizer:
-            self.optimizer = torch.optim.Adam(self.preconditioner.alpha_grid.parameters(), lr=config.alpha_grid_lr)
+        if preconditioner.alpha_grid is not None and alpha_grid_optimizer:
+            self.optimizer = torch.optim.Adam(preconditioner.alpha_grid.parameters(), lr=preconditioner.config.alpha_grid_lr)
+        self._reach = reach
+        self._sets_mode = sets_mode
         self._moved = 0  # positions moved in the current step
-        self._reach_checked = False
+        self._length = length  # the run's length as the loop or trainer gave it (None: the state's)
+        self.reach_checked = False
+        """Whether the reach check ran (once per run; a resumed run checks again)."""
+
+    def set_length(self, total_steps: int, start: Optional[int] = None) -> None:
+        """The run's length, once a host's trainer says it, and the step training starts at (a resumed run's; None:
+        stay at the step the state loaded, 0 on a fresh run). It holds over a state loaded later (a host that loads
+        its checkpoint after registering its callbacks): :meth:`step_pre` moves to this length again."""
+        self._length = int(total_steps)
+        self.preconditioner.set_step(self.step_index if start is None else int(start), self._length)
 
     # -- the fixed points of a training loop -------------------------------------------------
     def step_pre(self, step: int) -> float:
-        """Before step ``step``: SP's alpha for it (returned), training mode."""
+        """Before step ``step``: SP's alpha for it (returned), training mode (unless a host owns the mode)."""
         self._moved = 0
-        self.preconditioner.train()
-        return self.preconditioner.set_step(int(step))
+        if self._sets_mode:
+            self.preconditioner.train()
+        return self.preconditioner.set_step(int(step), self._length)
 
     def __call__(self, x: Float[Tensor, "*batch dim"]) -> Float[Tensor, "*batch dim"]:
         """``x`` perturbed while training and while alpha > 0 (``x`` itself otherwise)."""
@@ -104,8 +138,13 @@ class SPRun:
         if self.optimizer is not None and self.preconditioner.active:
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
-        if not self._reach_checked and self.preconditioner.active and self.preconditioner.training:
-            self._reach_checked = True
+        if self.reach_checked or not self.preconditioner.active:
+            return
+        if self._reach is not None:
+            self.reach_checked = True
+            self._reach(step)
+        elif self.preconditioner.training:
+            self.reach_checked = True
             if self._moved == 0:
                 raise SPNotReached(f"SP was on at step {step} (alpha {self.alpha:.3g}) but no position went through it: "
                                    "hand the field sp(x) (or sp.blurred(field, x)) in place of x")
@@ -181,7 +220,7 @@ class SPRun:
         self.preconditioner.load_state_dict(state["preconditioner"])
         if self.optimizer is not None and "optimizer" in state:
             self.optimizer.load_state_dict(state["optimizer"])
-        self._reach_checked = self.step_index > 0
+        self.reach_checked = self.step_index > 0
 
     def __repr__(self) -> str:
         return f"SPRun({self.preconditioner.extra_repr()})"

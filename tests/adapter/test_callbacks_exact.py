@@ -12,7 +12,7 @@ import torch
 
 from sp_plugins.adapter import callbacks as cb
 from sp_plugins.adapter.errors import InputError
-from sp_plugins.core import SPConfig
+from sp_plugins.core import SPConfig, SPRun
 
 
 def attributes(optimizers=None):
@@ -33,6 +33,11 @@ class Made:
 
 def preconditioner(**config):
     return SPConfig(alpha0=0.5, boundary="none", schedule="linear", end=0.5, **config).setup(dim=3)
+
+
+def hosted(sp, reach=None):
+    """``sp`` as a host model wraps it (``SPModelBase.populate_modules``)."""
+    return SPRun.over(sp, reach=reach, sets_mode=False, alpha_grid_optimizer=False)
 
 
 def test_a_run_length_is_ints_or_none():
@@ -60,13 +65,13 @@ def test_the_schedule_refusal_bounds_and_its_line_name_the_flags_typed(end, fits
 
 
 def test_a_fresh_nerfstudio_run_starts_sp_at_step_0_of_its_length_and_steps_before_every_iteration():
-    """Registration moves SP to (start, total) at once; the one callback runs *before* each iteration and
+    """Registration moves SP to (start, total) at once; the first callback runs *before* each iteration and
     moves it to the trainer's step, with this run's length (also over a checkpoint of a run of another length,
-    loaded after registration)."""
+    loaded after registration); the second runs after it."""
     sp, make = preconditioner(), Made()
     sp.set_step(33, 1000)  # whatever it held
-    (callback,) = cb.sp_callbacks(sp, cb.run_length(200, 0), attributes(), make, "--max-num-iterations")
-    assert make.asked == ["before"] and (int(sp.step), int(sp.total_steps)) == (0, 200)
+    callback, _ = cb.sp_callbacks(hosted(sp), cb.run_length(200, 0), attributes(), make, "--max-num-iterations")
+    assert make.asked == ["before", "after"] and (int(sp.step), int(sp.total_steps)) == (0, 200)
     assert sp.alpha == pytest.approx(0.5)
     where, step_to = callback
     step_to(50)  # linear to 0 at step 100 (end 0.5 of 200)
@@ -82,7 +87,7 @@ def test_a_resumed_run_continues_at_its_start_step():
     """``trainer._start_step`` (the checkpoint's step + 1) is where SP is moved at registration, so the
     first resumed step has the alpha it would have had."""
     sp = preconditioner()
-    cb.sp_callbacks(sp, cb.run_length(200, 60), attributes(), Made(), "--max-num-iterations")
+    cb.sp_callbacks(hosted(sp), cb.run_length(200, 60), attributes(), Made(), "--max-num-iterations")
     assert int(sp.step) == 60 and sp.alpha == pytest.approx(0.5 * (1 - 60 / 100))
 
 
@@ -91,7 +96,7 @@ def test_sdfstudio_s_attributes_keep_the_step_the_checkpoint_loaded():
     run, the checkpoint's after a load), with the run's length set."""
     sp = preconditioner()
     sp.set_step(42, 1000)  # as a loaded checkpoint left it
-    cb.sp_callbacks(sp, cb.run_length(200, None), attributes(), Made(), "--trainer.max-num-iterations")
+    cb.sp_callbacks(hosted(sp), cb.run_length(200, None), attributes(), Made(), "--trainer.max-num-iterations")
     assert (int(sp.step), int(sp.total_steps)) == (42, 200)
 
 
@@ -100,16 +105,40 @@ def test_without_a_run_length_sp_keeps_its_saved_total():
     total in SP's state."""
     sp = preconditioner()
     sp.set_step(5, 400)
-    (callback,) = cb.sp_callbacks(sp, cb.run_length(None), attributes(), Made(), "--max-num-iterations")
+    callback, _ = cb.sp_callbacks(hosted(sp), cb.run_length(None), attributes(), Made(), "--max-num-iterations")
     assert (int(sp.step), int(sp.total_steps)) == (5, 400)
     callback[1](10)
     assert (int(sp.step), int(sp.total_steps)) == (10, 400)
 
 
+def test_the_hosts_reach_check_runs_once_after_the_first_training_step_with_alpha_above_0():
+    """The *after* callback runs the host's reach check exactly once: after the first training iteration whose
+    alpha is above 0 (not before it, not in evaluation mode, not again); the *before* callback leaves the mode to
+    the host (its viewer renders in evaluation mode between steps)."""
+    sp, checked = SPConfig(alpha0=0.5, boundary="none", schedule="linear", end=100).setup(dim=3), []
+    sp.set_step(0, 200)
+    before, after = cb.sp_callbacks(hosted(sp, reach=checked.append), cb.run_length(200, 100), attributes(), Made(),
+                                    "--max-num-iterations")
+    for step in (100, 101):  # alpha is 0 from step 100 (a resumed run past the end): nothing to check
+        before[1](step)
+        after[1](step)
+    assert checked == []
+    sp.eval()
+    before[1](0)
+    assert not sp.training  # the mode is the host's
+    after[1](0)
+    assert checked == []  # evaluation: nothing moves, nothing to check
+    sp.train()
+    for step in (1, 2, 3):
+        before[1](step)
+        after[1](step)
+    assert checked == [1] and sp.training
+
+
 def test_a_schedule_that_does_not_fit_is_refused_before_sp_moves():
     sp = SPConfig(schedule="step", end=300, boundary="none").setup(dim=3)
     with pytest.raises(InputError, match=r"^--pipeline\.model\.sp\.end 300 does not fit --trainer\.max-num-iterations 200 "):
-        cb.sp_callbacks(sp, cb.run_length(200, 0), attributes(), Made(), "--trainer.max-num-iterations")
+        cb.sp_callbacks(hosted(sp), cb.run_length(200, 0), attributes(), Made(), "--trainer.max-num-iterations")
     assert int(sp.total_steps) == -1  # not moved
 
 
@@ -123,7 +152,7 @@ def test_the_alpha_grid_group_gets_the_configured_lr_and_no_other_group_does():
         g["initial_lr"] = 1.0
     field_opt = torch.optim.Adam([torch.zeros(2, requires_grad=True)], lr=0.1)
     optimizers = SimpleNamespace(optimizers={cb.ALPHA_GRID_GROUP: grid_opt, "fields": field_opt})
-    cb.sp_callbacks(sp, cb.run_length(10, 0), attributes(optimizers), Made(), "--max-num-iterations")
+    cb.sp_callbacks(hosted(sp), cb.run_length(10, 0), attributes(optimizers), Made(), "--max-num-iterations")
     assert [(g["lr"], g["initial_lr"]) for g in grid_opt.param_groups] == [(3e-3, 3e-3)] * 2
     assert field_opt.param_groups[0]["lr"] == 0.1 and "initial_lr" not in field_opt.param_groups[0]
 

@@ -109,7 +109,7 @@ def test_sp_method_trains_two_steps_with_sp_active(method, scene_with_pairs, tmp
     assert isinstance(model.field, SeamSDFField) and model.field.sp is model.sp
     calls = model.field.sp_handle.perturbed_calls
     assert calls >= 2, f"SP perturbed {calls} field queries in the 2 steps with alpha > 0"
-    assert model._sp_reach_checked and float(model.field.sp_handle.first_move) > 0  # the model's own check ran
+    assert model.sp_run.reach_checked and float(model.field.sp_handle.first_move) > 0  # the model's own check ran
     assert int(model.sp.step) == 2 and int(model.sp.total_steps) == 3 and model.sp.alpha == 0
     assert (tmp_path / "exp" / f"sp-{method}" / "run" / "sdfstudio_models" / "step-000000002.ckpt").is_file()
 
