@@ -16,7 +16,7 @@ the first 20%; then importance sampling and level masking guided by the frozen m
 Two studies (resumable: one JSON per run in ``bench/out/image_regime/``)::
 
     OMP_NUM_THREADS=1 python -m bench.image_regime table    # 2 photos x 3 variants x 3 seeds at T=13 (1 param/pixel)
-    OMP_NUM_THREADS=1 python -m bench.image_regime sweep    # hubble: T = 11, 13, 15, 17, 3 variants, seed 0
+    OMP_NUM_THREADS=1 python -m bench.image_regime sweep    # hubble, astronaut: T = 11, 13, 15, 17, 3 variants, seed 0
     OMP_NUM_THREADS=1 python -m bench.image_regime report   # summary.md / summary.json, the two figures
     OMP_NUM_THREADS=1 python -m bench.image_regime table --steps 6000   # the same, longer: in steps-6000/, figures *_6000.png
 
@@ -43,7 +43,7 @@ PHOTOS = ("astronaut", "hubble_deep_field")
 VARIANTS = ("baseline", "sp", "adaptive")
 TABLE_LOG2 = 13
 SWEEP_LOG2 = (11, 13, 15, 17)
-SWEEP_PHOTO = "hubble_deep_field"
+SWEEP_PHOTOS = ("hubble_deep_field", "astronaut")
 STEPS = 2000
 BATCH = 2**14
 CHECKPOINTS = 8
@@ -115,7 +115,7 @@ def run(name: str, variant: str, log2: int, seed: int, steps: int) -> dict:
 def jobs(study: str):
     if study == "table":
         return [(p, v, TABLE_LOG2, s) for s in (0, 1, 2) for p in PHOTOS for v in VARIANTS]
-    return [(SWEEP_PHOTO, v, t, 0) for t in SWEEP_LOG2 for v in VARIANTS]
+    return [(p, v, t, 0) for p in SWEEP_PHOTOS for t in SWEEP_LOG2 for v in VARIANTS]
 
 
 def late_gain(curve: list) -> float:
@@ -162,17 +162,20 @@ def report(steps: int = STEPS) -> None:
                      + " | ".join(cell(v) for v in VARIANTS) + " | " + " | ".join(c[0] for c in cells.values())
                      + f" | {sum(late) / len(late):+.2f} dB |")
         summary["table"][photo] = {"seeds": seeds, "psnr": vals, "differences": {f"{b} - {a}": c[1] for (a, b), c in cells.items()}}
-    sweep = sorted({r["log2_table_size"] for r in rows if r["image"] == SWEEP_PHOTO and r["seed"] == 0})
-    if sweep:
-        lines += ["", f"Sweep: {SWEEP_PHOTO}, seed 0, PSNR by table size", "",
+    for photo in SWEEP_PHOTOS:
+        sweep = sorted({r["log2_table_size"] for r in rows if r["image"] == photo and r["seed"] == 0})
+        got_all = {t: {v: find.get((photo, v, t, 0)) for v in VARIANTS} for t in sweep}
+        sizes = [t for t in sweep if all(got_all[t].values())]
+        if len(sizes) < 2:  # a sweep of one table size is the main table's run, no sweep
+            continue
+        lines += ["", f"Sweep: {photo}, seed 0, PSNR by table size", "",
                   "| rows per level | params / pixel | Instant-NGP | + SP | + SP + adaptive | adaptive - NGP |", "|---|---|---|---|---|---|"]
-        for t in sweep:
-            got = {v: find.get((SWEEP_PHOTO, v, t, 0)) for v in VARIANTS}
-            if not all(got.values()):
-                continue
+        for t in sizes:
+            got = got_all[t]
             lines.append(f"| 2^{t} | {got['baseline']['params_per_pixel']:.2f} | " + " | ".join(f"{got[v]['psnr']:.2f}" for v in VARIANTS)
                          + f" | {got['adaptive']['psnr'] - got['baseline']['psnr']:+.2f} |")
-            summary["sweep"][t] = {v: got[v]["psnr"] for v in VARIANTS} | {"params_per_pixel": got["baseline"]["params_per_pixel"]}
+            summary["sweep"].setdefault(photo, {})[t] = ({v: got[v]["psnr"] for v in VARIANTS}
+                                                         | {"params_per_pixel": got["baseline"]["params_per_pixel"]})
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -214,22 +217,24 @@ def figures(find: dict, summary: dict, out: Path, suffix: str = "") -> None:
         fig.tight_layout()
         fig.savefig(DOCS / f"image_regime_maps{suffix}.png", dpi=90)
         plt.close(fig)
-    if len(summary["sweep"]) > 1:  # a sweep of one table size is no curve
-        fig, ax = plt.subplots(figsize=(5.5, 3.6))
-        ts = sorted(summary["sweep"])
-        x = [summary["sweep"][t]["params_per_pixel"] for t in ts]
-        for v, label in zip(VARIANTS, ("Instant-NGP", "+ SP", "+ SP + adaptive")):
-            ax.plot(x, [summary["sweep"][t][v] for t in ts], marker="o", label=label)
-        ax.set_xscale("log", base=2)
-        ax.set_xlabel("hash-table parameters per pixel")
-        ax.set_ylabel("PSNR (dB)")
-        ax.set_title(f"{SWEEP_PHOTO.replace('_', ' ')} {CROP}x{CROP}, seed 0", fontsize=9)
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
+    if summary["sweep"]:  # PSNR against parameters per pixel, a panel per photo swept
+        photos = list(summary["sweep"])
+        fig, axes = plt.subplots(1, len(photos), figsize=(5.5 * len(photos), 3.6), squeeze=False)
+        for ax, photo in zip(axes[0], photos):
+            sweep = summary["sweep"][photo]
+            ts = sorted(sweep)
+            x = [sweep[t]["params_per_pixel"] for t in ts]
+            for v, label in zip(VARIANTS, ("Instant-NGP", "+ SP", "+ SP + adaptive")):
+                ax.plot(x, [sweep[t][v] for t in ts], marker="o", label=label)
+            ax.set_xscale("log", base=2)
+            ax.set_xlabel("hash-table parameters per pixel")
+            ax.set_ylabel("PSNR (dB)")
+            ax.set_title(f"{photo.replace('_', ' ')} {CROP}x{CROP}, seed 0", fontsize=9)
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
         fig.tight_layout()
         fig.savefig(DOCS / f"image_regime_sweep{suffix}.png", dpi=100)
         plt.close(fig)
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

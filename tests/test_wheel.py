@@ -129,7 +129,7 @@ def test_the_wheel_ships_every_module_the_assets_and_no_direct_reference(wheel):
         metadata = email.parser.Parser().parsestr(zf.read(metadata_name).decode())
         (ep_name,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
         entry_points = zf.read(ep_name).decode()
-    # every module of the three mapped folders, under its import path (a package missing from pyproject's
+    # every module of the mapped folders, under its import path (a package missing from pyproject's
     # list ships nothing while the editable install still imports it)
     expected = set()
     for package, folder in PACKAGE_DIRS.items():
@@ -139,7 +139,7 @@ def test_the_wheel_ships_every_module_the_assets_and_no_direct_reference(wheel):
     missing = sorted(expected - names)
     assert not missing, f"the wheel lacks {missing}: list their packages in pyproject.toml [tool.setuptools]"
     assert "sp_plugins/data/assets/spot.ply" in names
-    # nothing but sp_plugins at the top level: patches/ ships inside it
+    # nothing but sp_plugins at the top level: patches/ and method_configs/ ship inside it
     assert {n.split("/")[0] for n in names} == {"sp_plugins", metadata_name.split("/")[0]}
     # a package index refuses an upload whose metadata holds a direct reference, extras included
     requires = metadata.get_all("Requires-Dist") or []
@@ -159,8 +159,8 @@ def test_the_installed_wheel_imports_from_its_own_copy_with_its_assets(fresh_env
     code = """
 import sys, importlib.metadata as md
 from importlib.resources import files
-import sp_plugins, sp_plugins.nerfstudio.methods, sp_plugins.patches, sp_plugins.data.assets
-for m in (sp_plugins, sp_plugins.nerfstudio.methods, sp_plugins.patches):
+import sp_plugins, sp_plugins.method_configs.nerfstudio, sp_plugins.patches, sp_plugins.data.assets
+for m in (sp_plugins, sp_plugins.method_configs.nerfstudio, sp_plugins.patches):
     print("FILE", m.__file__)
 assert not any("__editable__" in type(f).__module__ for f in sys.meta_path), sys.meta_path
 dist = md.distribution("sp-plugins")
@@ -203,7 +203,7 @@ for name, mod in sorted(sys.modules.items()):
 """
     out = _run([str(python), "-c", code], cwd=work, env=env).stdout
     _assert_wheel_copy(out, purelib)
-    assert f"{os.sep}nerfstudio{os.sep}methods.py" in out, "ns-train loaded none of our method configs"
+    assert f"{os.sep}method_configs{os.sep}nerfstudio.py" in out, "ns-train loaded none of our method configs"
     for name in PYPROJECT["project"]["entry-points"]["nerfstudio.method_configs"]:
         assert re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", out), f"ns-train --help does not list {name}"
     for name in ("sp-neus-hashgrid", "sp-mipnerf", "sp-relu-field"):

@@ -1,4 +1,4 @@
-"""Trainer configs of the radiance methods (:mod:`sp_plugins.nerfstudio.methods` only picks one each).
+"""Trainer configs of the radiance methods (:mod:`sp_plugins.method_configs.nerfstudio` only picks one each).
 
 - ReLU fields (paper: 256^3 grid, Adam lr 0.03, alpha0 0.003 over the first 8000 steps; 28k steps
   of 16k rays x 512 samples): ``relu-field`` (4-stage coarse-to-fine), ``relu-field-flat`` and
@@ -103,6 +103,19 @@ def mipnerf_method(name: str, *, sp: bool, description: str) -> MethodSpecificat
     return _with_sp_optimizer(config, description)
 
 
+def _decaying_adam(lr: float, lr_final: float, max_steps: int, **adam: float) -> dict:
+    """An optimizer group of nerfstudio's presets: Adam at ``lr``, decaying exponentially to ``lr_final``
+    over ``max_steps`` (``adam``: the optimizer's other settings, e.g. ``eps``)."""
+    return {
+        "optimizer": AdamOptimizerConfig(lr=lr, **adam),
+        "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=max_steps),
+    }
+
+
+HOST_SCHEDULE = dict(viewer_rays=1 << 15, steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000)
+"""nerfstudio's own schedule of nerfacto and tensorf (30k steps), which their SP methods keep."""
+
+
 def _generic(config: TrainerConfig, description: str) -> MethodSpecification:
     """A host method plus SP: the generic route (``with_sp``), with the preset ``sp-train`` gives it
     (:func:`sp_plugins.nerfstudio.table.preset_for`)."""
@@ -135,13 +148,9 @@ def nerfacto_method(name: str, description: str) -> MethodSpecification:
         {
             "proposal_networks": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
             "fields": {"optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15), "scheduler": decay},
-            "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
-            },
+            "camera_opt": _decaying_adam(1e-3, 1e-4, 5000, eps=1e-15),
         },
-        viewer_rays=1 << 15,
-        steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=True,
+        **HOST_SCHEDULE, mixed_precision=True,
     )
     return _generic(config, description)
 
@@ -152,20 +161,10 @@ def tensorf_method(name: str, description: str) -> MethodSpecification:
         CheckedDataManagerConfig(dataparser=BlenderDataParserConfig(), train_num_rays_per_batch=4096, eval_num_rays_per_batch=4096),
         TensoRFModelConfig(regularization="tv", camera_optimizer=CameraOptimizerConfig(mode="off")),
         {
-            "fields": {
-                "optimizer": AdamOptimizerConfig(lr=0.001),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.0001, max_steps=30000),
-            },
-            "encodings": {
-                "optimizer": AdamOptimizerConfig(lr=0.02),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=30000),
-            },
-            "camera_opt": {
-                "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
-                "scheduler": FloatExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=5000),
-            },
+            "fields": _decaying_adam(0.001, 0.0001, 30000),
+            "encodings": _decaying_adam(0.02, 0.002, 30000),
+            "camera_opt": _decaying_adam(1e-4, 1e-5, 5000, eps=1e-15),
         },
-        viewer_rays=1 << 15,
-        steps_per_eval_batch=500, steps_per_save=2000, max_num_iterations=30000, mixed_precision=False,
+        **HOST_SCHEDULE, mixed_precision=False,
     )
     return _generic(config, description)

@@ -18,14 +18,16 @@ if TYPE_CHECKING:  # host modules are imported where they are used: shrink() ser
     from nerfstudio.plugins.types import MethodSpecification
 
 ENTRY_POINT_GROUP = "nerfstudio.method_configs"
-OUR_MODULE = "sp_plugins.nerfstudio.methods"
+OUR_MODULES = ("sp_plugins.method_configs.nerfstudio", "sp_plugins.nerfstudio.methods")
+"""Where our entry points point: ``method_configs/nerfstudio.py``, or its old home in an environment installed before
+it moved (not yet reinstalled)."""
 
 
 def our_methods() -> Dict[str, MethodSpecification]:
     """Every method sp-plugins registers, by name, loaded from its entry point."""
     specs = {}
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        if ep.value.partition(":")[0] == OUR_MODULE:
+        if ep.value.partition(":")[0] in OUR_MODULES:
             specs[ep.name] = ep.load()
     return specs
 

@@ -1,4 +1,4 @@
-"""Trainer configs of the SDF methods (:mod:`sp_plugins.nerfstudio.methods` only picks one each).
+"""Trainer configs of the SDF methods (:mod:`sp_plugins.method_configs.nerfstudio` only picks one each).
 
 Paper settings (Ling et al. 2025) kept as defaults, with schedule ends as fractions of training so
 that shortened runs keep their shape:

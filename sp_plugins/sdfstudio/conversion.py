@@ -4,7 +4,7 @@
 sizes stay as the host ships them) into the SP variant of its own class
 (:mod:`sp_plugins.sdfstudio.variants`), its ``sdf_field`` an
 :class:`~sp_plugins.sdfstudio.seam.SeamSDFFieldConfig`. ``with_sp``, the refusals, the presets and
-``sp_method`` (our four named methods in :mod:`sp_plugins.sdfstudio.methods`) are in
+``sp_method`` (our four named methods in :mod:`sp_plugins.method_configs.sdfstudio`) are in
 :mod:`sp_plugins.sdfstudio.registration`, which imports this module (never the other way round).
 The host loads on use (:func:`sp_model_config`), so importing this module stays cheap.
 

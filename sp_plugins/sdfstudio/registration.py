@@ -90,7 +90,7 @@ def host_method_config(name: str) -> Any:
 
 
 def sp_method(base: str, sp: Optional["SPConfig"] = None, description: Optional[str] = None) -> MethodSpecification:
-    """``sp-<base>`` from sdfstudio's registered method ``base`` (for :mod:`sp_plugins.sdfstudio.methods`)."""
+    """``sp-<base>`` from sdfstudio's registered method ``base`` (for :mod:`sp_plugins.method_configs.sdfstudio`)."""
     return with_sp(host_method_config(base), sp, description=description)
 
 

@@ -15,6 +15,7 @@ import contextlib
 import copy
 import dataclasses
 import functools
+import importlib
 from types import SimpleNamespace
 from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
@@ -246,14 +247,42 @@ class WithSpDriver(Driver):
     """A real host's driver: one of its registered methods (``HOST_METHOD``) through the host's ``with_sp``."""
 
     HOST_METHOD: str
+    METHOD_CONFIGS: str
+    """The dict of the host's own trainer configs by method name, as ``module:name``."""
+    REGISTRATION: str
+    """The host adapter's module that holds its ``with_sp``."""
 
-    @abc.abstractmethod
     def host_method_config(self) -> Any:
         """The host's own trainer config of ``HOST_METHOD``."""
+        module, _, name = self.METHOD_CONFIGS.partition(":")
+        return getattr(importlib.import_module(module), name)[self.HOST_METHOD]
 
-    @abc.abstractmethod
     def with_sp(self, config: Any) -> Any:
         """The host's ``with_sp`` of a trainer config (its ``MethodSpecification``)."""
+        return importlib.import_module(self.REGISTRATION).with_sp(config)
+
+    def sp_model_config(self, **sp: Any) -> Any:
+        """A copy of the SP model config, its ``sp`` settings changed by ``sp`` (each driver then shrinks it)."""
+        config = copy.deepcopy(self._configs[1])
+        config.sp = dataclasses.replace(config.sp, **sp)
+        return config
+
+    @staticmethod
+    def run_steps(model: nn.Module, callbacks: List[Any], steps: int, loss: Callable[[int], torch.Tensor],
+                  observe: Optional[Observe] = None) -> None:
+        """``steps`` iterations as the host's trainer runs them: its callbacks before, ``loss(step)``'s backward
+        in training mode, its callbacks after, then ``observe(step)`` (both hosts share nerfstudio's loop)."""
+        from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+        for step in range(steps):
+            for c in callbacks:
+                c.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+            model.train()
+            loss(step).backward()
+            for c in callbacks:
+                c.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+            if observe:
+                observe(step)
 
     @functools.cached_property
     def _configs(self) -> Tuple[Any, Any]:
@@ -277,24 +306,15 @@ class NerfstudioDriver(WithSpDriver):
 
     host = "nerfstudio"
     HOST_METHOD = "vanilla-nerf"
+    METHOD_CONFIGS = "nerfstudio.configs.method_configs:all_methods"
+    REGISTRATION = "sp_plugins.nerfstudio.registration"
     BOX = torch.tensor([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
-
-    def host_method_config(self) -> Any:
-        from nerfstudio.configs.method_configs import all_methods
-
-        return all_methods[self.HOST_METHOD]
-
-    def with_sp(self, config: Any) -> Any:
-        from sp_plugins.nerfstudio.registration import with_sp
-
-        return with_sp(config)
 
     def build(self, **sp: Any) -> nn.Module:
         from nerfstudio.data.scene_box import SceneBox
 
-        config = copy.deepcopy(self._configs[1])
+        config = self.sp_model_config(**sp)
         config.num_coarse_samples, config.num_importance_samples = 8, 8
-        config.sp = dataclasses.replace(config.sp, **sp)
         return config.setup(scene_box=SceneBox(aabb=self.BOX), num_train_data=4, metadata={}, device="cpu", grad_scaler=None)
 
     @staticmethod
@@ -308,20 +328,12 @@ class NerfstudioDriver(WithSpDriver):
                          pixel_area=torch.full((n, 1), 1e-4), camera_indices=torch.zeros(n, 1, dtype=torch.long))
 
     def train(self, model: nn.Module, steps: int, total: int, observe: Optional[Observe] = None) -> None:
-        from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+        from nerfstudio.engine.callbacks import TrainingCallbackAttributes
 
         trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=total), _start_step=0)
         callbacks = model.get_training_callbacks(TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None,
                                                                             trainer=trainer))
-        for step in range(steps):
-            for c in callbacks:
-                c.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-            model.train()
-            model(self._rays(step))["rgb_fine"].sum().backward()
-            for c in callbacks:
-                c.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-            if observe:
-                observe(step)
+        self.run_steps(model, callbacks, steps, lambda step: model(self._rays(step))["rgb_fine"].sum(), observe)
 
     def evaluate(self, model: nn.Module) -> torch.Tensor:
         model.eval()
@@ -356,26 +368,17 @@ class SdfstudioDriver(WithSpDriver):
 
     host = "sdfstudio"
     HOST_METHOD = "neus"
-
-    def host_method_config(self) -> Any:
-        from nerfstudio.configs.method_configs import method_configs
-
-        return method_configs[self.HOST_METHOD]
-
-    def with_sp(self, config: Any) -> Any:
-        from sp_plugins.sdfstudio.registration import with_sp
-
-        return with_sp(config)
+    METHOD_CONFIGS = "nerfstudio.configs.method_configs:method_configs"
+    REGISTRATION = "sp_plugins.sdfstudio.registration"
 
     def build(self, **sp: Any) -> nn.Module:
         from nerfstudio.data.scene_box import SceneBox
 
-        config = copy.deepcopy(self._configs[1])
+        config = self.sp_model_config(**sp)
         f = config.sdf_field
         f.num_layers, f.hidden_dim, f.geo_feat_dim, f.hidden_dim_color = 2, 32, 15, 32
         f.num_levels, f.log2_hashmap_size, f.base_res, f.max_res = 4, 11, 8, 64
         config.background_model = "none"
-        config.sp = dataclasses.replace(config.sp, **sp)
         return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])), num_train_data=2,
                             world_size=1, local_rank=0)
 
@@ -394,21 +397,13 @@ class SdfstudioDriver(WithSpDriver):
                           deltas=torch.full_like(starts, 0.1))
 
     def train(self, model: nn.Module, steps: int, total: int, observe: Optional[Observe] = None) -> None:
-        from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+        from nerfstudio.engine.callbacks import TrainingCallbackAttributes
         from nerfstudio.field_components.field_heads import FieldHeadNames
 
         attributes = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None,
                                                 config=SimpleNamespace(max_num_iterations=total))
         callbacks = model.get_training_callbacks(attributes)
-        for step in range(steps):
-            for c in callbacks:
-                c.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-            model.train()
-            model.field(self._samples(step))[FieldHeadNames.RGB].sum().backward()
-            for c in callbacks:
-                c.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-            if observe:
-                observe(step)
+        self.run_steps(model, callbacks, steps, lambda step: model.field(self._samples(step))[FieldHeadNames.RGB].sum(), observe)
 
     def evaluate(self, model: nn.Module) -> torch.Tensor:
         from nerfstudio.field_components.field_heads import FieldHeadNames

@@ -3,6 +3,7 @@ what the trainer queried, and the paper's perturbed query from raw seeded draws.
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import nn
 
@@ -38,6 +39,24 @@ def folded_query(x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float
     raw = x + alpha * eps
     inside = (x >= lo) & (x <= hi)
     return torch.where(inside, fold_reference(raw, lo_t, hi_t), raw)
+
+
+def sp_draws(x: torch.Tensor, k: int, seed: int) -> torch.Tensor:
+    """The ``k`` Gaussian draws a preconditioner seeded ``seed`` adds to the points ``x`` ``[n, d]``: ``[k, n, d]``,
+    or ``[n, d]`` for k = 1 (float64)."""
+    return gaussian_draws(((k,) if k > 1 else ()) + tuple(x.shape), seed)
+
+
+def assert_read_folded(trainer, x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """A task trainer's step (its field a :class:`Recorder`) read ``x + alpha * eps`` folded into ``[lo, hi]``, some
+    queries folded indeed (else the fold went untested). Returns that query (float64, differentiable in ``x`` and
+    ``alpha``; ``[k, n, d]`` or ``[n, d]`` as ``eps``)."""
+    q = folded_query(x, alpha, eps, lo, hi)
+    plain_alpha = alpha.detach() if isinstance(alpha, torch.Tensor) else alpha
+    assert ((q - (x.double() + plain_alpha * eps)).abs() > 1e-3).any()  # some queries were folded
+    (read,) = trainer.field.inputs
+    torch.testing.assert_close(read.double(), q.detach(), rtol=0, atol=2e-5)
+    return q
 
 
 def fold_sign(x: torch.Tensor, alpha, eps: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
@@ -79,3 +98,13 @@ def check_runs_every_iteration_where_named(make, where: str) -> None:
         assert calls == list(range(step)), f"asked for {where} the iteration, it ran at the other place"
         callback.run_callback_at_location(step, here)
     assert calls == [0, 1, 2, 3, 4]
+
+
+def assert_keyword_only_options(trainer_class: type, config, data, gt_mesh) -> None:
+    """A meshed task's trainer takes ``device`` and ``evaluate``'s options by keyword only: a positional third
+    argument is refused, not read as the device or the grid resolution."""
+    with pytest.raises(TypeError):
+        trainer_class(config, data, "cpu")
+    trainer = config.setup(data, device="cpu")
+    with pytest.raises(TypeError):
+        trainer.evaluate(gt_mesh, 8)

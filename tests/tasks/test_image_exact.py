@@ -24,7 +24,7 @@ from sp_plugins import SPConfig
 from sp_plugins.tasks import image as image_task
 from sp_plugins.tasks.fields import EncodingConfig, NeuralField
 from sp_plugins.tasks.image import ImageFitConfig
-from tests.helpers.exact import Recorder, folded_query
+from tests.helpers.exact import Recorder, assert_read_folded, sp_draws
 
 H, W, SP_SEED = 6, 8, 9
 
@@ -52,13 +52,7 @@ def test_one_step_queries_p_plus_the_maps_alpha_eps_and_the_map_gets_the_eps_wei
     trainer.step()
 
     p = pixel_centres()
-    shape = ((k,) if k > 1 else ()) + p.shape
-    eps = torch.randn(shape, generator=torch.Generator().manual_seed(SP_SEED)).double()
-    alpha = grid(p)
-    q = folded_query(p, alpha, eps, 0.0, 1.0)
-    assert ((q - (p.double() + alpha.detach() * eps)).abs() > 1e-3).any()  # some queries were folded
-    (read,) = trainer.field.inputs
-    torch.testing.assert_close(read.double(), q.detach(), rtol=0, atol=2e-5)
+    q = assert_read_folded(trainer, p, grid(p), sp_draws(p, k, SP_SEED), 0.0, 1.0)
 
     rgb = torch.sigmoid(field(q.float()))
     rgb = rgb.mean(0) if k > 1 else rgb

@@ -17,7 +17,9 @@ import torch
 from sp_plugins import SPConfig
 from sp_plugins.tasks import pointcloud
 from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
-from tests.helpers.exact import Recorder, assert_alpha_grid_frozen_once_sp_ends, folded_query
+from tests.helpers.exact import (
+    Recorder, assert_alpha_grid_frozen_once_sp_ends, assert_keyword_only_options, assert_read_folded, folded_query, sp_draws,
+)
 
 SP_SEED = 5
 
@@ -52,12 +54,8 @@ def test_one_step_queries_x_plus_alpha_eps_in_the_frame_box_and_takes_the_gradie
     trainer.step()
 
     x, idx = batch_of(trainer, config)
-    shape = ((k,) if k > 1 else ()) + x.shape
-    eps = torch.randn(shape, generator=torch.Generator().manual_seed(SP_SEED)).double()
-    q = folded_query(x, 0.35, eps, -1.0, 1.0)
-    assert ((q - (x.double() + 0.35 * eps)).abs() > 1e-3).any()  # some queries were folded
-    (read,) = trainer.field.inputs
-    torch.testing.assert_close(read.double(), q, rtol=0, atol=2e-5)
+    eps = sp_draws(x, k, SP_SEED)
+    assert_read_folded(trainer, x, 0.35, eps, -1.0, 1.0)
     torch.testing.assert_close(seen["normals"], trainer.normals[idx])
 
     xg = x.clone().requires_grad_(True)
@@ -233,12 +231,7 @@ def test_a_diverged_fit_stops_in_one_line_naming_lr_and_grad_clip(blob_points, t
 def test_device_and_the_evaluation_options_are_keyword_only(blob_points, blob_mesh, tiny_grid):
     """``PointCloudSDFTrainer(config, data, *, device)`` and ``evaluate(gt_mesh, *, resolution, ...)``: a
     positional third argument is refused, not read as the device or the grid resolution."""
-    config = tiny(tiny_grid)
-    with pytest.raises(TypeError):
-        pointcloud.PointCloudSDFTrainer(config, blob_points, "cpu")
-    trainer = config.setup(blob_points, device="cpu")
-    with pytest.raises(TypeError):
-        trainer.evaluate(blob_mesh, 8)
+    assert_keyword_only_options(pointcloud.PointCloudSDFTrainer, tiny(tiny_grid), blob_points, blob_mesh)
 
 
 def test_the_metrics_count_the_meshs_parts_and_zero_for_an_empty_mesh(blob_points, blob_mesh, tiny_grid):

@@ -18,7 +18,9 @@ from sp_plugins import SPConfig
 from sp_plugins.geometry import sample_surface
 from sp_plugins.tasks import sdf
 from sp_plugins.tasks.sdf import SDFFitConfig, mape, signed_distance
-from tests.helpers.exact import Recorder, assert_alpha_grid_frozen_once_sp_ends, folded_query
+from tests.helpers.exact import (
+    Recorder, assert_alpha_grid_frozen_once_sp_ends, assert_keyword_only_options, assert_read_folded, sp_draws,
+)
 
 SP_SEED = 4
 
@@ -47,12 +49,7 @@ def test_one_step_queries_x_plus_alpha_eps_and_fits_the_mean_to_the_plain_distan
     trainer.step()
 
     x, d = plain_batch(trainer, config.seed, (20, 10, 10))
-    shape = ((k,) if k > 1 else ()) + x.shape
-    eps = torch.randn(shape, generator=torch.Generator().manual_seed(SP_SEED)).double()
-    q = folded_query(x, 0.3, eps, -1.0, 1.0)
-    assert ((q - (x.double() + 0.3 * eps)).abs() > 1e-3).any()  # some queries were folded
-    (read,) = trainer.field.inputs
-    torch.testing.assert_close(read.double(), q, rtol=0, atol=2e-5)
+    q = assert_read_folded(trainer, x, 0.3, sp_draws(x, k, SP_SEED), -1.0, 1.0)
     with torch.no_grad():
         pred = field(q.float()).squeeze(-1)
         pred = pred.mean(0) if k > 1 else pred
@@ -212,9 +209,4 @@ def test_evaluate_measures_against_the_input_mesh_and_the_near_samples_quietly(b
 
 def test_device_and_the_evaluation_options_are_keyword_only(blob_mesh, tiny_grid):
     """``SDFFitTrainer(config, mesh, *, device)`` and ``evaluate(gt_mesh, *, resolution, ...)``."""
-    config = tiny(tiny_grid)
-    with pytest.raises(TypeError):
-        sdf.SDFFitTrainer(config, blob_mesh, "cpu")
-    trainer = config.setup(blob_mesh, device="cpu")
-    with pytest.raises(TypeError):
-        trainer.evaluate(blob_mesh, 8)
+    assert_keyword_only_options(sdf.SDFFitTrainer, tiny(tiny_grid), blob_mesh, blob_mesh)
