@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Dict, NamedTuple
 
 from sp_plugins.nerfbaselines.blender_loader import LAYOUT, LAYOUT_KEY  # (json and os: the module imports no host)
+from sp_plugins.nerfbaselines import table as nb_table  # the method names and presets of these specs
 from sp_plugins.nerfstudio import table  # our method names (torch, no host)
 
 WRAPPER = "sp_plugins.nerfbaselines.method:SPNerfStudio"
@@ -42,10 +43,8 @@ OURS = tuple(m for m in table.OUR_METHODS if m not in table.SP_OFF_METHODS)
 """Our radiance-field methods (the nerfstudio table's), less those that are no SP method's baseline
 (freenerf-lite): a table row here is SP against its baseline."""
 OURS_SDF = table.OUR_SDF_METHODS
-NERFSTUDIO_BASELINES = ("mipnerf", "vanilla-nerf")
-"""nerfstudio methods nerfbaselines 1.2.12 has no spec for (its ``nerf`` and ``tensorf`` are other code)."""
-SP_ON = ("nerfacto", "mipnerf", "vanilla-nerf")
-"""``<id>+sp``: nerfbaselines' nerfstudio-backed ``nerfacto`` and the two above."""
+NERFSTUDIO_BASELINES = nb_table.NERFSTUDIO_BASELINES
+SP_ON = nb_table.SP_ON
 
 ENTRIES: Dict[str, Entry] = {
     **{name: Entry(name) for name in OURS + NERFSTUDIO_BASELINES},
@@ -82,13 +81,13 @@ _BLENDER_LAYOUT_PRESET = {  # what `ns-train <method> blender-data --data DIR` t
 def method_spec(method_id: str) -> dict:
     entry = ENTRIES[method_id]
     kind = ("SP off (baseline of +sp), " if entry.sp_off else "SP on ") if entry.add_sp else ""
-    presets: Dict[str, dict] = {SP_SCENE: _NERFACTO_SP_SCENE if "nerfacto" in entry.nerfstudio_name else _SP_SCENE_PRESET,
+    nerfacto = entry.nerfstudio_name in nb_table.NERFACTO_FAMILY
+    presets: Dict[str, dict] = {SP_SCENE: _NERFACTO_SP_SCENE if nerfacto else _SP_SCENE_PRESET,
                                  BLENDER_LAYOUT: _BLENDER_LAYOUT_PRESET}
-    if entry.nerfstudio_name == "nerfacto" and entry.add_sp:
-        presets.update({
-            "blender": {"@apply": [{"dataset": "blender"}], **_NERFACTO_BLENDER},
-            "big": {"method": "nerfacto-big"}, "huge": {"method": "nerfacto-huge"},
-        })
+    sizes = nb_table.SIZE_PRESETS.get(entry.nerfstudio_name) if entry.add_sp else None
+    if sizes:  # nerfbaselines' own presets of the method, under its +sp id
+        presets["blender"] = {"@apply": [{"dataset": "blender"}], **_NERFACTO_BLENDER}
+        presets.update({name: {"method": method} for name, method in sizes.items()})
     return {
         "id": method_id,
         "method_class": WRAPPER,
