@@ -34,6 +34,7 @@ nerfstudio's fields share no contraction, sdfstudio's SDF methods all share this
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Optional, Type
 
@@ -45,6 +46,8 @@ from torch import Tensor, nn
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
 from sp_plugins.adapter import hosts
+from sp_plugins.adapter.tables import lookup
+from sp_plugins.sdfstudio import table
 from sp_plugins.core import StochasticPreconditioner
 
 CONTRACTED_BOUNDS = (-2.0, 2.0)
@@ -87,6 +90,14 @@ class PerturbedContraction(nn.Module):
         if handle.first_move is None:  # once per run, device-side: check_reached reads it
             handle.first_move = (moved - plain).detach().abs().max()
         return moved
+
+
+@functools.lru_cache(maxsize=None)
+def read_point(cls: type) -> str:
+    """The ``Frustums`` accessor a field of class ``cls`` queries at: ``table.READ_POINTS``' entry for it or its
+    nearest base (looked up once per class), else ``get_positions``."""
+    found = lookup(table.READ_POINTS, cls)
+    return found[1] if found else "get_positions"
 
 
 def check_reached(model: nn.Module, model_name: str, step: int) -> None:
@@ -137,7 +148,7 @@ class SeamSDFField(SPFieldMixin, SDFField):
 
     # -- sampler queries ---------------------------------------------------------------------------
     def _sampler_positions(self, ray_samples: RaySamples) -> Tensor:
-        x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
+        x = getattr(ray_samples.frustums, read_point(type(self)))().reshape(-1, 3)
         return self.perturb(x) if self.config.perturb_sampler_queries else x
 
     def get_sdf(self, ray_samples: RaySamples) -> Tensor:

@@ -12,6 +12,8 @@ winning (:mod:`sp_plugins.adapter.tables`).
 - :data:`FINAL_FD_STEP`: where sdfstudio's numerical-gradient step schedule ends, for the models
   whose coarse-to-fine SP replaces.
 - :data:`OUR_METHODS`: the methods of our entry-point group (``sp_plugins.sdfstudio_methods``).
+- :data:`READ_POINTS`: where a field's samplers query their ray samples (the seam perturbs what the SDF
+  field's contraction returns; its sampler queries, ``get_sdf`` / ``get_density``, read these positions).
 
 :func:`preset_for` and :func:`refusal` read these tables; everything else asks them.
 
@@ -51,6 +53,13 @@ FINAL_FD_STEP: Dict[str, float] = {
 """Where sdfstudio's numerical-gradient step schedule ends, times ``1 / sdf_field.max_res``, per
 model class (commit 370902a). A model with the schedule that is not listed (nor a subclass of
 one) keeps its schedule under SP; only progressive hash encoding is replaced."""
+
+READ_POINTS: Dict[str, str] = {
+    "nerfstudio.fields.sdf_field.SDFField": "get_start_positions",
+}
+"""Host field classes (and subclasses) and the ``Frustums`` accessor their queries read: sdfstudio's SDF field
+queries the bins' starts, in ``get_outputs`` and in its samplers' ``get_sdf`` / ``get_density`` alike (the same
+entry as the nerfstudio host's ``READ_POINTS``; sdfstudio's package is also named ``nerfstudio``)."""
 
 OUR_METHODS: Tuple[str, ...] = ("sp-neus", "sp-neus-facto", "sp-neuralangelo", "sp-bakedangelo")
 """The methods of our entry-point group: fixed names and presets, next to the generic ``sp-<method>``."""

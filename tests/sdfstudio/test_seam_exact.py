@@ -232,3 +232,15 @@ def test_more_than_one_draw_is_refused_naming_the_flag():
 
     with pytest.raises(InputError, match=r"--pipeline\.model\.sp\.num-samples 3 .*sdfstudio"):
         neus_model(num_samples=3)
+
+
+def test_the_read_point_comes_from_the_hosts_table():
+    """The seam's field reads its samplers' positions where ``table.READ_POINTS`` says sdfstudio's ``SDFField`` queries
+    (the bins' starts), found through its nearest base; a class the table does not name reads ``get_positions``."""
+    from nerfstudio.fields.sdf_field import SDFField
+
+    from sp_plugins.sdfstudio import seam, table
+
+    assert table.READ_POINTS == {"nerfstudio.fields.sdf_field.SDFField": "get_start_positions"}
+    assert seam.read_point(seam.SeamSDFField) == seam.read_point(SDFField) == "get_start_positions"
+    assert seam.read_point(torch.nn.Module) == "get_positions"
