@@ -12,8 +12,8 @@ finished runs are kept), then ``sp-compare BASELINE SP`` writes its page, JSON a
 headless Chromium opens the page offline and screenshots it there (``page.png``); ``views.png``, made smaller, is
 the compare guide's figure (``docs/sp_compare_sparse.jpg``). With ``--seeds`` naming several seeds, each seed's
 pair is trained (``--machine.seed N``) and ``sp-compare --baseline A0 A1 A2 --sp B0 B1 B2`` writes the report over
-seeds to ``bench/results/sparse_compare/seeds/`` (each pair's report in ``seed-N/``) and ``page.png`` there; the
-single-pair report above is the first seed's.
+seeds to ``bench/results/sparse_compare/seeds/`` (each pair's report in ``seed-N/``) and ``page.png`` there (the
+compare guide's ``docs/sp_compare_sparse_seeds.png``); the single-pair report above is the first seed's.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from bench.harness import radiance as rd  # noqa: E402
 OUT = ROOT / "bench" / "out" / "sparse_compare"
 RESULTS = ROOT / "bench" / "results" / "sparse_compare"
 DOCS_FIGURE = ROOT / "docs" / "sp_compare_sparse.jpg"
+DOCS_SEEDS_FIGURE = ROOT / "docs" / "sp_compare_sparse_seeds.png"
 BUDGET = rd.MipBudget(steps=2000, lr=2e-3, views=9, dtu_like=True, alpha0=1.0, end=667)
 SEED = 0
 LOG_EVERY = 25
@@ -94,6 +95,7 @@ def over_seeds(pairs: list, data: Path) -> None:
     for path in target.rglob("*"):
         if path.suffix in (".html", ".json", ".md"):
             path.write_text(path.read_text().replace(f"{ROOT}/", ""))
+    shutil.copy(out / "page.png", DOCS_SEEDS_FIGURE)
     print((target / "compare.json").read_text()[:3000])
 
 
