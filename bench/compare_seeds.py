@@ -58,6 +58,8 @@ def main() -> None:
     if RESULTS.exists():
         shutil.rmtree(RESULTS)
     shutil.copytree(out, RESULTS, ignore=shutil.ignore_patterns("*.ply"))
+    for page in RESULTS.glob("seed-*/compare.html"):  # each pair's page inlines its images (1-2 MB): JSON and PNGs kept
+        page.unlink()
     relative_paths(RESULTS)
     shutil.copy(out / "page.png", DOCS_FIGURE)
     print((RESULTS / "compare.json").read_text()[:3000])

@@ -92,6 +92,8 @@ def over_seeds(pairs: list, data: Path) -> None:
     if target.exists():
         shutil.rmtree(target)
     shutil.copytree(out, target, ignore=shutil.ignore_patterns("*.ply"))
+    for page in target.glob("seed-*/compare.html"):  # each pair's page inlines its images (1-2 MB): JSON and PNGs kept
+        page.unlink()
     for path in target.rglob("*"):
         if path.suffix in (".html", ".json", ".md"):
             path.write_text(path.read_text().replace(f"{ROOT}/", ""))
