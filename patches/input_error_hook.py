@@ -24,14 +24,13 @@ import sys
 from pathlib import Path
 from typing import Iterator
 
+from sp_plugins.adapter.errors import describe_failure
 from sp_plugins.patches.registry import Patch, python_patch
 
 __all__ = ["PATCH", "input_errors_as_one_line"]
 
 
 def _one_line_hook(previous):
-    from sp_plugins.adapter.errors import describe_failure
-
     def hook(kind, value, traceback):
         if hook.sp_plugins_input_errors and isinstance(value, Exception):
             message = describe_failure(value, traceback)

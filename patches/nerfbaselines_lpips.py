@@ -15,7 +15,7 @@ import contextlib
 import inspect
 from typing import Iterator
 
-from sp_plugins.patches.registry import Patch, swapped
+from sp_plugins.patches.registry import Patch, host_version, swapped
 
 __all__ = ["PATCH", "offline_lpips"]
 
@@ -28,7 +28,7 @@ def offline_lpips() -> Iterator[None]:
     import numpy as np
     import nerfbaselines.metrics as metrics
 
-    from sp_plugins.adapter.lpips import lpips_available, say_skipped
+    from sp_plugins.adapter.lpips import lpips_available, say_skipped  # defers torch (entries() imports every patch)
 
     real = getattr(metrics, NAME)
 
@@ -44,8 +44,6 @@ def offline_lpips() -> Iterator[None]:
 
 
 def _found() -> str:
-    from sp_plugins.patches.registry import host_version
-
     return host_version("nerfbaselines")
 
 

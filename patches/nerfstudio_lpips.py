@@ -28,7 +28,7 @@ def offline_lpips() -> Iterator[None]:
     """Within this block, building torchmetrics' LPIPS never touches the network."""
     import torchmetrics.image.lpip as lpip_module
 
-    from sp_plugins.adapter.lpips import offline_factory
+    from sp_plugins.adapter.lpips import offline_factory  # defers torch (entries() imports every patch)
 
     with swapped(lpip_module, NAME, offline_factory(getattr(lpip_module, NAME))):
         yield

@@ -35,6 +35,7 @@ from typing import Any, Callable, Iterator, Optional, Tuple
 import numpy as np
 import torch
 
+from sp_plugins.patches import registry
 from sp_plugins.patches.registry import nerfstudio_patch
 
 logger = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ def cpu_marching_cubes(
     ``resolution``^3 grid evaluated on the CPU, coarse to fine and only near the surface
     (:func:`sp_plugins.geometry.sparse_extract_mesh`), meshed with scikit-image brick by brick
     (faces oriented outward for an SDF that is negative inside), with a progress bar per level."""
-    from sp_plugins.geometry import sparse_extract_mesh
+    from sp_plugins.geometry import sparse_extract_mesh  # defers trimesh and scikit-image to a mesh export
 
     if coarse_mask is not None:
         raise ValueError("coarse_mask is not supported by sp_plugins' CPU marching cubes; pass None")
@@ -154,8 +155,6 @@ def hold_for(model: Any, force: bool = False) -> bool:
     """Our SDF model ``model`` holds the CPU mesher while it exists (no CUDA, or ``force``)."""
     if torch.cuda.is_available() and not force:
         return False
-    from sp_plugins.patches import registry
-
     registry.hold(PATCH.name, model, force=force)
     return True
 

@@ -39,7 +39,7 @@ def seeded_workers() -> Iterator[None]:
     import torch
     from nerfstudio.data.datamanagers import parallel_datamanager
 
-    from sp_plugins.nerfstudio.components.parallel_data import SeededDataProcessor
+    from sp_plugins.nerfstudio.components.parallel_data import SeededDataProcessor  # defers nerfstudio
 
     index = itertools.count()
 

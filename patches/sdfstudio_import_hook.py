@@ -32,6 +32,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
+from sp_plugins.patches import registry
 from sp_plugins.patches.registry import Patch
 from sp_plugins.sdfstudio.detect import SDFSTUDIO_COMMIT, nerfstudio_dir, require_sdfstudio
 
@@ -258,8 +259,6 @@ def install_all(register_methods: bool = False, command: str = "sdfstudio") -> N
     sdfstudio cannot be imported here without them; they change sdfstudio's modules only), plus
     (``register_methods``) our methods in ns-train's method list. Call before sdfstudio is
     imported; safe to call again."""
-    from sp_plugins.patches import registry
-
     for name in registry.SDFSTUDIO:
         registry.install_for_process(name, command=command)
     if register_methods:

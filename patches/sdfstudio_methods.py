@@ -31,7 +31,7 @@ def our_methods_in_ns_train() -> Iterator[None]:
     def add(module, rebind) -> None:
         import nerfstudio.configs.method_configs as host
 
-        from sp_plugins.sdfstudio.registration import add_methods
+        from sp_plugins.sdfstudio.registration import add_methods  # defers torch (entries() imports every patch)
 
         for table in (expect_attribute(PATCH, host, "method_configs"), expect_attribute(PATCH, host, "descriptions")):
             snapshots.append((table, dict(table)))

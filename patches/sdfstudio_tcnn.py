@@ -34,6 +34,7 @@ from torch import Tensor, nn
 import contextlib
 from typing import Iterator
 
+from sp_plugins.encodings import HashGrid
 from sp_plugins.patches.registry import Patch
 from sp_plugins.patches.sdfstudio_import_hook import HOST_COMMIT, expect_source, patching, sdfstudio_patch
 
@@ -95,8 +96,6 @@ def Encoding(n_input_dims: int, encoding_config: Mapping[str, Any], dtype: Any =
     config = dict(encoding_config)
     otype = config.get("otype")
     if otype in ("HashGrid", "DenseGrid", "Grid"):
-        from sp_plugins.encodings import HashGrid
-
         return HashGrid.from_tcnn_config(n_input_dims, config, backend="torch")
     if otype == "SphericalHarmonics":
         return _SphericalHarmonics(n_input_dims, int(config.get("degree", 4)))

@@ -9,19 +9,16 @@ that does not need torch (the sweep's trial runner in each Ray worker, the spec,
 not import torch: 2-5 s and some hundred MB per process.
 """
 
-from importlib import import_module
+from sp_plugins._lazy import lazy_attribute
 
 __version__ = "0.2.0"
 __all__ = ["AlphaGrid", "AlphaSchedule", "SPConfig", "SPNotReached", "SPRun", "StochasticPreconditioner", "perturb",
            "__version__"]
+_WHERE = {name: "core" for name in __all__ if name != "__version__"}
 
 
 def __getattr__(name: str):
-    if name in __all__:
-        value = getattr(import_module("sp_plugins.core"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'sp_plugins' has no attribute {name!r}")
+    return lazy_attribute(__name__, _WHERE, name)
 
 
 def __dir__():

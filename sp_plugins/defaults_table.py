@@ -16,14 +16,15 @@ import sys
 from pathlib import Path
 from typing import List, Tuple
 
+from sp_plugins.core import AlphaSchedule
+from sp_plugins.tasks import image, pointcloud, sdf
+
 DOC = Path(__file__).resolve().parent.parent / "docs" / "sp_defaults.md"
 BEGIN, END = "<!-- sp-defaults:begin -->", "<!-- sp-defaults:end -->"
 
 
 def _end(end: float, steps: int) -> str:
     """Where alpha reaches 0, as :meth:`AlphaSchedule.resolve` puts it (never after the last step)."""
-    from sp_plugins.core import AlphaSchedule
-
     step = AlphaSchedule.resolve("exponential", 1.0, end=end, total_steps=steps).end_step
     if end <= 1:
         return f"{end:.3g} ({step:,} of {steps:,} steps)"
@@ -42,8 +43,8 @@ def rows() -> List[Tuple[str, str]]:
     """``(name, markdown row)`` for every registered nerfstudio method, then every task."""
     out = []
     try:
-        from sp_plugins.nerfstudio.runs import our_methods
-        from sp_plugins.nerfstudio.table import SP_OFF_METHODS
+        from sp_plugins.nerfstudio.runs import our_methods  # defers nerfstudio's side (guarded below)
+        from sp_plugins.nerfstudio.table import SP_OFF_METHODS  # defers nerfstudio's side (guarded below)
     except ImportError:  # base install without nerfstudio
         specs, SP_OFF_METHODS = {}, {}
     else:
@@ -51,11 +52,8 @@ def rows() -> List[Tuple[str, str]]:
     for name in sorted(specs):
         config = specs[name].config
         out.append((name, _row(name, config.pipeline.model.sp, config.max_num_iterations, name not in SP_OFF_METHODS)))
-    from sp_plugins.tasks.image import ImageFitConfig
-    from sp_plugins.tasks.pointcloud import PointCloudSDFConfig
-    from sp_plugins.tasks.sdf import SDFFitConfig
-
-    for task, cls in (("image", ImageFitConfig), ("pointcloud", PointCloudSDFConfig), ("sdf", SDFFitConfig)):
+    tasks = (("image", image.ImageFitConfig), ("pointcloud", pointcloud.PointCloudSDFConfig), ("sdf", sdf.SDFFitConfig))
+    for task, cls in tasks:
         config = cls()
         out.append((f"sp-fit {task}", _row(f"sp-fit {task}", config.sp, config.steps)))
     return out

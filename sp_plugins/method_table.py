@@ -18,9 +18,15 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+from sp_plugins.adapter import hosts
 from sp_plugins.adapter.tables import lookup, merged
 from sp_plugins.adapter.variants import target_class
+from sp_plugins.nerfstudio import table as nerfstudio_table
+from sp_plugins.nerfstudio.registration import sp_methods
+from sp_plugins.patches.sdfstudio_import_hook import install_all
+from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
 from sp_plugins.sdfstudio.detect import is_sdfstudio, nerfstudio_dir
+from sp_plugins.sdfstudio.registration import REFUSED, add_methods
 from sp_plugins.sdfstudio.table import FINAL_FD_STEP
 
 PROG = "python -m sp_plugins.method_table"
@@ -28,8 +34,6 @@ ROOT = Path(__file__).resolve().parent.parent
 def page(host: str, root: Path = ROOT) -> Path:
     """The docs page holding ``host``'s table under ``root`` (a checkout's root): the host's
     registry entry names it (:attr:`sp_plugins.adapter.hosts.Host.docs_page`)."""
-    from sp_plugins.adapter import hosts
-
     docs_page = hosts.get(host).docs_page
     if docs_page is None:
         raise ValueError(f"host {host!r} names no docs page for its method table (Host.docs_page)")
@@ -60,21 +64,18 @@ def nerfstudio_outcomes() -> Dict[str, Tuple[int, str]]:
     """Method -> (row order, what ``sp-train`` does with it), for every registered nerfstudio method."""
     from nerfstudio.configs.method_configs import all_descriptions, all_methods
 
-    from sp_plugins.nerfstudio import table
-    from sp_plugins.nerfstudio.registration import sp_methods
-
     configs, _, refused = sp_methods(all_methods, all_descriptions)
     out: Dict[str, Tuple[int, str]] = {}
     for method, config in all_methods.items():
         model_config = getattr(getattr(config, "pipeline", None), "model", None)
         host = target_class(model_config) if model_config is not None else None
-        cuda = lookup(table.NEEDS_CUDA, host)
+        cuda = lookup(nerfstudio_table.NEEDS_CUDA, host)
         if cuda:  # the same row on every machine
             out[method] = (2, f"refused without CUDA: {cuda[1]}")
         elif method in refused:
             out[method] = (3, f"refused: {refused[method]}")
-        elif method in table.SP_OFF_METHODS:
-            out[method] = (1, f"offered (ours, SP off by default): {table.SP_OFF_METHODS[method]}")
+        elif method in nerfstudio_table.SP_OFF_METHODS:
+            out[method] = (1, f"offered (ours, SP off by default): {nerfstudio_table.SP_OFF_METHODS[method]}")
         elif getattr(model_config, "sp", None) is not None:
             out[method] = (1, "offered (ours, SP on already: its settings: Choosing SP's settings)")
         else:
@@ -83,15 +84,13 @@ def nerfstudio_outcomes() -> Dict[str, Tuple[int, str]]:
 
 
 def _nerfstudio_offered(sp, host: type) -> str:
-    from sp_plugins.nerfstudio import table
-
-    preset = lookup(table.PRESETS, host)
+    preset = lookup(nerfstudio_table.PRESETS, host)
     notes = [f"{_alpha(sp)} ({'the preset of ' + preset[0].rsplit('.', 1)[-1] if preset else 'the default preset'})"]
-    notes += [f"`{name}` stays plain ({why})" for name, why in merged(table.PLAIN_FIELDS, host).items()]
-    grid = lookup(table.ALPHA_GRID_UNREACHABLE, host)
+    notes += [f"`{name}` stays plain ({why})" for name, why in merged(nerfstudio_table.PLAIN_FIELDS, host).items()]
+    grid = lookup(nerfstudio_table.ALPHA_GRID_UNREACHABLE, host)
     if grid:
         notes.append(f"`--pipeline.model.sp.alpha-grid True` refused ({grid[1][1]})")
-    contracted = lookup(table.CONTRACTED_MODELS, host)
+    contracted = lookup(nerfstudio_table.CONTRACTED_MODELS, host)
     if contracted:
         flag = contracted[1]
         unless = f", unless `--pipeline.model.{flag.replace('_', '-')} True`" if flag else ""
@@ -102,15 +101,10 @@ def _nerfstudio_offered(sp, host: type) -> str:
 def sdfstudio_outcomes() -> Dict[str, Tuple[int, str]]:
     """Host method -> (row order, what ``sp-sdfstudio-train sp-<method>`` does), for every method
     sdfstudio registers (our methods are its ``sp-`` entries)."""
-    from sp_plugins.patches.sdfstudio_import_hook import install_all
-
     install_all()
     import scripts.train  # noqa: F401  (sdfstudio's own import order: base_config before method_configs)
 
     import nerfstudio.configs.method_configs as host
-
-    from sp_plugins.sdfstudio.conversion import replaces_coarse_to_fine
-    from sp_plugins.sdfstudio.registration import REFUSED, add_methods
 
     add_methods()
     out: Dict[str, Tuple[int, str]] = {}

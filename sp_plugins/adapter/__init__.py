@@ -44,7 +44,19 @@ Glossary (the words mean this in code, errors and the README):
   a function of positions averaged so, the blurred field.
 """
 
-from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
-from sp_plugins.adapter.variants import VariantFactory
+from sp_plugins._lazy import lazy_attribute
+
+_WHERE = {"PreconditionerHandle": "field", "SPFieldMixin": "field", "VariantFactory": "variants"}
+"""Where each public name lives: loaded on first use (PEP 562), so that the modules that need no torch
+(errors, hosts, checks, safe_config: a run folder's commands, the patches) import without it."""
+
+
+def __getattr__(name: str):
+    return lazy_attribute(__name__, _WHERE, name)
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = ["PreconditionerHandle", "SPFieldMixin", "VariantFactory"]

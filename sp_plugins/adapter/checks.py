@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 from sp_plugins.adapter.hosts import Flags
-from sp_plugins.adapter.errors import InputError
+from sp_plugins.adapter.errors import InputError, write_failure
 
 
 def check_checkpoint_file(path: Path, flag: str = "") -> None:
@@ -154,8 +154,6 @@ def check_writable_dir(path: Path, flag: str) -> None:
     import errno
     import os
     import tempfile
-
-    from sp_plugins.adapter.errors import write_failure
 
     path = Path(path)
     if path.exists() and not path.is_dir():

@@ -20,6 +20,8 @@ import re
 from types import TracebackType
 from typing import Optional
 
+from sp_plugins.patches import registry
+
 
 class InputError(ValueError):
     """Input a user can fix (a missing folder, a wrong layout, a flag that does not fit).
@@ -31,8 +33,6 @@ class InputError(ValueError):
 
     def __init__(self, *args: object) -> None:
         super().__init__(*args)
-        from sp_plugins.patches import registry
-
         registry.hold("input_error_hook", self)
 
 

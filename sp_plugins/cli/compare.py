@@ -35,7 +35,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
-from sp_plugins.cli.run_folder import Refused, answer, model_sdf
+from sp_plugins.adapter.checks import check_writable_dir
+from sp_plugins.adapter.errors import InputError
+from sp_plugins.cli.run_folder import Refused, answer, load_saved_config, model_sdf, setup_pipeline
+from sp_plugins.patches import registry
+from sp_plugins.stats import paired_difference, spread
 
 PROG = "sp-compare"
 CURVES = {"loss": "Train Loss", "psnr": "Train Metrics Dict/psnr", "alpha": "Train Metrics Dict/sp_alpha"}
@@ -174,7 +178,7 @@ def mesh_of(run: Run, resolution: int, gt) -> None:
     found = model_sdf(run.pipeline.model)
     if found is None:
         return
-    from sp_plugins.geometry import mesh_metrics, sparse_extract_mesh
+    from sp_plugins.geometry import mesh_metrics, sparse_extract_mesh  # defers torch, trimesh, scikit-image
 
     sdf, aabb, device = found
     with torch.no_grad():
@@ -344,9 +348,6 @@ def check_options(args) -> None:
 
 
 def compare(args) -> int:
-    from sp_plugins.adapter.checks import check_writable_dir
-    from sp_plugins.adapter.errors import InputError
-
     check_options(args)
     if args.baseline is None:
         paths = [config_of(args.run_a), config_of(args.run_b)]
@@ -372,8 +373,6 @@ def compare(args) -> int:
 
 
 def load_configs(paths: Sequence[Path], flags: Sequence[str]) -> list:
-    from sp_plugins.cli.run_folder import load_saved_config
-
     configs = [load_saved_config(p, flag) for p, flag in zip(paths, flags)]
     data = [data_of(c) for c in configs]
     if len(set(data)) > 1:
@@ -408,8 +407,6 @@ def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str]
                  extra: Optional[dict] = None) -> dict:
     """One pair's report in ``out`` (views, curves, meshes, table, page, JSON, ``extra`` added to the JSON); returns
     the JSON's content."""
-    from sp_plugins.cli.run_folder import setup_pipeline
-
     data = [data_of(c) for c in configs]
     runs = [Run(label, path, config) for label, path, config in zip(labels, paths, configs)]
     for run, flag in zip(runs, ("RUN_A", "RUN_B")):
@@ -451,7 +448,7 @@ def compare_pair(paths: Sequence[Path], configs: Sequence, labels: Sequence[str]
     for run in runs:
         mesh_of(run, args.mesh_resolution, gt)
     if runs[0].mesh and runs[1].mesh:
-        from sp_plugins.geometry import save_mesh
+        from sp_plugins.geometry import save_mesh  # defers trimesh to a pair with meshes
 
         for run, name in zip(runs, ("a", "b")):
             save_mesh(run.mesh.pop("mesh"), out / f"mesh_{name}.ply")
@@ -490,8 +487,6 @@ def seed_summary(pairs: Sequence[tuple]) -> List[dict]:
     """Per metric both runs of every pair have: each side's values by seed, mean and sd, and the paired
     difference SP - baseline with its interval and verdict. ``pairs``: ``(seed, payload)`` as
     :func:`compare_pair` returns them (run 0 the baseline, run 1 SP)."""
-    from sp_plugins.stats import paired_difference, spread
-
     out = []
     for key, label, where, higher in SUMMARY_METRICS:
         values = [[(run.get(where) or {}).get(key) for run in payload["runs"]] for _, payload in pairs]
@@ -599,8 +594,6 @@ says better or worse only when the interval excludes 0.</p>
 
 
 def entrypoint() -> None:
-    from sp_plugins.patches import registry
-
     registry.install_for_process("host_warnings", command=PROG)
     sys.exit(main())
 

@@ -19,6 +19,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
+from sp_plugins.cli.threads import pick_threads
+
 BUDGETS = {
     # steps, surface (and free-space) points per step, marching-cubes resolution
     "quick": (300, 1500, 128),
@@ -50,8 +52,8 @@ def parse_args(argv: Optional[Sequence[str]]) -> argparse.Namespace:
 
 
 def _paired_configs(args: argparse.Namespace):
-    from sp_plugins import SPConfig
-    from sp_plugins.tasks import EncodingConfig, PointCloudSDFConfig
+    from sp_plugins import SPConfig  # defers torch: --help and bad arguments answer at once
+    from sp_plugins.tasks import EncodingConfig, PointCloudSDFConfig  # defers torch
 
     steps, batch, resolution = BUDGETS[args.budget]
     steps = steps if args.steps is None else args.steps
@@ -83,7 +85,7 @@ def _convergence_plot(curves: Dict[str, Dict[str, List[float]]], sp_end: int, pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sp_plugins.tasks.common import smooth
+    from sp_plugins.tasks.common import smooth  # defers torch
 
     def finite(xs, ys):
         kept = [(x, y) for x, y in zip(xs, ys) if math.isfinite(y) and y > 0]
@@ -119,8 +121,8 @@ def _render_grid(meshes: Dict[str, "object"], path: Path, size: int = 200) -> Pa
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from sp_plugins.data.cameras import default_fov, intrinsics, look_at_origin
-    from sp_plugins.data.render import LIGHT_DIRECTION, render_views
+    from sp_plugins.data.cameras import default_fov, intrinsics, look_at_origin  # defers trimesh
+    from sp_plugins.data.render import LIGHT_DIRECTION, render_views  # defers trimesh
 
     light_azimuth = np.arctan2(LIGHT_DIRECTION[1], LIGHT_DIRECTION[0])
     azimuths = light_azimuth + np.radians([-70.0, 0.0, 70.0])
@@ -203,10 +205,9 @@ def run(args: argparse.Namespace) -> dict:
     import torch
     from tqdm.auto import tqdm
 
-    from sp_plugins.cli.threads import pick_threads
-    from sp_plugins.data import load_mesh, make_scene
-    from sp_plugins.geometry import load_oriented_points, save_mesh
-    from sp_plugins.tasks.common import prepare_output_dir, resolve_device
+    from sp_plugins.data import load_mesh, make_scene  # defers trimesh: --help and bad arguments answer at once
+    from sp_plugins.geometry import load_oriented_points, save_mesh  # defers trimesh
+    from sp_plugins.tasks.common import prepare_output_dir, resolve_device  # defers torch
 
     # every argument is checked before --out is created, so a typo leaves nothing behind
     if args.threads is not None and args.threads < 1:

@@ -22,8 +22,11 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
+from sp_plugins.adapter.checks import check_writable_dir
+from sp_plugins.adapter.errors import InputError, write_failure
 from sp_plugins.cli.run_folder import Refused as _Refused  # one line for the user; exit status 2
-from sp_plugins.cli.run_folder import answer
+from sp_plugins.cli.run_folder import answer, load_saved_config, model_sdf, setup_pipeline
+from sp_plugins.patches import registry
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,23 +56,16 @@ def _export(args) -> int:
         raise _Refused(f"--resolution {args.resolution}: need at least 2 cells per axis (128 and up for a useful mesh)")
     if (args.box_min is None) != (args.box_max is None):
         raise _Refused("give both --box-min and --box-max, or neither (the model's scene box)")
-    from sp_plugins.cli.run_folder import load_saved_config, model_sdf, setup_pipeline
-
     config = load_saved_config(args.load_config)
-
-    from sp_plugins.adapter.checks import check_writable_dir
-    from sp_plugins.adapter.errors import InputError, write_failure
 
     try:
         check_writable_dir(args.output_dir, "--output-dir")  # before minutes of meshing
     except InputError as err:
         raise _Refused(str(err)) from None
-    from sp_plugins.patches import registry
-
     # our command: our models' input errors print as one line here too
     registry.install_for_process("input_error_hook", command="sp-export-mesh")
 
-    from sp_plugins.geometry import save_mesh, sparse_extract_mesh
+    from sp_plugins.geometry import save_mesh, sparse_extract_mesh  # defers torch, trimesh, scikit-image
 
     pipeline, _ = setup_pipeline(args.load_config, config)
     model = pipeline.model

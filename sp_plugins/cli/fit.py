@@ -26,9 +26,14 @@ from typing import Any, Optional
 
 import tyro
 
+from sp_plugins.adapter.errors import first_line, write_failure
 from sp_plugins.core import SPConfig
 from sp_plugins.core.schedule import AlphaSchedule
-from sp_plugins.tasks.image import ImageFitConfig, _image_sp
+from sp_plugins.geometry import load_mesh, load_oriented_points, save_mesh
+from sp_plugins.geometry.io import mesh_topology
+from sp_plugins.tasks import checkpoint as checkpoint_io
+from sp_plugins.tasks.common import StagedOutputs, plot_curves, prepare_output_dir, resolve_device, smooth, stage
+from sp_plugins.tasks.image import ImageFitConfig, _image_sp, load_image, psnr, save_image
 from sp_plugins.tasks.pointcloud import PointCloudSDFConfig, _pointcloud_sp
 from sp_plugins.tasks.sdf import SDFFitConfig, _sdf_sp
 
@@ -168,8 +173,6 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def _loss_plot(trainer, path: Path, terms: tuple[str, ...]) -> None:
-    from sp_plugins.tasks.common import plot_curves, smooth
-
     n = len(trainer.history["loss"])
     window = max(1, n // 100)
     curves = {k: smooth(trainer.history[k], window) for k in terms if k in trainer.history}
@@ -194,10 +197,8 @@ class _Checkpoints:
     refusal is one line, exit status 2, nothing written), the resume, and the writes."""
 
     def __init__(self, cmd, task: str, config, device, run_settings: dict, files: dict) -> None:
-        from sp_plugins.tasks import checkpoint as io
-
-        self.cmd, self.task, self.io = cmd, task, io
-        self.path = io.checkpoint_path(cmd.out)
+        self.cmd, self.task, self.io = cmd, task, checkpoint_io
+        self.path = checkpoint_io.checkpoint_path(cmd.out)
         if cmd.checkpoint_every is not None and cmd.checkpoint_every < 0:
             raise ValueError(f"--checkpoint-every {cmd.checkpoint_every}: give a number of steps >= 1 (or 0 for none)")
         # what the trajectory (and the results) depend on; --out, --quiet and the interval do not count
@@ -207,7 +208,7 @@ class _Checkpoints:
         self.every = cmd.checkpoint_every or 0
         self.seconds_before = 0.0
         if cmd.resume:
-            self.saved = io.load(self.path, task)
+            self.saved = checkpoint_io.load(self.path, task)
             self._refuse_differences(self.saved["settings"], only=("config", "run"))
             if cmd.checkpoint_every is None:
                 self.every = int(self.saved.get("checkpoint_every") or 0)
@@ -249,8 +250,6 @@ class _Checkpoints:
         checkpoint, make ``--out`` (after the inputs: a bad file leaves no empty --out), build the
         trainer with ``setup()``, restore the checkpoint into it and fit. Returns the trainer,
         the output folder and the training seconds."""
-        from sp_plugins.tasks.common import prepare_output_dir
-
         self.check_files()
         out = prepare_output_dir(self.cmd.out, outputs, self.cmd.overwrite or self.cmd.resume)
         self.prepare(out)
@@ -279,8 +278,6 @@ class _Checkpoints:
                         "seconds": self.seconds_before + time.perf_counter() - start, "trainer": trainer.state_dict(),
                     })
                 except (OSError, RuntimeError) as exc:  # torch's writer reports a failed write as a RuntimeError
-                    from sp_plugins.adapter.errors import first_line, write_failure
-
                     if isinstance(exc, OSError):
                         raise ValueError(write_failure(exc, f"--out {self.cmd.out}") + f" (step {trainer.step_index} "
                                          "checkpoint; the previous one is intact)") from None
@@ -293,8 +290,6 @@ class _Checkpoints:
 
 def _warn_about_topology(path: Path, mesh, task: str) -> None:
     """The input mesh is used as it is; say what its shape means for this task (stderr, one line each)."""
-    from sp_plugins.geometry.io import mesh_topology
-
     topo = mesh_topology(mesh)
     notes = []
     if not topo.closed:
@@ -326,12 +321,8 @@ def _warn_if_empty(mesh) -> None:
 
 
 def run_pointcloud(cmd: PointCloudCommand) -> dict:
-    from sp_plugins.geometry import load_mesh, load_oriented_points, save_mesh
-
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, PointCloudSDFConfig)
-    from sp_plugins.tasks.common import StagedOutputs, resolve_device, stage
-
     device = resolve_device(cmd.device)
     checkpoints = _Checkpoints(cmd, "pointcloud", config, device, {"estimate_normals": cmd.estimate_normals},
                                {"input": cmd.input, "gt": cmd.gt})
@@ -366,9 +357,6 @@ def run_pointcloud(cmd: PointCloudCommand) -> dict:
 
 
 def run_image(cmd: ImageCommand) -> dict:
-    from sp_plugins.tasks.common import StagedOutputs, resolve_device
-    from sp_plugins.tasks.image import load_image, save_image
-
     outputs = ("fitted.png", "metrics.json", "loss.png", "alpha_map.png")
     config = _task_config(cmd, ImageFitConfig)
     device = resolve_device(cmd.device)
@@ -376,8 +364,6 @@ def run_image(cmd: ImageCommand) -> dict:
     image = load_image(cmd.input)
     trainer, out, seconds = checkpoints.train(outputs, lambda: config.setup(image, device=device))
     fitted = trainer.render()
-    from sp_plugins.tasks.image import psnr
-
     metrics = dict(
         psnr=psnr(fitted, image), steps=trainer.step_index, seconds=seconds, device=str(device),
         seconds_per_step=trainer.timer.total / max(trainer.step_index, 1),
@@ -402,9 +388,6 @@ def run_image(cmd: ImageCommand) -> dict:
 
 
 def run_sdf(cmd: SDFCommand) -> dict:
-    from sp_plugins.geometry import load_mesh, save_mesh
-    from sp_plugins.tasks.common import StagedOutputs, resolve_device
-
     outputs = ("mesh.ply", "metrics.json", "loss.png")
     config = _task_config(cmd, SDFFitConfig)
     device = resolve_device(cmd.device)

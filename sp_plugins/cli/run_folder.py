@@ -12,6 +12,15 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Optional, Tuple
 
+from sp_plugins.adapter.checks import _versions, check_checkpoint_file
+from sp_plugins.adapter.errors import describe_failure, first_line
+from sp_plugins.adapter.safe_config import (
+    ConfigRefused,
+    load_run_config,
+    reading_configs_safely,
+    weights_only_checkpoints,
+)
+
 
 class Refused(Exception):
     """One line for the user; exit status 2."""
@@ -40,16 +49,12 @@ def model_sdf(model) -> Optional[Tuple[Callable, Any, Any]]:
 
 
 def versions() -> str:
-    from sp_plugins.adapter.checks import _versions
-
     return _versions()
 
 
 def load_saved_config(path: Path, flag: str = "--load-config"):
     """The ``TrainerConfig`` in ``path``, read with the restricted loader (nothing the file names is run), or
     :class:`Refused` naming the file and why (a tag no training run writes, a class this installation lacks, not YAML)."""
-    from sp_plugins.adapter.safe_config import ConfigRefused, load_run_config
-
     if not path.is_file():
         raise Refused(f"{flag} {path}: config file not found; pass the config.yml that ns-train wrote")
     try:  # before nerfstudio is imported: a refused file is answered at once (a real one imports it by naming its classes)
@@ -79,10 +84,7 @@ def setup_pipeline(path: Path, config, flag: str = "--load-config", test_mode: s
     ``(pipeline, step)``, or :class:`Refused` in one line (a damaged or foreign checkpoint, an edited config)."""
     from nerfstudio.utils import eval_utils
 
-    from sp_plugins.adapter.checks import check_checkpoint_file
-    from sp_plugins.adapter.errors import describe_failure, first_line
-    from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
-    from sp_plugins.nerfstudio.components.trainer import checkpoint_to_load
+    from sp_plugins.nerfstudio.components.trainer import checkpoint_to_load  # defers nerfstudio
 
     target = None
     try:

@@ -24,7 +24,11 @@ from typing import List, Literal, Optional, Tuple, TypeVar
 
 import tyro
 
+from sp_plugins.cli import threads
+from sp_plugins.sweeps.ray_runner import run_on_ray
+from sp_plugins.sweeps.report import load_results, other_devices, write_report
 from sp_plugins.sweeps.spec import SpecError, SweepSpec, expand, flag_name, load_spec, spec_from_dict
+from sp_plugins.sweeps.trial import RESULT, TRIAL, _write_result
 
 T = TypeVar("T")
 
@@ -121,13 +125,11 @@ def build_spec(args: SweepArgs) -> SweepSpec:
 
 
 def _local_cpus(args: SweepArgs, log) -> int:
-    from sp_plugins.cli.threads import free_cores, usable_cores
-
     if args.num_cpus is not None:
         if args.num_cpus < 1:
             raise SpecError(f"--num-cpus {args.num_cpus}: must be at least 1")
         return args.num_cpus
-    free, cores = free_cores(), usable_cores()
+    free, cores = threads.free_cores(), threads.usable_cores()
     if free < cores:
         log(f"[sp-sweep] {cores - free} of {cores} cores are busy with other processes: local Ray gets {free} "
             f"(--num-cpus N overrides)")
@@ -145,9 +147,6 @@ def _mixed_devices(out: Path, found: dict, trials, args: SweepArgs) -> str:
 
 
 def run(args: SweepArgs, log=print) -> int:
-    from sp_plugins.sweeps.report import load_results, other_devices, write_report
-    from sp_plugins.sweeps.trial import RESULT, TRIAL, _write_result
-
     spec = build_spec(args)
     trials = expand(spec, gpus=args.gpus_per_trial)
     out = args.out.resolve()
@@ -194,8 +193,6 @@ def run(args: SweepArgs, log=print) -> int:
                 (d / TRIAL).write_text(json.dumps(info, indent=1) + "\n")
                 items.append(info)
             return items
-
-        from sp_plugins.sweeps.ray_runner import run_on_ray
 
         lost = run_on_ray(payload, storage=out / "ray", address=args.address, num_cpus=num_cpus, num_gpus=args.num_gpus,
                           cpus_per_trial=args.cpus_per_trial, gpus_per_trial=args.gpus_per_trial,

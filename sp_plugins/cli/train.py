@@ -12,7 +12,9 @@ from __future__ import annotations
 import sys
 from typing import Optional
 
+from sp_plugins.adapter.safe_config import load_run_config, reading_configs_safely
 from sp_plugins.nerfstudio.registration import sp_methods
+from sp_plugins.patches import registry
 
 PROG = "sp-train"
 
@@ -39,8 +41,7 @@ def _import_modules_that_keep_their_import_error() -> None:
 def _train(argv: Optional[list]) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     # our own command: the process is ours, so the process-wide conveniences go in here
-    from sp_plugins.nerfstudio.model import install_process_settings
-    from sp_plugins.patches import registry
+    from sp_plugins.nerfstudio.model import install_process_settings  # defers nerfstudio
 
     install_process_settings()
     registry.install_for_process("nerfstudio_external_methods", command="sp-train")
@@ -73,8 +74,6 @@ def _train(argv: Optional[list]) -> None:
         host_train.main(config)
         return
     # --load-config: read with the restricted loader (a refusal is one line before anything runs), also where main reads it
-    from sp_plugins.adapter.safe_config import load_run_config, reading_configs_safely
-
     load_run_config(config.load_config, "--load-config")
     with reading_configs_safely(host_train, f"--load-config {config.load_config}"):
         host_train.main(config)

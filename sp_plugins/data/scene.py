@@ -31,7 +31,16 @@ from sp_plugins.data.cameras import (
     look_at_origin,
     random_directions,
 )
-from sp_plugins.data.dtu_like import CapCameras, default_dtu_resolution, dtu_like_fov, render_dtu_views, surroundings
+from sp_plugins.adapter.checks import existing_outputs
+from sp_plugins.data.dtu_like import (
+    BACKDROP_RADIUS,
+    GROUND_HALF_SIZE,
+    CapCameras,
+    default_dtu_resolution,
+    dtu_like_fov,
+    render_dtu_views,
+    surroundings,
+)
 from sp_plugins.data.layouts import write_blender, write_object_masks, write_sdfstudio
 from sp_plugins.data.mesh import MeshSource, load_mesh, normalize_mesh, up_rotation
 from sp_plugins.data.render import ray_intersector, render_views
@@ -83,8 +92,6 @@ def _check_counts(n_train: int, n_val: int, n_test: int) -> None:
 
 
 def _prepare(out_dir: Path, overwrite: bool) -> None:
-    from sp_plugins.adapter.checks import existing_outputs
-
     existing = existing_outputs(out_dir, PRODUCTS, "output")
     if existing and not overwrite:
         raise SceneExistsError(
@@ -266,8 +273,6 @@ def make_scene(
 
 
 def _dtu_like_record(normalised, cap: CapCameras) -> dict:
-    from sp_plugins.data.dtu_like import BACKDROP_RADIUS, GROUND_HALF_SIZE
-
     _, ground_z = surroundings(normalised)
     return {
         "ground_z": ground_z,

@@ -69,7 +69,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from sp_plugins.encodings.grid_levels import GRID_TYPES, GridType, grid_levels, per_level_scale_from_max_resolution
-from sp_plugins.encodings.hashgrid_torch import hashgrid_encode, level_constants
+from sp_plugins.encodings.hashgrid_torch import LevelConstants, hashgrid_encode, level_constants
 
 logger = logging.getLogger(__name__)
 
@@ -271,8 +271,6 @@ class HashGrid(nn.Module):
             self.register_buffer(f"_const_{name}", value, persistent=False)
 
     def _constants(self):
-        from sp_plugins.encodings.hashgrid_torch import LevelConstants
-
         return LevelConstants(*(getattr(self, f"_const_{name}") for name in LevelConstants._fields))
 
     def _parameter(self) -> Tensor:

@@ -12,7 +12,7 @@
 - I/O: :func:`load_mesh`, :func:`load_oriented_points`, :func:`save_mesh`, :class:`Frame`.
 """
 
-from importlib import import_module
+from sp_plugins._lazy import lazy_attribute
 
 _WHERE = {
     "largest_component": "cleanup",
@@ -26,11 +26,7 @@ sweep's soundness check, in every trial's Ray worker) do not import torch with m
 
 
 def __getattr__(name: str):
-    if name in _WHERE:
-        value = getattr(import_module(f"sp_plugins.geometry.{_WHERE[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'sp_plugins.geometry' has no attribute {name!r}")
+    return lazy_attribute(__name__, _WHERE, name)
 
 
 def __dir__():

@@ -12,6 +12,8 @@ import numpy as np
 import trimesh
 from jaxtyping import Float
 
+from sp_plugins.geometry.metrics import sample_surface
+
 log = logging.getLogger(__name__)
 
 PathLike = Union[str, Path]
@@ -139,8 +141,6 @@ def load_oriented_points(
     loaded = _load_any(path)
     if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) > 0:
         mesh = load_mesh(path)
-        from sp_plugins.geometry.metrics import sample_surface
-
         pts, nrm = sample_surface(mesh, n_points, seed)
         return OrientedPoints(pts, nrm, "mesh", mesh)
     if isinstance(loaded, (trimesh.Trimesh, trimesh.PointCloud)):  # a mesh without faces is a cloud

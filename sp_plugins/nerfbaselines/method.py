@@ -30,6 +30,7 @@ from nerfbaselines.methods.nerfstudio import NerfStudio
 from sp_plugins.nerfbaselines import scene_box, sp_state, specs
 from sp_plugins.nerfbaselines.outputs import with_output_aliases
 from sp_plugins.nerfbaselines.overrides import OverrideError, apply_overrides
+from sp_plugins.nerfstudio import with_sp
 from sp_plugins.patches import registry
 
 __all__ = ["SPNerfStudio", "seed"]
@@ -87,8 +88,6 @@ class SPNerfStudio(NerfStudio):
 
     def _sp_config(self, config: Any) -> Any:
         if self._sp_entry.add_sp:
-            from sp_plugins.nerfstudio import with_sp
-
             config = with_sp(config).config
             config.pipeline.model.sp.enabled = not self._sp_entry.sp_off
         try:

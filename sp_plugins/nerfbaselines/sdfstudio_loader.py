@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import os
 
+from sp_plugins.nerfbaselines.blender_loader import pinhole_cameras
+
 __all__ = ["load_sdfstudio_dataset", "refuse_download"]
 
 def _meta_path(path: str, split: str) -> str:
@@ -26,7 +28,7 @@ def _scene_of(path: str) -> dict:
         return {}
     if scene.get("format") != "sp-plugins synthetic scene":
         return {}
-    from sp_plugins.nerfbaselines.specs import SP_SCENE
+    from sp_plugins.nerfbaselines.specs import SP_SCENE  # defers torch and nerfbaselines: a loader module stays light
 
     return {"id": SP_SCENE, "evaluation_protocol": SP_SCENE, "scene": os.path.splitext(os.path.basename(str(scene.get("source", "scene"))))[0]}
 
@@ -35,8 +37,6 @@ def load_sdfstudio_dataset(path: str, split: str, **kwargs):
     """The ``split`` of the SDFStudio layout at ``path`` (OpenCV camera-to-world, pinhole)."""
     import numpy as np
     from nerfbaselines import new_dataset
-
-    from sp_plugins.nerfbaselines.blender_loader import pinhole_cameras
 
     del kwargs
     train_meta = os.path.join(path, "meta_data.json")

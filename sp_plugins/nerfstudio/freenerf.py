@@ -49,6 +49,7 @@ from sp_plugins.adapter import presets
 from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio.mipnerf import SPMipNerfModel, SPMipNerfModelConfig
+from sp_plugins.nerfstudio.radiance_configs import mipnerf_method
 
 OCCLUSION_LOSS = "occ_reg_loss"
 OCCLUSION_OUTPUT = "occ_reg"
@@ -230,8 +231,6 @@ class FreeNeRFModel(SPMipNerfModel, FreeNeRFLosses):
 def freenerf_method(name: str, description: str):
     """``sp-mipnerf``'s trainer config (nerfstudio's MipNeRF settings, 7500 steps) on
     :class:`FreeNeRFModelConfig`, SP off."""
-    from sp_plugins.nerfstudio.radiance_configs import mipnerf_method
-
     spec = mipnerf_method(name, sp=False, description=description)
     model = spec.config.pipeline.model
     kept = {f.name: getattr(model, f.name) for f in dataclasses.fields(model) if f.init and f.name not in ("_target", "sp")}

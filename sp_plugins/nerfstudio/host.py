@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 from sp_plugins.adapter.hosts import Flags, Host
+from sp_plugins.sdfstudio.detect import is_sdfstudio, nerfstudio_dir
 
 
 def _installed() -> bool:
     """nerfstudio 1.x is the importable ``nerfstudio`` (not sdfstudio's, which shares the name)."""
-    from sp_plugins.sdfstudio.detect import is_sdfstudio, nerfstudio_dir
-
     return nerfstudio_dir() is not None and not is_sdfstudio()
 
 

@@ -42,6 +42,8 @@ from sp_plugins.nerfstudio.components.lpips import detach_lpips, drop_missing_lp
 from sp_plugins.nerfstudio.divergence import NonFiniteWatch, divergence_callback
 from sp_plugins.nerfstudio import variants
 from sp_plugins.nerfstudio.seam import ALPHA_GRID_OUTPUT, attach_seam, check_reached, seam_fields
+from sp_plugins.patches import registry
+from sp_plugins.patches.torch_deterministic import mode
 
 __all__ = ["SPModel", "SPModelConfig", "hold_under_host_command", "host_command", "install_process_settings", "refuse_inert_options",
            "refuse_unreachable_settings"]
@@ -63,9 +65,6 @@ def hold_deterministic_kernels(model: torch.nn.Module) -> bool:
     (the default) leaves them off on one thread (every sum has one order there) and for a model with nerfstudio's
     torch ``HashEncoding`` on several threads, where they cost about 8% per step (it says so once);
     ``SP_DETERMINISTIC=1`` turns them on everywhere. Returns whether held."""
-    from sp_plugins.patches import registry
-    from sp_plugins.patches.torch_deterministic import mode
-
     if not (host_command() or registry.our_console_command() == "sp-train"):
         return False
     try:
@@ -125,8 +124,6 @@ def install_process_settings(owner: object = None, *, run: bool = False) -> None
 
     Building one of our models in a Python session, a notebook or a test installs nothing;
     there an ``InputError`` holds the hook itself while it exists (:class:`~sp_plugins.adapter.errors.InputError`)."""
-    from sp_plugins.patches import registry
-
     if owner is None:
         for name in ("input_error_hook", "host_warnings"):
             registry.install_for_process(name, command="sp-train")
@@ -174,8 +171,6 @@ class SPModel(adapter_model.SPModelBase):
         super().populate_modules()
 
     def populate_host_modules(self) -> None:
-        from sp_plugins.patches import registry
-
         try:
             with offline_lpips(), registry.scope("nerfstudio_sdf_field"):  # for this build only
                 super().populate_host_modules()

@@ -46,6 +46,7 @@ from sp_plugins.adapter.callbacks import model_schedule_callback
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.model import SPModel, SPModelConfig
 from sp_plugins.nerfstudio.sdf_field import LAPLACIAN, CoarseToFineSDFField, CoarseToFineSDFFieldConfig
+from sp_plugins.patches.nerfstudio_marching_cubes import hold_for
 
 
 GRID_GROUP = "field_grid"
@@ -79,8 +80,6 @@ class SPNeuSModel(SPModel, NeuSModel):
     field: CoarseToFineSDFField
 
     def populate_modules(self) -> None:
-        from sp_plugins.patches.nerfstudio_marching_cubes import hold_for
-
         super().populate_modules()
         hold_for(self)  # without CUDA: ns-export marching-cubes builds this model, then meshes our field on the CPU
 

@@ -43,6 +43,7 @@ from sp_plugins.nerfstudio.mipnerf import SPMipNerfModelConfig
 from sp_plugins.nerfstudio.relu_field.model import ReLUFieldModelConfig
 from sp_plugins.nerfstudio.components.schedulers import FloatExponentialDecaySchedulerConfig
 from sp_plugins.nerfstudio.components.trainer import checked_trainer
+from sp_plugins.nerfstudio.registration import with_sp
 
 
 @dataclass
@@ -119,8 +120,6 @@ HOST_SCHEDULE = dict(viewer_rays=1 << 15, steps_per_eval_batch=500, steps_per_sa
 def _generic(config: TrainerConfig, description: str) -> MethodSpecification:
     """A host method plus SP: the generic route (``with_sp``), with the preset ``sp-train`` gives it
     (:func:`sp_plugins.nerfstudio.table.preset_for`)."""
-    from sp_plugins.nerfstudio.registration import with_sp
-
     return with_sp(config, name=config.method_name, description=description)
 
 

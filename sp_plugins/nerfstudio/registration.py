@@ -21,10 +21,12 @@ from __future__ import annotations
 import copy
 from typing import Any, Dict, Optional, Tuple
 
-from sp_plugins.adapter.variants import convert, target_class
+from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
+from sp_plugins.adapter.variants import convert, refuse_or_switch_on, target_class
 from sp_plugins.core import SPConfig
 from sp_plugins.nerfstudio import table
 from sp_plugins.nerfstudio.table import preset_for, refusal
+from sp_plugins.nerfstudio.variants import variant
 
 __all__ = ["preset_for", "refusal", "sp_methods", "with_sp"]
 
@@ -38,13 +40,9 @@ def with_sp(spec: Any, sp: Optional[SPConfig] = None, *, name: Optional[str] = N
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
     from nerfstudio.plugins.types import MethodSpecification
 
-    from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, alpha_grid_optimizer
-    from sp_plugins.nerfstudio.components.parallel_data import repeatable_datamanager
-    from sp_plugins.nerfstudio.components.schedulers import with_float_schedulers
-    from sp_plugins.adapter.variants import refuse_or_switch_on
-    from sp_plugins.nerfstudio.variants import variant
-
-    from sp_plugins.nerfstudio.components.trainer import checked
+    from sp_plugins.nerfstudio.components.parallel_data import repeatable_datamanager  # defers nerfstudio
+    from sp_plugins.nerfstudio.components.schedulers import with_float_schedulers  # defers nerfstudio
+    from sp_plugins.nerfstudio.components.trainer import checked  # defers nerfstudio
 
     config = checked(copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec))  # ns-train checks before writing
     base_description = getattr(spec, "description", "") or config.method_name

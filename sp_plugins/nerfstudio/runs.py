@@ -13,6 +13,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, Literal, Optional
 
+from sp_plugins.patches import registry
+
 if TYPE_CHECKING:  # host modules are imported where they are used: shrink() serves sdfstudio's configs too
     from nerfstudio.engine.trainer import Trainer, TrainerConfig
     from nerfstudio.plugins.types import MethodSpecification
@@ -95,8 +97,6 @@ def train(config: TrainerConfig) -> Trainer:
     process or another (torch starts each process with a random seed)."""
     from nerfstudio.scripts.train import _set_random_seed
     from nerfstudio.utils import writer
-
-    from sp_plugins.patches import registry
 
     config.set_timestamp() if not config.timestamp else None
     config.save_config()

@@ -33,6 +33,9 @@ from sp_plugins.adapter import hosts
 from sp_plugins.adapter.field import SPFieldMixin
 from sp_plugins.core import finite_differences
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.encodings import HashGrid
+from sp_plugins.nerfstudio import seam
+from sp_plugins.patches import registry
 from sp_plugins.patches.nerfstudio_marching_cubes import serving_mesher
 
 LAPLACIAN = "sdf_laplacian"
@@ -75,8 +78,6 @@ class CoarseToFineSDFField(SPFieldMixin, SDFField):
     config: CoarseToFineSDFFieldConfig
 
     def __init__(self, config: CoarseToFineSDFFieldConfig, aabb, num_images: int, use_average_appearance_embedding: bool = False, spatial_distortion=None) -> None:
-        from sp_plugins.patches import registry
-
         if config.encoding_type != "hash":
             raise InputError(
                 f"--pipeline.model.sdf-field.encoding-type {config.encoding_type}: our SDF methods support 'hash' "
@@ -106,8 +107,6 @@ class CoarseToFineSDFField(SPFieldMixin, SDFField):
 
     def initialize_geo_layers(self) -> None:
         """Swap in our encoding before the MLP is sized on it."""
-        from sp_plugins.encodings import HashGrid
-
         if not self.config.use_grid_feature:
             self.encoding = _NoGrid()
         elif not isinstance(self.encoding, HashGrid):  # a real tcnn.Encoding: wrap it so levels can be masked
@@ -178,9 +177,7 @@ class CoarseToFineSDFField(SPFieldMixin, SDFField):
 
     def get_sdf(self, ray_samples: RaySamples) -> Float[Tensor, "num_samples ... 1"]:
         if self.config.perturb_sampler_queries and self.sp_active():
-            from sp_plugins.nerfstudio.seam import perturbed_samples
-
-            ray_samples = perturbed_samples(ray_samples, self.sp, self.sp_read_positions)  # type: ignore[arg-type]
+            ray_samples = seam.perturbed_samples(ray_samples, self.sp, self.sp_read_positions)  # type: ignore[arg-type]
         x = ray_samples.frustums.get_start_positions().reshape(-1, 3)
         hidden = self.forward_geonetwork(x).view(*ray_samples.frustums.shape, -1)
         return hidden[..., :1]

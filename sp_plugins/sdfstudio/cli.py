@@ -24,6 +24,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple
 
+from sp_plugins.adapter.errors import describe_failure
+from sp_plugins.adapter.safe_config import (
+    ConfigRefused,
+    load_run_config,
+    reading_configs_safely,
+    weights_only_checkpoints,
+)
+from sp_plugins.patches import registry
+from sp_plugins.patches.sdfstudio_import_hook import install_all
+from sp_plugins.sdfstudio.detect import require_sdfstudio
+
 
 def _error(prog: str, message: str) -> "NoReturn":  # noqa: F821
     print(f"{prog}: error: {message}", file=sys.stderr)
@@ -61,14 +72,10 @@ def _bar(prog: str, stage: str, total: int):
 
 
 def _prepare(prog: str) -> None:
-    from sp_plugins.sdfstudio.detect import require_sdfstudio
-
     try:
         require_sdfstudio()
     except ImportError as err:
         _error(prog, str(err))
-    from sp_plugins.patches.sdfstudio_import_hook import install_all
-
     install_all(command=prog)  # our command owns its process: the sdfstudio_* registry entries stay
 
 
@@ -76,8 +83,6 @@ def _check_saved_config(prog: str, path: Path, flag: str) -> str:
     """``path`` read with the restricted loader: an sdfstudio ``Config``, or one line and exit 2. Returns
     how a later refusal names it."""
     from nerfstudio.configs.base_config import Config
-
-    from sp_plugins.adapter.safe_config import ConfigRefused, load_run_config
 
     try:
         load_run_config(path, flag, expect=Config)
@@ -96,8 +101,7 @@ def train(argv: Optional[list] = None) -> None:
     import scripts.train as host_train
     from nerfstudio.configs.config_utils import convert_markup_to_ansi
 
-    from sp_plugins.patches import registry
-    from sp_plugins.sdfstudio.registration import REFUSED
+    from sp_plugins.sdfstudio.registration import REFUSED  # defers torch
 
     registry.install_for_process("sdfstudio_methods", command=prog)  # our methods in the list and the tyro union
     args = list(sys.argv[1:] if argv is None else argv)
@@ -117,8 +121,8 @@ def train(argv: Optional[list] = None) -> None:
         _error(prog, f"--machine.num-gpus {config.machine.num_gpus} but no CUDA device is available; pass --machine.num-gpus 0")
     sp = getattr(config.pipeline.model, "sp", None)
     if sp is not None:
-        from sp_plugins.adapter.callbacks import schedule_problem
-        from sp_plugins.sdfstudio.model import unsupported_setting
+        from sp_plugins.adapter.callbacks import schedule_problem  # defers torch
+        from sp_plugins.sdfstudio.model import unsupported_setting  # defers sdfstudio
 
         problem = schedule_problem(sp, config.trainer.max_num_iterations, "--trainer.max-num-iterations")
         problem = problem or unsupported_setting(sp)
@@ -130,8 +134,6 @@ def train(argv: Optional[list] = None) -> None:
             _error(prog, problem)
         host_train.main(config)
         return
-    from sp_plugins.adapter.safe_config import reading_configs_safely
-
     where = _check_saved_config(prog, config.trainer.load_config, "--trainer.load-config")
     with reading_configs_safely(host_train, where):  # main reads it again: through the restricted loader too
         host_train.main(config)
@@ -182,7 +184,7 @@ def extract_mesh(argv: Optional[list] = None) -> None:
     import torch
     import tyro
 
-    from sp_plugins.geometry.marching_cubes import evaluate_grid, mesh_from_grid
+    from sp_plugins.geometry.marching_cubes import evaluate_grid, mesh_from_grid  # defers torch, trimesh, scikit-image
 
     args = tyro.cli(ExtractMesh, args=argv, prog=prog)
     if not args.load_config.is_file():
@@ -190,9 +192,6 @@ def extract_mesh(argv: Optional[list] = None) -> None:
     if args.resolution < 2:
         _error(prog, f"--resolution {args.resolution}: need at least 2 grid points per axis")
     from nerfstudio.utils import eval_utils
-
-    from sp_plugins.adapter.errors import describe_failure
-    from sp_plugins.adapter.safe_config import reading_configs_safely, weights_only_checkpoints
 
     where = _check_saved_config(prog, args.load_config, "--load-config")
     _say(prog, f"loading {args.load_config}")

@@ -37,8 +37,8 @@ def final_fd_step(model: type, max_res: int) -> Optional[float]:
 def sp_model_config(model_config: Any, sp: SPConfig) -> Any:
     """The SP variant of an sdfstudio SDF model config, with ``sp`` (coarse-to-fine replaced where
     the host enables it)."""
-    from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig
-    from sp_plugins.sdfstudio.variants import variant
+    from sp_plugins.sdfstudio.seam import SeamSDFFieldConfig  # defers sdfstudio
+    from sp_plugins.sdfstudio.variants import variant  # defers sdfstudio
 
     model = target_class(model_config)
     assert model is not None

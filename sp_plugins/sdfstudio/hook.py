@@ -47,7 +47,7 @@ class _FirstImport(importlib.abc.MetaPathFinder):
         sys.meta_path[:] = [f for f in sys.meta_path if type(f).__name__ != _FirstImport.__name__]
         if not installed_nerfstudio_is_sdfstudio():
             return None
-        from sp_plugins.patches.sdfstudio_import_hook import install_all, install_finder
+        from sp_plugins.patches.sdfstudio_import_hook import install_all, install_finder  # defers sdfstudio's patches
 
         install_all(register_methods=True, command="sdfstudio")  # opt-in: the user installed the hook
         return install_finder().find_spec(fullname, path, target)

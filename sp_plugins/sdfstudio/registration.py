@@ -66,7 +66,7 @@ def with_sp(spec: Any, sp: Optional["SPConfig"] = None, *, name: Optional[str] =
     explicit ``sp`` wins). Raises ``ValueError`` naming the reason when SP cannot reach the method."""
     from nerfstudio.engine.optimizers import AdamOptimizerConfig
 
-    from sp_plugins.sdfstudio.variants import variant
+    from sp_plugins.sdfstudio.variants import variant  # defers sdfstudio
 
     config = copy.deepcopy(spec.config if isinstance(spec, MethodSpecification) else spec)
     base = config.method_name

@@ -20,6 +20,9 @@ import time
 from pathlib import Path
 from typing import Callable, List, Optional
 
+from sp_plugins.sweeps.spec import SpecError
+from sp_plugins.sweeps.trial import run_trial
+
 QUIET_RAY_ENV = {
     "RAY_USAGE_STATS_ENABLED": "0",  # no usage report (and no network)
     "RAY_DEDUP_LOGS": "0",
@@ -39,8 +42,6 @@ QUIET_RAY_ENV = {
 
 def _trainable(config: dict) -> None:
     from ray import tune
-
-    from sp_plugins.sweeps.trial import run_trial
 
     result = run_trial(config["trial"])
     scalars = {k: v for k, v in result["metrics"].items() if isinstance(v, (int, float)) and v is not None}
@@ -115,8 +116,6 @@ def run_on_ray(
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
         except ConnectionError as err:
-            from sp_plugins.sweeps.spec import SpecError
-
             raise SpecError(f"--address {address}: no Ray cluster answered ({str(err).split('. ')[0]}); start one "
                             "(ray start --head) or leave --address out to run on a local Ray") from None
     else:

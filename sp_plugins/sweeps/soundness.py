@@ -23,7 +23,7 @@ def true_negative_fraction(mesh_path: Path, frame_diagonal: float = 1.9, resolut
     the nearest oriented surface sample (meshes with holes)."""
     from scipy.spatial import cKDTree
 
-    from sp_plugins.geometry import Frame, load_mesh, sample_surface
+    from sp_plugins.geometry import Frame, load_mesh, sample_surface  # defers trimesh (a Ray worker imports this)
 
     mesh = load_mesh(mesh_path)
     frame = Frame.fit(np.asarray(mesh.vertices), frame_diagonal)

@@ -27,6 +27,8 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from sp_plugins.sweeps.soundness import is_sound, true_negative_fraction
+
 RESULT = "result.json"
 TRIAL = "trial.json"
 FIT_METRICS = ("chamfer", "clean_chamfer", "fscore", "clean_fscore", "normal_consistency", "area_ratio",
@@ -214,8 +216,6 @@ def _sp_fit(trial: dict, argv: List[str], folder: Path, env: dict, timeout, resu
             result["metrics"][k] = None  # e.g. the Chamfer of an empty mesh
     gt = metrics.get("gt")
     if argv[1] in ("pointcloud", "sdf") and gt and "area_ratio" in metrics and "negative_fraction" in metrics:
-        from sp_plugins.sweeps.soundness import is_sound, true_negative_fraction
-
         gt_path = Path(gt) if Path(gt).is_absolute() else Path(trial["cwd"]) / gt
         diagonal = float(metrics.get("config", {}).get("frame_diagonal", 1.9))
         truth = true_negative_fraction(gt_path, diagonal)

@@ -17,6 +17,8 @@ from typing import Any, Mapping, Optional, Union
 
 import torch
 
+from sp_plugins.adapter.errors import load_failure_reason, refused_global
+
 CHECKPOINT_NAME = "checkpoint.pt"
 FORMAT = "sp-fit-checkpoint"
 VERSION = 1
@@ -62,8 +64,6 @@ def load(path: Union[str, Path], task: str) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001  (any unpickling error: the file is not ours or is damaged)
-        from sp_plugins.adapter.errors import load_failure_reason, refused_global
-
         name = refused_global(exc)  # torch's first line would suggest loading it unsafely
         detail = (f"it holds a pickled {name}, which weights-only loading refuses; nothing in it was run" if name else
                   load_failure_reason(exc, 200))

@@ -12,6 +12,9 @@ from typing import Any, Callable, Iterable, Iterator, Literal, Mapping, Optional
 
 import torch
 
+from sp_plugins.adapter.checks import check_writable_dir, existing_outputs
+from sp_plugins.adapter.errors import write_failure
+
 
 DEVICE_CHOICES = "auto, cpu, cuda, cuda:N or mps"
 
@@ -67,9 +70,6 @@ def counting_bar(fn: Callable, total: int, desc: str, enabled: bool = True):
 def prepare_output_dir(out: Union[str, Path], outputs: Iterable[str], overwrite: bool) -> Path:
     """Create ``out`` or check that it holds none of ``outputs`` (unless ``overwrite``), and that
     files can be written there (a read-only folder or a full disk is named before any training)."""
-    from sp_plugins.adapter.checks import check_writable_dir, existing_outputs
-    from sp_plugins.adapter.errors import write_failure
-
     out = Path(out)
     existing = existing_outputs(out, outputs, "--out")
     if existing and not overwrite:
@@ -119,8 +119,6 @@ class StagedOutputs:
     def __exit__(self, kind, exc, tb) -> "Literal[False]":  # never swallows; quoted: no False literal to mutate
         import errno
         import os
-
-        from sp_plugins.adapter.errors import write_failure
 
         if exc is None:
             try:

@@ -22,6 +22,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from sp_plugins.encodings import FrequencyEncoding, HashGrid, TriplaneEncoding
+
 EncodingKind = Literal["hashgrid", "fourier", "triplane", "finer"]
 ENCODING_KINDS: tuple[str, ...] = ("hashgrid", "fourier", "triplane", "finer")
 
@@ -87,8 +89,6 @@ def make_encoding(config: EncodingConfig, dim: int) -> Tuple[Optional[nn.Module]
     """The encoding module (None for ``finer``) and its output width."""
     config.validate()
     if config.kind == "hashgrid":
-        from sp_plugins.encodings import HashGrid
-
         enc = HashGrid(
             num_levels=config.levels,
             features_per_level=config.features_per_level,
@@ -100,16 +100,12 @@ def make_encoding(config: EncodingConfig, dim: int) -> Tuple[Optional[nn.Module]
         )
         return enc, enc.n_output_dims
     if config.kind == "fourier":
-        from sp_plugins.encodings import FrequencyEncoding
-
         # octaves 2^0 .. 2^(n-1) times pi on [-1, 1] coordinates (NeRF's convention)
         freq = FrequencyEncoding(dim, config.frequencies, 0.0, config.frequencies - 1.0, scale=math.pi)
         return freq, freq.n_output_dims
     if config.kind == "triplane":
         if dim != 3:
             raise ValueError("encoding kind='triplane' is 3D only; use hashgrid or fourier for images")
-        from sp_plugins.encodings import TriplaneEncoding
-
         planes = TriplaneEncoding(config.plane_resolution, config.plane_features, reduce="sum")
         return planes, planes.n_output_dims
     return None, 0

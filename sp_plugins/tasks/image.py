@@ -35,6 +35,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from sp_plugins.core import AlphaGrid, SPConfig
+from sp_plugins.encodings.level_mask import PerPointLevelMask, levels_from_alpha
 from sp_plugins.tasks.trainer import ResumableTrainer, run_to_end
 from sp_plugins.tasks.fields import EncodingConfig
 from sp_plugins.tasks.settings import FitSettings
@@ -261,8 +262,6 @@ class ImageFitTrainer(ResumableTrainer):
         self.field = self._build_field(dim=2, out_dim=3, hidden=config.hidden, activation="relu", include_input=False,
                                        bounds=(0.0, 1.0))
         if config.level_masking:
-            from sp_plugins.encodings.level_mask import PerPointLevelMask
-
             # inactive until phase 2; level masking needs a hash grid (validate), so there is an encoding
             self.field.encoding = PerPointLevelMask(cast(torch.nn.Module, self.field.encoding))
         sp_config = self._setup_sp(bounds=(0.0, 1.0), dim=2)
@@ -306,8 +305,6 @@ class ImageFitTrainer(ResumableTrainer):
 
     def levels_at(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, " n"]:
         """Usable hash-grid levels at ``x`` in phase 2 (inverse to the map's alpha there)."""
-        from sp_plugins.encodings.level_mask import levels_from_alpha
-
         lo, hi = cast(Tuple[float, float], self.level_mask_alpha_range)  # set by start_phase2, which installs this
         c = self.config
         return levels_from_alpha(self.alpha_map(x)[:, 0], lo, hi, c.encoding.levels, c.level_mask_min_levels)
@@ -325,8 +322,6 @@ class ImageFitTrainer(ResumableTrainer):
             q = torch.tensor(c.level_mask_quantiles, dtype=torch.float32, device=self.device)
             lo, hi = torch.quantile(self.alpha_map.values().reshape(-1), q).tolist()
             self.level_mask_alpha_range = (lo, max(hi, lo * (1 + 1e-6)))
-            from sp_plugins.encodings.level_mask import PerPointLevelMask  # (what __init__ put there)
-
             cast(PerPointLevelMask, self.field.encoding).levels_fn = self.levels_at
 
     def rgb(self, x: Float[Tensor, "n 2"]) -> Float[Tensor, "n 3"]:

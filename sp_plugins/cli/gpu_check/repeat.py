@@ -17,6 +17,7 @@ import torch
 from sp_plugins.cli.gpu_check.budget import Deadline, Sizes
 from sp_plugins.core import SPConfig
 from sp_plugins.geometry import load_oriented_points
+from sp_plugins.patches import registry
 from sp_plugins.tasks import PointCloudSDFConfig
 from sp_plugins.tasks.fields import EncodingConfig
 
@@ -39,8 +40,6 @@ def train_once(device, sizes: Sizes, data) -> dict:
 
 
 def check_repeat(device, sizes: Sizes, deadline: Deadline) -> dict:
-    from sp_plugins.patches import registry
-
     data = load_oriented_points(str(files("sp_plugins.data") / "assets" / "spot.ply"), 50_000, 0)
     with registry.scope("torch_deterministic") as deterministic:
         (first, backend), (second, _) = train_once(device, sizes, data), train_once(device, sizes, data)

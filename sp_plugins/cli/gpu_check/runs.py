@@ -24,6 +24,9 @@ from sp_plugins.data import make_tiny_scene
 from sp_plugins.encodings import HashGrid
 from sp_plugins.encodings.hashgrid import torch_backend_only
 from sp_plugins.nerfstudio import table
+from sp_plugins.nerfstudio.components.lpips import offline_lpips
+from sp_plugins.nerfstudio.registration import sp_methods
+from sp_plugins.nerfstudio.runs import configure_run, method_config
 
 SDF_BASELINE = "neus-hashgrid"
 SDF_SP = table.OUR_BASELINES[SDF_BASELINE]
@@ -75,16 +78,12 @@ def _vanilla_data(config) -> None:
 
 def run_config(method: str, how: str, scene: Path, out: Path, device, sizes: Sizes):
     """The trainer config of one of :data:`RUNS` (``how``: ``ours``, ``host`` or ``sp-train``) on ``scene``."""
-    from sp_plugins.nerfstudio.runs import configure_run, method_config
-
     if how == "host" or how == "sp-train":
         from nerfstudio.configs.method_configs import all_descriptions, all_methods
 
         if how == "host":
             config = copy.deepcopy(all_methods[method])
         else:
-            from sp_plugins.nerfstudio.registration import sp_methods
-
             configs, _, refused = sp_methods({method: all_methods[method]}, all_descriptions)
             if method not in configs:
                 raise RuntimeError(f"sp-train refuses {method}: {refused.get(method)}")
@@ -103,8 +102,6 @@ def train_in_process(config, device, torch_grid: bool = False):
     """A set-up nerfstudio trainer, and ``step(i)``: one training iteration with its callbacks;
     ``torch_grid``: every ``auto`` hash grid takes our torch backend, also where tcnn runs."""
     from nerfstudio.engine.callbacks import TrainingCallbackLocation
-
-    from sp_plugins.nerfstudio.components.lpips import offline_lpips
 
     config.save_config()
     with _grids(torch_grid), offline_lpips():

@@ -42,6 +42,7 @@ from sp_plugins.adapter.checks import check_device
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.nerfstudio.host import HOST
 from sp_plugins.nerfstudio.components.views import ViewSelection, select_views
+from sp_plugins.nerfstudio.model import hold_under_host_command
 
 
 class SurfaceDataset(SDFDataset):
@@ -330,8 +331,6 @@ class CheckedDataManager(VanillaDataManager):
     dataset_type = InputDataset  # type: ignore[assignment]  (shadows the generic lookup)
 
     def __init__(self, config: CheckedDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
-        from sp_plugins.nerfstudio.model import hold_under_host_command
-
         hold_under_host_command(self)  # a host command on a run of ours: its failures as one line
         check_device(torch.device(device).type, flags=HOST.flags)
         self._checks = config.check_data and test_mode != "inference"

@@ -15,6 +15,7 @@ from typing import Any, ContextManager, Dict
 import torch
 
 from sp_plugins.adapter.lpips import DetachedMetric, MissingLPIPS, lpips_available, lpips_weights_path
+from sp_plugins.patches import registry
 
 __all__ = ["MissingLPIPS", "detach_lpips", "drop_missing_lpips", "lpips_available", "lpips_weights_path", "offline_lpips"]
 
@@ -22,8 +23,6 @@ __all__ = ["MissingLPIPS", "detach_lpips", "drop_missing_lpips", "lpips_availabl
 def offline_lpips() -> ContextManager[None]:
     """Within this block, building torchmetrics' LPIPS never touches the network (the registry's
     ``nerfstudio_lpips`` scope)."""
-    from sp_plugins.patches import registry
-
     return registry.scope("nerfstudio_lpips")
 
 

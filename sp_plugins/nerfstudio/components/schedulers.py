@@ -29,6 +29,8 @@ from nerfstudio.engine.schedulers import (
 from torch.optim import Optimizer
 from torch.optim.lr_scheduler import LambdaLR, LRScheduler
 
+from sp_plugins.adapter.variants import convert
+
 
 class FloatLambdaLR(LambdaLR):
     """``LambdaLR`` whose learning rates are Python floats whatever type the factor returns."""
@@ -83,8 +85,6 @@ FLOAT_VARIANTS = {
 def with_float_schedulers(optimizers: dict) -> dict:
     """``optimizers`` (a trainer config's) with nerfstudio's numpy schedulers swapped for the float
     ones above (same fields, same factors), so checkpoints of a method we wrap load in ``ns-eval``."""
-    from sp_plugins.adapter.variants import convert
-
     for entry in optimizers.values():
         scheduler = entry.get("scheduler") if isinstance(entry, dict) else None
         float_cls = FLOAT_VARIANTS.get(type(scheduler))

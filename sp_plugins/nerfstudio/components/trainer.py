@@ -30,6 +30,8 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from sp_plugins.adapter.checks import check_checkpoint_file, check_device, check_known_settings
 from sp_plugins.adapter.errors import InputError, write_failure
 from sp_plugins.nerfstudio.host import HOST
+from sp_plugins.nerfstudio.components.datamanagers import LAYOUT_CHECKED, CheckedDataManagerConfig, check_data_layout
+from sp_plugins.nerfstudio.model import install_process_settings, refuse_unreachable_settings
 
 _STEP_FILE = re.compile(r"^step-(\d+)\.ckpt$")
 
@@ -62,9 +64,6 @@ def checkpoint_to_load(config: TrainerConfig, dir_flag: str = "--load-dir"):
 
 def preflight(config: TrainerConfig) -> None:
     """Everything that can be checked before the run writes its folder."""
-    from sp_plugins.nerfstudio.components.datamanagers import LAYOUT_CHECKED, CheckedDataManagerConfig, check_data_layout
-    from sp_plugins.nerfstudio.model import install_process_settings, refuse_unreachable_settings
-
     install_process_settings(config, run=True)  # while our run exists: one-line input errors, host warnings filtered
     pipeline = config.pipeline
     model = getattr(pipeline, "model", None)
