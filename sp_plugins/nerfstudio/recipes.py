@@ -18,6 +18,8 @@ import sys
 from dataclasses import dataclass
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
+from sp_plugins.nerfstudio import table
+
 Value = Union[bool, int, float, str, Tuple[int, ...]]
 
 
@@ -40,7 +42,7 @@ class Recipe:
 
 RECIPES: Dict[str, Recipe] = {
     "nerfacto-cpu": Recipe(
-        methods=("sp-nerfacto", "nerfacto"),
+        methods=(table.SP_NERFACTO, table.NERFACTO),
         about="a real capture on one CPU core: 256 rays, a 2^17 table, 32 field and 64/32 proposal samples per ray "
               "(the fox: 0.29 s per step)",
         flags={
@@ -52,7 +54,7 @@ RECIPES: Dict[str, Recipe] = {
         },
     ),
     "nerfacto-object": Recipe(
-        methods=("sp-nerfacto", "nerfacto"),
+        methods=(table.SP_NERFACTO, table.NERFACTO),
         about="an object on a white background seen from a ring of cameras (Blender scenes, `sp-scene`): nerfstudio's "
               "and nerfbaselines' Blender settings (near 2 / far 6 for cameras about 4 units out, white background, "
               "no scene contraction, no appearance embedding, camera optimizer or distortion loss)",

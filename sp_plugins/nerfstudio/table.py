@@ -109,8 +109,16 @@ OUR_SDF_METHODS: Tuple[str, ...] = ("sp-neus", "sp-neus-hashgrid", "neus-hashgri
 HOST_BASELINES: Tuple[str, ...] = ("nerfacto", "mipnerf", "vanilla-nerf", "tensorf")
 """nerfstudio's own methods that an SP method of ours is the SP variant of (``sp-<name>``)."""
 
+HASH_GRID_SDF = "neus-hashgrid"
+"""Our hash-grid NeuS without SP: the SDF baseline the README's recipe and the GPU check train (its SP method:
+:data:`OUR_BASELINES`)."""
+NERFACTO = "nerfacto"
+"""nerfstudio's own nerfacto: the baseline of ``sp-nerfacto`` and of ``sp-train nerfacto`` (the recipes, the GPU check)."""
+SP_NERFACTO = "sp-nerfacto"
+"""Our nerfacto with SP (nerfacto on our hash grid where tiny-cuda-nn cannot run, then ``with_sp``)."""
+
 OUR_BASELINES: Dict[str, str] = {
-    "neus-hashgrid": "sp-neus-hashgrid",
+    HASH_GRID_SDF: "sp-neus-hashgrid",
     "neuralangelo-lite": "sp-neuralangelo-lite",
     "relu-field": "sp-relu-field",
     "relu-field-flat": "sp-relu-field",

@@ -25,7 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Dict, Iterator
 
-SCRIPTS = ("ns-train", "ns-eval", "ns-render", "ns-export", "sp-train", "sp-export-mesh", "sp-fit", "sp-scene",
+SCRIPTS = ("ns-train", "ns-eval", "ns-render", "ns-export", "sp-train", "sp-export-mesh", "sp-compare", "sp-fit", "sp-scene",
            "nerfbaselines")
 """Console scripts that import nerfstudio or torch at start-up (``nerfbaselines`` with our specs imports
 nerfstudio when it loads the method): the ones worth a fork."""

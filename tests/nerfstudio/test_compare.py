@@ -31,15 +31,19 @@ def pair(tiny_scene, ns_server, tmp_path_factory):
     return out
 
 
-def _compare(*args, expect=0):
+def _compare(*args, expect=0, server=None):
+    """``sp-compare ARGS`` as typed: a child forked from the session's fork server (nerfstudio imported once) when
+    ``server`` is given, else a new interpreter (the refusals below run the real script so)."""
+    if server is not None:
+        return server.call([command("sp-compare"), *args], expect=expect)
     proc = subprocess.run([command("sp-compare"), *map(str, args)], env=ENV, capture_output=True, text=True, timeout=900)
     assert proc.returncode == expect, f"exit {proc.returncode}\n{proc.stdout[-3000:]}\n{proc.stderr[-4000:]}"
     return proc
 
 
-def test_compare_renders_both_runs_scores_them_and_writes_one_offline_page(pair, tiny_scene, tmp_path):
+def test_compare_renders_both_runs_scores_them_and_writes_one_offline_page(pair, tiny_scene, tmp_path, ns_server):
     out = tmp_path / "compare"
-    proc = _compare(pair["neus-hashgrid"], pair["sp-neus-hashgrid"], "--output-dir", out, "--mesh-resolution", "48")
+    proc = _compare(pair["neus-hashgrid"], pair["sp-neus-hashgrid"], "--output-dir", out, "--mesh-resolution", "48", server=ns_server)
     report = json.loads((out / "compare.json").read_text())
     a, b = report["runs"]
     assert "SP off" in a["label"] and "SP alpha0 0.013" in b["label"]
@@ -76,7 +80,7 @@ def test_the_fine_network_s_metrics_count_for_nerf_and_mipnerf():
 
 
 def test_no_curves_figure_from_runs_that_logged_one_step(tmp_path):
-    from sp_plugins.cli.compare import Run, curves_figure
+    from sp_plugins.cli.compare_report import Run, curves_figure
 
     runs = [Run(name, tmp_path / "config.yml", None) for name in ("a", "b")]
     runs[0].curves = {"loss": [[0, 0.03]], "alpha": [[0, 1.0]]}
@@ -111,7 +115,7 @@ def test_the_sp_run_s_alpha_is_read_from_its_event_file(pair, tmp_path):
     assert all(value == 0 for _, value in curves["neus-hashgrid"].get("alpha", [[0, 0]]))
 
 
-def test_two_runs_on_different_data_are_refused_in_one_line(pair, tiny_scene, tmp_path):
+def test_two_runs_on_different_data_are_refused_in_one_line(pair, tiny_scene, tmp_path, ns_server):
     other = tiny_scene.parent / "other"  # the same scene in another folder: config.yml keeps a path by its parts
     shutil.copytree(tiny_scene, other, dirs_exist_ok=True)
     moved = tmp_path / "moved-run"
@@ -121,7 +125,7 @@ def test_two_runs_on_different_data_are_refused_in_one_line(pair, tiny_scene, tm
     config.write_text(text.replace(f"\n      - {tiny_scene.name}\n", "\n      - other\n"))
     assert config.read_text() != text
     out = tmp_path / "compare"
-    proc = _compare(pair["neus-hashgrid"], moved, "--output-dir", out, expect=2)
+    proc = _compare(pair["neus-hashgrid"], moved, "--output-dir", out, expect=2, server=ns_server)
     (line,) = proc.stderr.strip().splitlines()
     assert line.startswith("sp-compare: error: the runs were trained on different data") and str(other) in line
     assert not out.exists()
@@ -134,7 +138,7 @@ def test_a_folder_that_is_not_a_run_is_refused_in_one_line(pair, tmp_path):
                    "wrote (outputs/EXPERIMENT/METHOD/TIMESTAMP) or its config.yml"
 
 
-def test_the_page_opens_offline_in_a_browser_with_its_images(pair, tmp_path):
+def test_the_page_opens_offline_in_a_browser_with_its_images(pair, tmp_path, ns_server):
     """The report as a reader opens it: every image decoded from the page itself (no network, no files beside it)."""
     import os
     from pathlib import Path
@@ -143,7 +147,7 @@ def test_the_page_opens_offline_in_a_browser_with_its_images(pair, tmp_path):
 
     sync_playwright = browser_or_skip()
     out = tmp_path / "compare"
-    _compare(pair["neus-hashgrid"], pair["sp-neus-hashgrid"], "--output-dir", out, "--mesh-resolution", "32", "--max-views", "2")
+    _compare(pair["neus-hashgrid"], pair["sp-neus-hashgrid"], "--output-dir", out, "--mesh-resolution", "32", "--max-views", "2", server=ns_server)
     page_file = tmp_path / "alone" / "compare.html"  # moved away from its PNGs: the page must not need them
     page_file.parent.mkdir()
     shutil.move(str(out / "compare.html"), page_file)
@@ -172,7 +176,7 @@ def _payload(seed, a, b, kind="held-out views"):
 def test_the_seed_summary_is_each_side_s_spread_and_the_paired_difference_with_its_t_interval():
     from scipy.stats import t
 
-    from sp_plugins.cli.compare import per_seed_table, seed_summary, summary_table
+    from sp_plugins.cli.compare_report import per_seed_table, seed_summary, summary_table
 
     pairs = [_payload(0, {"psnr": 20.0, "chamfer": 0.010}, {"psnr": 21.0, "chamfer": 0.012}),
              _payload(1, {"psnr": 22.0, "chamfer": 0.011}, {"psnr": 23.2, "chamfer": 0.013}),
@@ -197,7 +201,7 @@ def test_the_seed_summary_is_each_side_s_spread_and_the_paired_difference_with_i
 
 
 def test_a_lower_is_better_metric_that_falls_everywhere_is_better_and_a_missing_metric_is_left_out():
-    from sp_plugins.cli.compare import seed_summary
+    from sp_plugins.cli.compare_report import seed_summary
 
     pairs = [_payload(s, {"psnr": 20.0, "lpips": 0.30 + s / 100}, {"psnr": 20.0 + s / 10, "lpips": 0.20 + s / 90}) for s in range(3)]
     pairs.append(_payload(3, {"psnr": 20.0, "lpips": 0.31}, {"psnr": 20.4, "lpips": 0.215}))
@@ -213,7 +217,7 @@ def test_a_lower_is_better_metric_that_falls_everywhere_is_better_and_a_missing_
 def test_the_pair_table_is_b_minus_a_for_each_metric_both_runs_have():
     from pathlib import Path
 
-    from sp_plugins.cli.compare import Run, table
+    from sp_plugins.cli.compare_report import Run, table
 
     a, b = Run("A", Path("a"), None), Run("B", Path("b"), None)
     a.overall, b.overall = {"psnr": 20.0, "ssim": 0.5}, {"psnr": 21.25, "ssim": 0.45, "lpips": 0.2}
@@ -242,11 +246,11 @@ def second_seed(tiny_scene, ns_server, tmp_path_factory):
     return out
 
 
-def test_runs_over_seeds_are_paired_by_seed_and_summarised_from_each_pair_s_own_report(pair, second_seed, tmp_path):
+def test_runs_over_seeds_are_paired_by_seed_and_summarised_from_each_pair_s_own_report(pair, second_seed, tmp_path, ns_server):
     out = tmp_path / "seeds"
     # given in different orders on the two sides: the pairing is by --machine.seed, not by position
     proc = _compare("--baseline", pair["neus-hashgrid"], second_seed["neus-hashgrid"], "--sp", second_seed["sp-neus-hashgrid"],
-                    pair["sp-neus-hashgrid"], "--output-dir", out, "--max-views", "1", "--mesh-resolution", "32")
+                    pair["sp-neus-hashgrid"], "--output-dir", out, "--max-views", "1", "--mesh-resolution", "32", server=ns_server)
     report = json.loads((out / "compare.json").read_text())
     assert report["seeds"] == [3, 4] and report["interval"].startswith("95% Student t")
     for seed, steps in ((3, 10), (4, 2)):
@@ -279,10 +283,10 @@ def test_malformed_seed_options_are_refused_in_one_line(args, message, tmp_path)
     assert line.startswith("sp-compare: error: ") and message in line
 
 
-def test_two_runs_of_one_seed_on_a_side_or_unmatched_seeds_are_refused(pair, second_seed, tmp_path):
+def test_two_runs_of_one_seed_on_a_side_or_unmatched_seeds_are_refused(pair, second_seed, tmp_path, ns_server):
     proc = _compare("--baseline", pair["neus-hashgrid"], pair["neus-hashgrid"], "--sp", pair["sp-neus-hashgrid"],
-                    second_seed["sp-neus-hashgrid"], "--output-dir", tmp_path / "x", expect=2)
+                    second_seed["sp-neus-hashgrid"], "--output-dir", tmp_path / "x", expect=2, server=ns_server)
     assert "--baseline has two runs of seed 3" in refused(proc, "sp-compare")
     proc = _compare("--baseline", pair["neus-hashgrid"], "--sp", second_seed["sp-neus-hashgrid"], "--output-dir", tmp_path / "y",
-                    expect=2)
+                    expect=2, server=ns_server)
     assert "different seeds (baseline [3], SP [4])" in refused(proc, "sp-compare")

@@ -10,7 +10,8 @@ import pytest
 import torch
 from PIL import Image
 
-from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataset, ray_hits_box
+from sp_plugins.nerfstudio.components.data_checks import ray_hits_box
+from sp_plugins.nerfstudio.components.datamanagers import SurfaceDataset
 
 
 def _setup(config):
@@ -124,7 +125,7 @@ def test_nerfstudio_data_capture_passes_and_a_damaged_image_is_named(tmp_path):
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     from sp_plugins.adapter.errors import InputError
-    from sp_plugins.nerfstudio.components.datamanagers import check_data_layout
+    from sp_plugins.nerfstudio.components.data_checks import check_data_layout
 
     (tmp_path / "images").mkdir()
     for name in ("a", "b"):

@@ -28,7 +28,7 @@ from sp_plugins.nerfstudio.components.lpips import offline_lpips
 from sp_plugins.nerfstudio.registration import sp_methods
 from sp_plugins.nerfstudio.runs import configure_run, method_config
 
-SDF_BASELINE = "neus-hashgrid"
+SDF_BASELINE = table.HASH_GRID_SDF
 SDF_SP = table.OUR_BASELINES[SDF_BASELINE]
 """The SDF pair the check times: our hash-grid NeuS and the SP method the nerfstudio table pairs it with."""
 CHECKPOINT_RUN = SDF_SP
@@ -39,9 +39,9 @@ RUNS = (
     (SDF_BASELINE, SDF_BASELINE, "ours", f"baseline of {SDF_SP}"),
     (SDF_SP, SDF_SP, "ours", ""),
     (f"{SDF_SP} (torch grid)", SDF_SP, "ours-torch", "our torch hash grid on the GPU"),
-    ("nerfacto", "nerfacto", "host", "nerfstudio's own, the baseline of sp-train nerfacto"),
-    ("sp-train nerfacto", "nerfacto", "sp-train", ""),
-    ("sp-nerfacto", "sp-nerfacto", "ours", ""),
+    (table.NERFACTO, table.NERFACTO, "host", f"nerfstudio's own, the baseline of sp-train {table.NERFACTO}"),
+    (f"sp-train {table.NERFACTO}", table.NERFACTO, "sp-train", ""),
+    (table.SP_NERFACTO, table.SP_NERFACTO, "ours", ""),
 )
 
 
@@ -202,7 +202,7 @@ def check_runs(device, sizes: Sizes, out: Path, deadline: Deadline, artifacts: d
         return None
 
     result["sp_overhead"] = {k: v for k, v in ((SDF_BASELINE, ratio(SDF_SP, SDF_BASELINE)),
-                                               ("nerfacto", ratio("sp-train nerfacto", "nerfacto"))) if v}
+                                               (table.NERFACTO, ratio(f"sp-train {table.NERFACTO}", table.NERFACTO))) if v}
     if ratio(f"{SDF_SP} (torch grid)", SDF_SP):
         result["torch_over_tcnn"] = ratio(f"{SDF_SP} (torch grid)", SDF_SP)
     if device.type != "cuda":

@@ -37,6 +37,7 @@ from torch import nn
 
 from sp_plugins.encodings import HashGrid, tcnn_usable
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.nerfstudio import table
 
 log = logging.getLogger(__name__)
 
@@ -163,4 +164,4 @@ class NerfactoHashGridModel(NerfactoModel):
             self.config.implementation = "torch"
         super().populate_modules()
         if ours:
-            setup_host_modules(self, "nerfacto", device)
+            setup_host_modules(self, table.NERFACTO, device)

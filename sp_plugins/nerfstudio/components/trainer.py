@@ -30,7 +30,8 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from sp_plugins.adapter.checks import check_checkpoint_file, check_device, check_known_settings
 from sp_plugins.adapter.errors import InputError, write_failure
 from sp_plugins.nerfstudio.host import HOST
-from sp_plugins.nerfstudio.components.datamanagers import LAYOUT_CHECKED, CheckedDataManagerConfig, check_data_layout
+from sp_plugins.nerfstudio.components.data_checks import LAYOUT_CHECKED, check_data_layout
+from sp_plugins.nerfstudio.components.datamanagers import CheckedDataManagerConfig
 from sp_plugins.nerfstudio.model import install_process_settings, refuse_unreachable_settings
 
 _STEP_FILE = re.compile(r"^step-(\d+)\.ckpt$")
