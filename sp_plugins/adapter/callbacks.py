@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any, Callable, List, Literal, NamedTuple, Optional
 
 from sp_plugins.adapter.errors import InputError
+from sp_plugins.adapter.hosts import Flags
 from sp_plugins.core import AlphaSchedule, SPConfig, StochasticPreconditioner
 from sp_plugins.core.run import SPRun
 from sp_plugins.core.settings import SPSettings
@@ -48,14 +49,15 @@ def run_length(total: Any, start: Any = None) -> RunLength:
     return RunLength(None if total is None else int(total), None if start is None else int(start))
 
 
-def schedule_problem(config: SPSettings, total_steps: int, steps_flag: str) -> Optional[str]:
+def schedule_problem(config: SPSettings, total_steps: int, steps_flag: str, sp_flag: str = Flags.sp) -> Optional[str]:
     """None when ``config``'s schedule fits a run of ``total_steps``; else the message to show,
-    naming the flags a user typed."""
+    naming the flags a user typed (the host's run-length flag and the prefix of SP's flags, from its
+    :class:`~sp_plugins.adapter.hosts.Flags`)."""
     try:  # only the end is checked against the run (alpha0, its units and final_ratio: SPConfig's own validation)
         AlphaSchedule.resolve(config.schedule, config.alpha0, end=config.end, total_steps=total_steps)
     except ValueError as err:
-        return (f"--pipeline.model.sp.end {config.end:g} does not fit {steps_flag} {total_steps} ({err}); "
-                f"give --pipeline.model.sp.end as a fraction of training in (0, 1] or a step <= {steps_flag}")
+        return (f"{sp_flag}.end {config.end:g} does not fit {steps_flag} {total_steps} ({err}); "
+                f"give {sp_flag}.end as a fraction of training in (0, 1] or a step <= {steps_flag}")
     return None
 
 
@@ -83,7 +85,8 @@ def model_schedule_callback(at: Callable[[int, Optional[int]], Any], run: RunLen
     return make("before", update)
 
 
-def sp_callbacks(sp_run: SPRun, run: RunLength, attributes: Any, make: MakeCallback, steps_flag: str) -> List[Any]:
+def sp_callbacks(sp_run: SPRun, run: RunLength, attributes: Any, make: MakeCallback, steps_flag: str,
+                 sp_flag: str = Flags.sp) -> List[Any]:
     """Everything a model with SP registers: ``sp_run``'s fixed points as the host's callbacks (``step_pre`` before
     every iteration, ``step_post``, with the reach check, after it), its length set from the trainer's (checked
     against the schedule: one line naming the flags when it does not fit), and the alpha grid's learning rate (from
@@ -92,7 +95,7 @@ def sp_callbacks(sp_run: SPRun, run: RunLength, attributes: Any, make: MakeCallb
     stopped at."""
     total = run.total
     if total is not None:
-        problem = schedule_problem(sp_run.config, total, steps_flag)
+        problem = schedule_problem(sp_run.config, total, steps_flag, sp_flag)
         if problem:
             raise InputError(problem)
         # without a start step (sdfstudio), stay at the step the checkpoint loaded (0 on a fresh run);

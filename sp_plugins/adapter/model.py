@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, List, Tuple
 import torch
 
 from sp_plugins.adapter.callbacks import ALPHA_GRID_GROUP, RunLength, Where, sp_callbacks
+from sp_plugins.adapter.hosts import Flags
 from sp_plugins.core import SPConfig, StochasticPreconditioner
 from sp_plugins.core.run import SPRun
 
@@ -77,6 +78,8 @@ class SPModelBase:
     steps_flag: str
     """The flag that sets the run's length in this host's training command (named in errors): the
     host's model sets it from its registry entry (:attr:`sp_plugins.adapter.hosts.Flags.steps`)."""
+    sp_flag: str = Flags.sp
+    """The prefix of SP's flags in this host's training command (named in errors; its :attr:`Flags.sp`)."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -160,7 +163,7 @@ class SPModelBase:
         callbacks = super().get_training_callbacks(training_callback_attributes)  # type: ignore[misc]  # the host model's (next in the MRO)
         run = self.sp_run_length(training_callback_attributes)
         return list(callbacks) + sp_callbacks(self.sp_run, run, training_callback_attributes, self.sp_training_callback,
-                                              self.steps_flag)
+                                              self.steps_flag, self.sp_flag)
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Any]:
         metrics = super().get_metrics_dict(outputs, batch)  # type: ignore[misc]  # the host model's (next in the MRO)

@@ -163,6 +163,7 @@ class SPModel(adapter_model.SPModelBase):
     """Mixin for a nerfstudio ``Model``; list it before the host model class."""
 
     steps_flag = HOST.flags.steps
+    sp_flag = HOST.flags.sp
 
     def populate_modules(self) -> None:
         hold_under_host_command(self)  # ns-eval, ns-render, ns-export, ns-viewer on our run: its failures as one line

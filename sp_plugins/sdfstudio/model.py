@@ -49,6 +49,7 @@ class SPModel(adapter_model.SPModelBase):
     """Mixin for an sdfstudio ``Model``; list it before the host model class."""
 
     steps_flag = HOST.flags.steps
+    sp_flag = HOST.flags.sp
 
     def sp_bounds(self, aabb) -> Any:
         return CONTRACTED_BOUNDS

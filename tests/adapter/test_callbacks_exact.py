@@ -182,3 +182,11 @@ def test_a_models_own_schedule_is_applied_at_once_at_the_start_step_then_before_
     assert where == "before" and make.asked == ["before"] and calls == [(first, 80)]
     update(31)
     assert calls == [(first, 80), (31, 80)]
+
+
+def test_the_schedule_refusal_names_the_host_s_sp_flags():
+    """The refusal names SP's flags as the host registers them (``Flags.sp``), not one host's spelling."""
+    config = SPConfig(schedule="step", end=300)
+    line = cb.schedule_problem(config, 200, "--steps", "--model.sp")
+    assert line.startswith("--model.sp.end 300 does not fit --steps 200 (") and "give --model.sp.end as a fraction" in line
+    assert "--pipeline.model.sp" in cb.schedule_problem(config, 200, "--steps")  # the default: both hosts' spelling
