@@ -81,24 +81,31 @@ def relative(path: Path) -> str:
     return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
 
 
-def over_seeds(pairs: list, data: Path) -> None:
-    """``sp-compare --baseline ... --sp ...`` over the seeds' pairs, into ``RESULTS / "seeds"`` (meshes left out)."""
-    out = OUT / "compare-seeds"
-    compare = Path(sys.executable).with_name("sp-compare")
-    subprocess.run([str(compare), "--baseline", *(relative(b) for b, _ in pairs), "--sp", *(relative(s) for _, s in pairs),
-                    "--output-dir", relative(out)], check=True, cwd=ROOT)
+def publish(out: Path, target: Path, figure: Path) -> None:
+    """An over-seeds report of ``sp-compare`` in ``out`` as the repository keeps it: screenshot its page, copy it to
+    ``target`` without meshes or each pair's page (which inlines its images, 1-2 MB: its JSON and PNGs are kept),
+    name files from the repository root (the true mesh's path comes from a run's config.yml, which holds the
+    absolute ``--data``), and the screenshot to ``figure``."""
     screenshot(out / "compare.html", out / "page.png")
-    target = RESULTS / "seeds"
     if target.exists():
         shutil.rmtree(target)
     shutil.copytree(out, target, ignore=shutil.ignore_patterns("*.ply"))
-    for page in target.glob("seed-*/compare.html"):  # each pair's page inlines its images (1-2 MB): JSON and PNGs kept
+    for page in target.glob("seed-*/compare.html"):
         page.unlink()
     for path in target.rglob("*"):
         if path.suffix in (".html", ".json", ".md"):
             path.write_text(path.read_text().replace(f"{ROOT}/", ""))
-    shutil.copy(out / "page.png", DOCS_SEEDS_FIGURE)
+    shutil.copy(out / "page.png", figure)
     print((target / "compare.json").read_text()[:3000])
+
+
+def over_seeds(pairs: list) -> None:
+    """``sp-compare --baseline ... --sp ...`` over the seeds' pairs, into ``RESULTS / "seeds"``."""
+    out = OUT / "compare-seeds"
+    compare = Path(sys.executable).with_name("sp-compare")
+    subprocess.run([str(compare), "--baseline", *(relative(b) for b, _ in pairs), "--sp", *(relative(s) for _, s in pairs),
+                    "--output-dir", relative(out)], check=True, cwd=ROOT)
+    publish(out, RESULTS / "seeds", DOCS_SEEDS_FIGURE)
 
 
 def main() -> None:
@@ -115,7 +122,7 @@ def main() -> None:
     docs_figure(RESULTS / "views.png", DOCS_FIGURE)
     print((RESULTS / "compare.json").read_text()[:2000])
     if len(pairs) > 1:
-        over_seeds(pairs, data)
+        over_seeds(pairs)
 
 
 if __name__ == "__main__":

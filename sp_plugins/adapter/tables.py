@@ -26,3 +26,10 @@ def merged(table: Mapping[str, Dict[str, V]], cls: type) -> Dict[str, V]:
     for base in reversed(cls.__mro__):
         out.update(table.get(class_path(base), {}))
     return out
+
+
+def read_point(read_points: Mapping[str, str], cls: Optional[type]) -> str:
+    """The ``Frustums`` accessor a field of class ``cls`` queries at: ``read_points``' entry (a host table's
+    ``READ_POINTS``) for it or its nearest base, else ``get_positions``, the default."""
+    found = lookup(read_points, cls)
+    return found[1] if found else "get_positions"

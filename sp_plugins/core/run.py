@@ -138,16 +138,14 @@ class SPRun:
         if self.optimizer is not None and self.preconditioner.active:
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
-        if self.reach_checked or not self.preconditioner.active:
+        if self.reach_checked or not self.preconditioner.active:  # active: training, alpha > 0
             return
+        self.reach_checked = True
         if self._reach is not None:
-            self.reach_checked = True
             self._reach(step)
-        elif self.preconditioner.training:
-            self.reach_checked = True
-            if self._moved == 0:
-                raise SPNotReached(f"SP was on at step {step} (alpha {self.alpha:.3g}) but no position went through it: "
-                                   "hand the field sp(x) (or sp.blurred(field, x)) in place of x")
+        elif self._moved == 0:
+            raise SPNotReached(f"SP was on at step {step} (alpha {self.alpha:.3g}) but no position went through it: "
+                               "hand the field sp(x) (or sp.blurred(field, x)) in place of x")
 
     # -- state -------------------------------------------------------------------------------
     def train(self, mode: bool = True) -> "SPRun":

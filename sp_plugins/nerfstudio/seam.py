@@ -53,7 +53,7 @@ from torch import Tensor, nn
 
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import SPFieldMixin
-from sp_plugins.adapter.tables import lookup
+from sp_plugins.adapter.tables import lookup, read_point
 from sp_plugins.adapter.variants import class_path
 from sp_plugins.core import StochasticPreconditioner
 from sp_plugins.core.preconditioner import previewing
@@ -79,8 +79,7 @@ ReadPoint = Callable[[Frustums], Tensor]
 def table_read_point(cls: type) -> str:
     """The ``Frustums`` accessor instances of host field class ``cls`` query at: ``table.READ_POINTS``'
     entry for it or its nearest base, else ``get_positions`` (looked up once per class)."""
-    found = lookup(table.READ_POINTS, cls)
-    return found[1] if found else "get_positions"
+    return read_point(table.READ_POINTS, cls)
 
 
 @dataclass

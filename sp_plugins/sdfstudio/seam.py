@@ -46,7 +46,7 @@ from torch import Tensor, nn
 from sp_plugins.adapter.errors import InputError
 from sp_plugins.adapter.field import PreconditionerHandle, SPFieldMixin
 from sp_plugins.adapter import hosts
-from sp_plugins.adapter.tables import lookup
+from sp_plugins.adapter import tables
 from sp_plugins.sdfstudio import table
 from sp_plugins.core import StochasticPreconditioner
 
@@ -96,8 +96,7 @@ class PerturbedContraction(nn.Module):
 def read_point(cls: type) -> str:
     """The ``Frustums`` accessor a field of class ``cls`` queries at: ``table.READ_POINTS``' entry for it or its
     nearest base (looked up once per class), else ``get_positions``."""
-    found = lookup(table.READ_POINTS, cls)
-    return found[1] if found else "get_positions"
+    return tables.read_point(table.READ_POINTS, cls)
 
 
 def check_reached(model: nn.Module, model_name: str, step: int) -> None:
